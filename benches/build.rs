@@ -1,0 +1,284 @@
+//! Build-speed benchmark of the kd-tree builders.
+//!
+//! It measures the seconds and the millions of triangles per second (the
+//! median of several repetitions) of:
+//!
+//! - the O(N²) `naive` builder against the O(N log N) `sweep` builder on
+//!   deterministic random triangle soups of 1K and 10K triangles, with the
+//!   ratio naive/sweep (naive at 10K runs once, since it is slow);
+//! - `sweep` on the default scene `scenes/nexuiz_dieselpower.obj`;
+//! - `sweep` on `stk_black_forest.obj` (about 1M triangles) when the
+//!   environment variable `SLIMKD_SCENES` names a directory holding it; its
+//!   load time is reported separately and is not part of the build time.
+//!
+//! It also checks (untimed) that both builders produce the same tree for
+//! the 1K soup, and prints the node, leaf and reference counts of each tree.
+//!
+//! Run it with `cargo bench --bench build`, or with the large scene as
+//! `SLIMKD_SCENES=~/.cache/slimkd-scenes cargo bench --bench build`.
+//! Passing `-- --quick` runs everything once and skips naive at 10K.
+
+mod common;
+
+use glam::Vec3;
+use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::geom::double_area;
+use slimkd::scene::TriangleColumns;
+use slimkd::tree::TreeIr;
+use std::time::Instant;
+
+/// Repetitions of each timed build (1 with `--quick`).
+const REPS: usize = 5;
+/// Repetitions of the slow naive build of the 10K soup.
+const NAIVE_10K_REPS: usize = 1;
+/// Repetitions of the build of the large optional scene.
+const BIG_REPS: usize = 3;
+
+/// A xorshift64* generator: deterministic, good enough for test geometry.
+struct XorShift(u64);
+
+impl XorShift {
+    fn next_u64(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    /// A uniform value in `[0, 1)`.
+    fn unit(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+/// A soup of `n` small random triangles inside the unit cube. Each
+/// triangle's extent is drawn log-uniformly between 0.002 and 0.1, so the
+/// soup mixes tiny and larger triangles; zero-area draws are redrawn.
+fn random_soup(n: usize, seed: u64) -> TriangleColumns {
+    let mut rng = XorShift(seed);
+    let mut tris = Vec::with_capacity(n);
+    while tris.len() < n {
+        let size = 0.002 * 50f32.powf(rng.unit());
+        let mut coord = || size + (1.0 - 2.0 * size) * rng.unit();
+        let centre = Vec3::new(coord(), coord(), coord());
+        let mut corner = || {
+            centre
+                + size
+                    * Vec3::new(
+                        2.0 * rng.unit() - 1.0,
+                        2.0 * rng.unit() - 1.0,
+                        2.0 * rng.unit() - 1.0,
+                    )
+        };
+        let tri = [corner(), corner(), corner()];
+        if double_area(&tri) > 0.0 {
+            tris.push(tri);
+        }
+    }
+    TriangleColumns::from_triangles(&tris).expect("the soup is finite")
+}
+
+/// One timed build: the median seconds over `reps` runs and the last tree.
+fn time_build(scene: &TriangleColumns, builder: Builder, reps: usize) -> (f64, TreeIr) {
+    let config = BuildConfig::default();
+    let mut times = Vec::with_capacity(reps);
+    let mut tree = None;
+    for _ in 0..reps {
+        let start = Instant::now();
+        let t = build::build(scene, &config, builder, None);
+        times.push(start.elapsed().as_secs_f64());
+        tree = Some(t);
+    }
+    (common::median(&times), tree.expect("reps >= 1"))
+}
+
+/// One line of the timing table.
+struct Timing {
+    scene: String,
+    triangles: usize,
+    builder: &'static str,
+    reps: usize,
+    seconds: f64,
+    /// naive seconds / sweep seconds, on the sweep line.
+    ratio: Option<f64>,
+}
+
+/// One line of the tree table.
+struct TreeLine {
+    scene: String,
+    builder: &'static str,
+    triangles: usize,
+    tree: TreeIr,
+}
+
+fn builder_name(builder: Builder) -> &'static str {
+    match builder {
+        Builder::Naive => "naive",
+        Builder::Sweep => "sweep",
+    }
+}
+
+fn print_timings(rows: &[Timing]) {
+    println!(
+        "{:<22} {:>9} {:>7} {:>5} {:>11} {:>9} {:>12}",
+        "scene", "triangles", "builder", "reps", "median s", "Mtris/s", "naive/sweep"
+    );
+    for r in rows {
+        let ratio = r
+            .ratio
+            .map_or_else(|| "-".to_string(), |x| format!("{x:.1}x"));
+        println!(
+            "{:<22} {:>9} {:>7} {:>5} {:>11.4} {:>9.3} {:>12}",
+            r.scene,
+            r.triangles,
+            r.builder,
+            r.reps,
+            r.seconds,
+            r.triangles as f64 / r.seconds / 1e6,
+            ratio
+        );
+    }
+}
+
+fn print_trees(lines: &[TreeLine]) {
+    println!(
+        "{:<22} {:>7} {:>9} {:>9} {:>10} {:>8}",
+        "scene", "builder", "nodes", "leaves", "refs", "refs/tri"
+    );
+    for l in lines {
+        println!(
+            "{:<22} {:>7} {:>9} {:>9} {:>10} {:>8.2}",
+            l.scene,
+            l.builder,
+            l.tree.nodes.len(),
+            l.tree.n_leaves(),
+            l.tree.leaf_tris.len(),
+            l.tree.leaf_tris.len() as f64 / l.triangles.max(1) as f64
+        );
+    }
+}
+
+fn main() {
+    let quick = common::quick();
+    let reps = if quick { 1 } else { REPS };
+    let mut timings = Vec::new();
+    let mut trees = Vec::new();
+    let mut loads = Vec::new();
+
+    // Naive against sweep on random soups.
+    for (n, label) in [(1_000, "random 1K"), (10_000, "random 10K")] {
+        let scene = random_soup(n, 0x5EED_0000 + n as u64);
+        let naive = if n >= 10_000 && quick {
+            None
+        } else {
+            let naive_reps = if n >= 10_000 {
+                NAIVE_10K_REPS.min(reps)
+            } else {
+                reps
+            };
+            if naive_reps < reps {
+                println!(
+                    "note: naive on {label} runs {naive_reps} time(s), since it is O(N²) per node"
+                );
+            }
+            Some((naive_reps, time_build(&scene, Builder::Naive, naive_reps)))
+        };
+        let (sweep_s, sweep_tree) = time_build(&scene, Builder::Sweep, reps);
+        if let Some((naive_reps, (naive_s, naive_tree))) = naive {
+            timings.push(Timing {
+                scene: label.into(),
+                triangles: n,
+                builder: builder_name(Builder::Naive),
+                reps: naive_reps,
+                seconds: naive_s,
+                ratio: None,
+            });
+            if n == 1_000 {
+                // The sanity check: both builders define the same tree.
+                assert!(
+                    naive_tree == sweep_tree,
+                    "naive and sweep trees differ on {label}"
+                );
+                sweep_tree
+                    .validate(&scene)
+                    .expect("the sweep tree is valid");
+                println!("check: naive and sweep trees are equal on {label}");
+            }
+            trees.push(TreeLine {
+                scene: label.into(),
+                builder: builder_name(Builder::Naive),
+                triangles: n,
+                tree: naive_tree,
+            });
+            timings.push(Timing {
+                scene: label.into(),
+                triangles: n,
+                builder: builder_name(Builder::Sweep),
+                reps,
+                seconds: sweep_s,
+                ratio: Some(naive_s / sweep_s),
+            });
+        } else {
+            println!("note: --quick skips the naive build of {label}");
+            timings.push(Timing {
+                scene: label.into(),
+                triangles: n,
+                builder: builder_name(Builder::Sweep),
+                reps,
+                seconds: sweep_s,
+                ratio: None,
+            });
+        }
+        trees.push(TreeLine {
+            scene: label.into(),
+            builder: builder_name(Builder::Sweep),
+            triangles: n,
+            tree: sweep_tree,
+        });
+    }
+
+    // Sweep on the default scene and, when available, on the large one.
+    let mut scenes = vec![(common::crate_path("scenes/nexuiz_dieselpower.obj"), reps)];
+    if let Some(path) = common::big_scene() {
+        scenes.push((path, BIG_REPS.min(reps)));
+    }
+    for (path, scene_reps) in scenes {
+        let loaded = common::load(&path);
+        let n = loaded.scene.len();
+        let (seconds, tree) = time_build(&loaded.scene, Builder::Sweep, scene_reps);
+        timings.push(Timing {
+            scene: loaded.name.clone(),
+            triangles: n,
+            builder: builder_name(Builder::Sweep),
+            reps: scene_reps,
+            seconds,
+            ratio: None,
+        });
+        trees.push(TreeLine {
+            scene: loaded.name.clone(),
+            builder: builder_name(Builder::Sweep),
+            triangles: n,
+            tree,
+        });
+        loads.push(loaded);
+    }
+
+    println!();
+    println!("build time (sequential builders, median of the reps; --quick: {quick})");
+    print_timings(&timings);
+    println!();
+    println!("trees");
+    print_trees(&trees);
+    println!();
+    println!("scene loads (not part of the build times)");
+    println!(
+        "{:<22} {:>9} {:>10} {:>9}",
+        "scene", "triangles", "dropped", "load s"
+    );
+    for l in &loads {
+        println!(
+            "{:<22} {:>9} {:>10} {:>9.3}",
+            l.name, l.summary.triangles, l.summary.dropped_degenerate, l.seconds
+        );
+    }
+}

@@ -1,0 +1,458 @@
+//! The `slimkd` command line: build a kd-tree for a scene, render it, and
+//! report figures. Without arguments it runs the main job on the embedded
+//! default scene. Exit codes: 0 success, 1 failure (bad input, I/O), 2 bad
+//! usage.
+
+use clap::{Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+use slimkd::build::{self, BuildConfig, Builder, Progress};
+use slimkd::render::{self, Camera, HitBuffer, Shading, View};
+use slimkd::scene::{self, LoadSummary, TriangleColumns};
+use slimkd::stats::TreeStats;
+use slimkd::trace::{BruteForce, ClosestHit, TreeTracer};
+use slimkd::tree::TreeIr;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+/// The embedded default scene: nexuiz_dieselpower (see scenes/README.md).
+const DEFAULT_SCENE_NAME: &str = "nexuiz_dieselpower.obj";
+const DEFAULT_SCENE: &[u8] = include_bytes!("../../scenes/nexuiz_dieselpower.obj");
+const DEFAULT_VIEWS: &str = include_str!("../../scenes/views.txt");
+/// The name that selects the embedded scene on the command line.
+const DEFAULT_ARG: &str = "default";
+
+#[derive(Parser)]
+#[command(name = "slimkd", version, about = "Build, store and trace SAH kd-trees for large triangle scenes.")]
+#[command(
+    long_about = "Build, store and trace SAH kd-trees for large triangle scenes.\n\nWithout a command, builds the tree of the embedded default scene, prints a summary, renders slimkd.png into the current directory and prints Mrays/s.\n\nSCENE is an OBJ file, or `default` for the embedded scene."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Build the standard SAH kd-tree of a scene and print its figures.
+    Build {
+        /// OBJ file, or `default`.
+        scene: PathBuf,
+        #[command(flatten)]
+        build: BuildArgs,
+        /// Print one JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Build the tree of a scene and render it.
+    Render(Box<RenderArgs>),
+}
+
+#[derive(clap::Args, Clone)]
+struct BuildArgs {
+    /// Which builder to run (both produce the same tree).
+    #[arg(long, value_enum, default_value_t = BuilderArg::Sweep)]
+    builder: BuilderArg,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Depth limit (default: 8 + 1.3·log2 N).
+    #[arg(long)]
+    max_depth: Option<u32>,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum BuilderArg {
+    Sweep,
+    Naive,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ShadingArg {
+    EyeLight,
+    Normals,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum ModeArg {
+    /// Scalar traversal, one ray at a time.
+    Single,
+    /// Brute force: every ray against every triangle (reference).
+    Brute,
+}
+
+#[derive(clap::Args)]
+struct RenderArgs {
+    /// OBJ file, or `default`.
+    scene: PathBuf,
+    #[command(flatten)]
+    build: BuildArgs,
+    /// Camera position x,y,z.
+    #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
+    eye: Option<glam::DVec3>,
+    /// Point looked at x,y,z.
+    #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
+    at: Option<glam::DVec3>,
+    /// Up vector x,y,z.
+    #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
+    up: Option<glam::DVec3>,
+    /// Vertical field of view in degrees.
+    #[arg(long)]
+    fov: Option<f64>,
+    /// Image size WxH.
+    #[arg(long, value_parser = parse_size, default_value = "1024x1024")]
+    size: (u32, u32),
+    /// Views file (`SCENE VIEW_ID eye=… at=… up=… fov=…`); the embedded
+    /// scene's views are used when omitted.
+    #[arg(long)]
+    views: Option<PathBuf>,
+    /// View id in the views file, matched with the scene file's stem.
+    #[arg(long)]
+    view: Option<String>,
+    /// Traversal mode.
+    #[arg(long, value_enum, default_value_t = ModeArg::Single)]
+    mode: ModeArg,
+    /// Frames to trace; Mrays/s is the median.
+    #[arg(long, default_value_t = 1)]
+    reps: usize,
+    /// Output image (.png or .exr with a depth channel).
+    #[arg(short = 'o', long)]
+    output: Option<PathBuf>,
+    /// Write W·H little-endian f32 hit distances (+inf for a miss).
+    #[arg(long)]
+    dump_t: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
+    shading: ShadingArg,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_dvec3(s: &str) -> Result<glam::DVec3, String> {
+    render::parse_vec3(s).ok_or_else(|| format!("expected x,y,z with finite numbers, got `{s}`"))
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or("expected WxH")?;
+    let w: u32 = w.parse().map_err(|_| format!("bad width in `{s}`"))?;
+    let h: u32 = h.parse().map_err(|_| format!("bad height in `{s}`"))?;
+    if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 28 {
+        return Err(format!("size `{s}` out of range"));
+    }
+    Ok((w, h))
+}
+
+type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        None => main_job(),
+        Some(Command::Build { scene, build, json }) => cmd_build(&scene, &build, json),
+        Some(Command::Render(args)) => cmd_render(&args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("slimkd: error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
+    let mut b = rayon::ThreadPoolBuilder::new();
+    if let Some(n) = threads {
+        if n == 0 {
+            return Err("--threads must be at least 1".into());
+        }
+        b = b.num_threads(n);
+    }
+    Ok(b.build()?)
+}
+
+struct Loaded {
+    path: PathBuf,
+    scene: TriangleColumns,
+    summary: LoadSummary,
+    seconds: f64,
+}
+
+fn load(path: &Path) -> Res<Loaded> {
+    let start = Instant::now();
+    let (scene, summary, path) = if path.as_os_str() == DEFAULT_ARG {
+        let name = scene::embedded_name(DEFAULT_SCENE_NAME);
+        let (s, m) = scene::load_obj_bytes(&name, DEFAULT_SCENE)?;
+        (s, m, PathBuf::from(DEFAULT_SCENE_NAME))
+    } else {
+        let (s, m) = scene::load_obj(path)?;
+        (s, m, path.to_path_buf())
+    };
+    Ok(Loaded {
+        path,
+        scene,
+        summary,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+struct Built {
+    tree: TreeIr,
+    config: BuildConfig,
+    seconds: f64,
+}
+
+/// Builds on a worker thread; shows a progress bar once the build has
+/// taken a second (on a terminal).
+fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Built> {
+    let mut config = BuildConfig::default();
+    config.sah.max_depth = args.max_depth;
+    let builder = match args.builder {
+        BuilderArg::Sweep => Builder::Sweep,
+        BuilderArg::Naive => Builder::Naive,
+    };
+    let progress = Progress::default();
+    let start = Instant::now();
+    let tree = std::thread::scope(|s| {
+        let worker = s.spawn(|| build::build(scene, &config, builder, Some(&progress)));
+        let mut bar: Option<ProgressBar> = None;
+        while !worker.is_finished() {
+            std::thread::sleep(Duration::from_millis(50));
+            if bar.is_none() && !quiet && start.elapsed() > Duration::from_secs(1) {
+                let b = ProgressBar::new(1000);
+                b.set_style(
+                    ProgressStyle::with_template("building {bar:40} {percent:>3}% {elapsed_precise}")
+                        .expect("the template is valid"),
+                );
+                bar = Some(b);
+            }
+            if let Some(b) = &bar {
+                b.set_position((progress.fraction() * 1000.0) as u64);
+            }
+        }
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        worker.join()
+    })
+    .map_err(|_| "the builder panicked")?;
+    Ok(Built {
+        tree,
+        config,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
+    println!("scene      {} ({}; loaded in {:.3} s)", loaded.path.display(), loaded.summary, loaded.seconds);
+    println!(
+        "tree       {} nodes ({} inner, {} leaves, {} empty), {} triangle references ({:.2} per triangle)",
+        stats.nodes,
+        stats.inner,
+        stats.leaves,
+        stats.empty_leaves,
+        stats.refs,
+        stats.refs as f64 / loaded.scene.len().max(1) as f64
+    );
+    println!(
+        "           max depth {}, mean leaf depth {:.1}, SAH cost {:.2}",
+        stats.max_depth, stats.mean_leaf_depth, stats.sah_cost
+    );
+    println!(
+        "build      {:.3} s ({:.2} Mtris/s)",
+        built.seconds,
+        loaded.scene.len() as f64 / built.seconds / 1e6
+    );
+}
+
+fn build_json(loaded: &Loaded, built: &Built, stats: &TreeStats, threads: usize) -> serde_json::Value {
+    json!({
+        "scene": loaded.path.display().to_string(),
+        "triangles": loaded.scene.len(),
+        "vertices": loaded.scene.positions.len(),
+        "dropped_degenerate": loaded.summary.dropped_degenerate,
+        "load_s": loaded.seconds,
+        "build_s": built.seconds,
+        "threads": threads,
+        "nodes": stats.nodes,
+        "inner": stats.inner,
+        "leaves": stats.leaves,
+        "empty_leaves": stats.empty_leaves,
+        "refs": stats.refs,
+        "max_depth": stats.max_depth,
+        "mean_leaf_depth": stats.mean_leaf_depth,
+        "sah_cost": stats.sah_cost,
+        "leaf_depth_histogram": stats.leaf_depths,
+        "k_t": built.config.sah.k_t,
+        "k_i": built.config.sah.k_i,
+    })
+}
+
+fn cmd_build(path: &Path, args: &BuildArgs, json: bool) -> Res<()> {
+    let pool = pool(args.threads)?;
+    pool.install(|| {
+        let loaded = load(path)?;
+        let built = build_tree(&loaded.scene, args, json)?;
+        let stats = TreeStats::of(&built.tree, &built.config.sah);
+        if json {
+            println!("{}", build_json(&loaded, &built, &stats, pool.current_num_threads()));
+        } else {
+            print_summary(&loaded, &built, &stats);
+        }
+        Ok(())
+    })
+}
+
+/// The camera: explicit flags override a view, a view overrides the
+/// default camera of the scene box.
+fn camera_for(args: &RenderArgs, loaded: &Loaded, tree: &TreeIr) -> Res<Camera> {
+    let (w, h) = args.size;
+    let mut cam = Camera::default_for(&tree.bounds, w, h);
+    if let Some(id) = &args.view {
+        let views: Vec<View> = match &args.views {
+            Some(file) => {
+                let text = std::fs::read_to_string(file).map_err(|e| format!("{}: {e}", file.display()))?;
+                render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
+            }
+            None => render::parse_views(DEFAULT_VIEWS)?,
+        };
+        let view = render::find_view(&views, &loaded.path, id).ok_or_else(|| {
+            format!(
+                "no view `{id}` for scene `{}` in the views file",
+                loaded.path.file_stem().unwrap_or_default().to_string_lossy()
+            )
+        })?;
+        cam = Camera::from_view(view, w, h);
+    } else if args.views.is_some() {
+        return Err("--views needs --view ID".into());
+    }
+    if let Some(v) = args.eye {
+        cam.eye = v;
+    }
+    if let Some(v) = args.at {
+        cam.at = v;
+    }
+    if let Some(v) = args.up {
+        cam.up = v;
+    }
+    if let Some(v) = args.fov {
+        if !(v > 0.0 && v < 180.0) {
+            return Err(format!("--fov {v} is not in (0, 180)").into());
+        }
+        cam.fov_deg = v;
+    }
+    Ok(cam)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
+}
+
+fn cmd_render(args: &RenderArgs) -> Res<()> {
+    if args.reps == 0 {
+        return Err("--reps must be at least 1".into());
+    }
+    let pool = pool(args.build.threads)?;
+    pool.install(|| {
+        let loaded = load(&args.scene)?;
+        let built = build_tree(&loaded.scene, &args.build, args.json)?;
+        let stats = TreeStats::of(&built.tree, &built.config.sah);
+        let camera = camera_for(args, &loaded, &built.tree)?;
+        let tracer: Box<dyn ClosestHit> = match args.mode {
+            ModeArg::Single => Box::new(TreeTracer {
+                tree: &built.tree,
+                scene: &loaded.scene,
+            }),
+            ModeArg::Brute => Box::new(BruteForce(&loaded.scene)),
+        };
+        let mut rates = Vec::new();
+        let mut last: Option<HitBuffer> = None;
+        for _ in 0..args.reps {
+            let buf = render::trace_frame(tracer.as_ref(), &camera);
+            rates.push(buf.mrays_per_s());
+            last = Some(buf);
+        }
+        let buf = last.expect("reps >= 1");
+        let shading = match args.shading {
+            ShadingArg::EyeLight => Shading::EyeLight,
+            ShadingArg::Normals => Shading::Normals,
+        };
+        let frame = render::shade(&buf, &camera, &loaded.scene, shading);
+        if let Some(out) = &args.output {
+            render::write_image(out, &frame)?;
+        }
+        if let Some(out) = &args.dump_t {
+            render::write_depth_f32(out, &frame)?;
+        }
+        let mrays = median(rates);
+        let mode = match args.mode {
+            ModeArg::Single => "single",
+            ModeArg::Brute => "brute",
+        };
+        if args.json {
+            let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
+            let extra = json!({
+                "mode": mode,
+                "width": camera.width,
+                "height": camera.height,
+                "reps": args.reps,
+                "mrays_per_s": mrays,
+                "hits": buf.n_hits(),
+                "checksum": buf.checksum(),
+                "eye": [camera.eye.x, camera.eye.y, camera.eye.z],
+                "at": [camera.at.x, camera.at.y, camera.at.z],
+                "up": [camera.up.x, camera.up.y, camera.up.z],
+                "fov": camera.fov_deg,
+            });
+            if let (Some(a), serde_json::Value::Object(b)) = (j.as_object_mut(), extra) {
+                a.extend(b);
+            }
+            println!("{j}");
+        } else {
+            print_summary(&loaded, &built, &stats);
+            println!(
+                "render     {}x{} {mode}, {} threads: {:.2} Mrays/s (median of {}), {} hits, checksum {:.6}",
+                camera.width,
+                camera.height,
+                pool.current_num_threads(),
+                mrays,
+                args.reps,
+                buf.n_hits(),
+                buf.checksum()
+            );
+            if let Some(out) = &args.output {
+                println!("wrote      {}", out.display());
+            }
+        }
+        Ok(())
+    })
+}
+
+/// `slimkd` without arguments: the embedded scene, its first view, an image.
+fn main_job() -> Res<()> {
+    let args = RenderArgs {
+        scene: PathBuf::from(DEFAULT_ARG),
+        build: BuildArgs {
+            builder: BuilderArg::Sweep,
+            threads: None,
+            max_depth: None,
+        },
+        eye: None,
+        at: None,
+        up: None,
+        fov: None,
+        size: (1024, 1024),
+        views: None,
+        view: Some("1".into()),
+        mode: ModeArg::Single,
+        reps: 3,
+        output: Some(PathBuf::from("slimkd.png")),
+        dump_t: None,
+        shading: ShadingArg::EyeLight,
+        json: false,
+    };
+    cmd_render(&args)
+}

@@ -1,0 +1,189 @@
+//! Builders of the standard SAH kd-tree. Every builder produces the same
+//! [`TreeIr`] for the same scene and [`BuildConfig`]; they differ only in
+//! how fast they get there.
+//!
+//! - [`naive`]: the reference; evaluates every candidate plane by counting
+//!   triangles directly, O(N²) per node.
+//! - [`sweep`]: Wald & Havran (2006), O(N log N): events sorted once, one
+//!   sweep per axis, children inherit their event order.
+//!
+//! **The tree both build, defined once.** The root cell is the scene's
+//! bounds and every triangle's box in it is its own bounds. At a node, the
+//! candidate planes are the bounds of the triangles' boxes in that node
+//! (perfect splits); [`sah`] prices them and picks one or makes a leaf. A
+//! triangle whose box lies on one side of the chosen plane ([`classify`])
+//! keeps its box in that child; a straddler's box in each child is
+//! `clip_triangle(tri, child cell) ∩ box in the parent`, and a straddler
+//! whose clipped box is empty (possible only by a rounding margin) is left
+//! out of that child. Leaves list their triangles in ascending id, and the
+//! nodes are emitted in pre-order.
+
+pub mod naive;
+pub mod sah;
+pub mod sweep;
+
+use crate::geom::{Aabb, clip_triangle};
+use crate::scene::TriangleColumns;
+use crate::tree::{Node, NodeId, TreeIr, TriId};
+use glam::Vec3;
+use sah::{SahParams, Side, Split};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// What every builder needs to know.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BuildConfig {
+    pub sah: SahParams,
+}
+
+/// Which builder to run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Builder {
+    Naive,
+    Sweep,
+}
+
+/// Builds the standard tree with the chosen builder.
+pub fn build(scene: &TriangleColumns, config: &BuildConfig, builder: Builder, progress: Option<&Progress>) -> TreeIr {
+    match builder {
+        Builder::Naive => naive::build(scene, config, progress),
+        Builder::Sweep => sweep::build(scene, config, progress),
+    }
+}
+
+/// A triangle in a node, with its (clipped) box in that node.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TriRef {
+    pub tri: TriId,
+    pub bounds: Aabb,
+}
+
+/// Where a triangle goes when its node is split.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Placement {
+    Left,
+    Right,
+    Both,
+}
+
+/// The one classification rule: planar boxes go to the split's planar side,
+/// boxes ending at or before the plane go left, boxes starting at or after it
+/// go right, the rest straddle.
+#[inline]
+pub fn classify(bounds: &Aabb, split: &Split) -> Placement {
+    let k = split.axis as usize;
+    let (lo, hi) = (bounds.min[k], bounds.max[k]);
+    if lo == split.pos && hi == split.pos {
+        match split.planar {
+            Side::Left => Placement::Left,
+            Side::Right => Placement::Right,
+        }
+    } else if hi <= split.pos {
+        Placement::Left
+    } else if lo >= split.pos {
+        Placement::Right
+    } else {
+        Placement::Both
+    }
+}
+
+/// The boxes of a straddler in the two children (see the module docs).
+pub fn clip_straddler(scene: &TriangleColumns, r: &TriRef, left_cell: &Aabb, right_cell: &Aabb) -> (Option<Aabb>, Option<Aabb>) {
+    let tri = scene.tri(r.tri.0);
+    let clip = |cell: &Aabb| {
+        clip_triangle(&tri, cell)
+            .map(|b| b.intersection(&r.bounds))
+            .filter(|b| !b.is_empty())
+    };
+    (clip(left_cell), clip(right_cell))
+}
+
+/// The root cell and the root's triangle references.
+pub fn root(scene: &TriangleColumns) -> (Aabb, Vec<TriRef>) {
+    let refs: Vec<TriRef> = (0..scene.len() as u32)
+        .map(|i| TriRef {
+            tri: TriId(i),
+            bounds: Aabb::of_triangle(&scene.tri(i)),
+        })
+        .collect();
+    let bounds = refs.iter().fold(Aabb::EMPTY, |b, r| b.union(&r.bounds));
+    let bounds = if bounds.is_empty() {
+        Aabb::new(Vec3::ZERO, Vec3::ZERO)
+    } else {
+        bounds
+    };
+    (bounds, refs)
+}
+
+/// Appends nodes in pre-order.
+struct TreeWriter {
+    tree: TreeIr,
+}
+
+impl TreeWriter {
+    fn new(bounds: Aabb) -> TreeWriter {
+        TreeWriter {
+            tree: TreeIr {
+                bounds,
+                nodes: Vec::new(),
+                leaf_tris: Vec::new(),
+            },
+        }
+    }
+
+    fn leaf(&mut self, tris: impl Iterator<Item = TriId>) {
+        let start = self.tree.leaf_tris.len() as u32;
+        self.tree.leaf_tris.extend(tris);
+        let count = self.tree.leaf_tris.len() as u32 - start;
+        self.tree.nodes.push(Node::Leaf { start, count });
+    }
+
+    /// Pushes an inner node whose right child is not known yet.
+    fn inner(&mut self, split: &Split) -> usize {
+        self.tree.nodes.push(Node::Inner {
+            axis: split.axis,
+            pos: split.pos,
+            right: NodeId(u32::MAX),
+        });
+        self.tree.nodes.len() - 1
+    }
+
+    /// Marks the next node as the right child of `inner`.
+    fn right_child_next(&mut self, inner: usize) {
+        let next = NodeId(self.tree.nodes.len() as u32);
+        if let Node::Inner { right, .. } = &mut self.tree.nodes[inner] {
+            *right = next;
+        }
+    }
+}
+
+/// Build progress: the fraction of the root's work that reached leaves.
+///
+/// Each node carries a weight; the root's is [`Progress::TOTAL`] and a split
+/// shares a node's weight between its children in proportion to their
+/// triangle counts. A leaf adds its weight, so the sum reaches `TOTAL`
+/// exactly when the build ends.
+#[derive(Debug, Default)]
+pub struct Progress {
+    done: AtomicU64,
+}
+
+impl Progress {
+    pub const TOTAL: u64 = 1 << 40;
+
+    pub fn fraction(&self) -> f64 {
+        self.done.load(Ordering::Relaxed) as f64 / Self::TOTAL as f64
+    }
+
+    fn add(progress: Option<&Progress>, weight: u64) {
+        if let Some(p) = progress {
+            p.done.fetch_add(weight, Ordering::Relaxed);
+        }
+    }
+
+    /// Shares `weight` between children of `n_left` and `n_right` triangles.
+    fn share(weight: u64, n_left: usize, n_right: usize) -> (u64, u64) {
+        let total = (n_left + n_right).max(1) as u128;
+        let left = (weight as u128 * n_left as u128 / total) as u64;
+        (left, weight - left)
+    }
+}

@@ -1,0 +1,96 @@
+//! The reference builder: for each node, every candidate plane is priced by
+//! counting the node's triangles directly, O(N²) per node. Obviously correct
+//! and slow; tests assert that every other builder produces the same tree.
+
+use super::sah::{self, PlaneCounts, Split};
+use super::{BuildConfig, Placement, Progress, TreeWriter, TriRef, classify, clip_straddler, root};
+use crate::geom::Aabb;
+use crate::scene::TriangleColumns;
+use crate::tree::TreeIr;
+
+pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Progress>) -> TreeIr {
+    let (bounds, refs) = root(scene);
+    let mut ctx = Ctx {
+        scene,
+        config,
+        depth_limit: config.sah.depth_limit(scene.len()),
+        out: TreeWriter::new(bounds),
+        progress,
+    };
+    ctx.node(refs, bounds, 0, Progress::TOTAL);
+    ctx.out.tree
+}
+
+struct Ctx<'a> {
+    scene: &'a TriangleColumns,
+    config: &'a BuildConfig,
+    depth_limit: u32,
+    out: TreeWriter,
+    progress: Option<&'a Progress>,
+}
+
+impl Ctx<'_> {
+    fn best_split(&self, refs: &[TriRef], cell: &Aabb) -> Option<Split> {
+        let sa = cell.surface_area();
+        if refs.is_empty() || sa <= 0.0 {
+            return None;
+        }
+        let mut best = None;
+        for axis in 0..3 {
+            for r in refs {
+                for pos in [r.bounds.min[axis], r.bounds.max[axis]] {
+                    let mut counts = PlaneCounts {
+                        left: 0,
+                        right: 0,
+                        planar: 0,
+                    };
+                    for o in refs {
+                        let (lo, hi) = (o.bounds.min[axis], o.bounds.max[axis]);
+                        if lo == pos && hi == pos {
+                            counts.planar += 1;
+                        } else {
+                            counts.left += usize::from(lo < pos);
+                            counts.right += usize::from(hi > pos);
+                        }
+                    }
+                    sah::split_cost(&self.config.sah, cell, sa, axis, pos, counts).keep_best(&mut best);
+                }
+            }
+        }
+        best
+    }
+
+    fn node(&mut self, refs: Vec<TriRef>, cell: Aabb, depth: u32, weight: u64) {
+        let best = self.best_split(&refs, &cell);
+        if sah::is_leaf(&self.config.sah, best.as_ref(), refs.len(), depth, self.depth_limit) {
+            self.out.leaf(refs.iter().map(|r| r.tri));
+            Progress::add(self.progress, weight);
+            return;
+        }
+        let split = best.expect("a split exists when the node is not a leaf");
+        let (left_cell, right_cell) = cell.split(split.axis as usize, split.pos);
+        let mut left = Vec::new();
+        let mut right = Vec::new();
+        for r in &refs {
+            match classify(&r.bounds, &split) {
+                Placement::Left => left.push(*r),
+                Placement::Right => right.push(*r),
+                Placement::Both => {
+                    let (lb, rb) = clip_straddler(self.scene, r, &left_cell, &right_cell);
+                    if let Some(bounds) = lb {
+                        left.push(TriRef { tri: r.tri, bounds });
+                    }
+                    if let Some(bounds) = rb {
+                        right.push(TriRef { tri: r.tri, bounds });
+                    }
+                }
+            }
+        }
+        drop(refs);
+        let (wl, wr) = Progress::share(weight, left.len(), right.len());
+        let me = self.out.inner(&split);
+        self.node(left, left_cell, depth + 1, wl);
+        self.out.right_child_next(me);
+        self.node(right, right_cell, depth + 1, wr);
+    }
+}

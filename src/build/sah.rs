@@ -1,0 +1,212 @@
+//! The one surface-area heuristic every builder calls (Wald & Havran 2006,
+//! §3), with the one tie-break, so that the naive, sweep and level builders
+//! can be asserted to produce the *same* tree.
+//!
+//! Cost of splitting cell `V` at plane `p` into `V_L`, `V_R` with `N_L`,
+//! `N_R` triangles:
+//!
+//! `C(p) = K_T + K_I · λ(p) · (SA(V_L)/SA(V) · N_L + SA(V_R)/SA(V) · N_R)`
+//!
+//! with `λ = 0.8` when one side is empty and the plane does not lie on a face
+//! of `V`, else 1. A leaf costs `K_I · N`. Triangles lying in the plane
+//! ("planar") go to whichever side is cheaper, the left on a tie. A node
+//! becomes a leaf when no split costs less than the leaf, or at the depth
+//! limit. All arithmetic is `f64` in a fixed order.
+//!
+//! **Tie-break.** Splits are totally ordered by (cost, axis, position,
+//! planar side): the lowest cost wins; among equal costs the smaller axis,
+//! then the smaller position, then planar-left.
+
+use crate::geom::Aabb;
+use std::cmp::Ordering;
+
+/// The SAH constants and the leaf rules.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SahParams {
+    /// Cost of one traversal step.
+    pub k_t: f64,
+    /// Cost of one ray–triangle test.
+    pub k_i: f64,
+    /// Bonus factor for cutting off empty space.
+    pub lambda_empty: f64,
+    /// Nodes at this depth (root = 0) become leaves; `None` chooses
+    /// `⌊8 + 1.3·log2 N⌋` for `N` input triangles (Havran's rule, as in PBRT).
+    /// Either is clamped to [`crate::tree::MAX_DEPTH`].
+    pub max_depth: Option<u32>,
+}
+
+impl Default for SahParams {
+    fn default() -> Self {
+        SahParams {
+            k_t: 15.0,
+            k_i: 20.0,
+            lambda_empty: 0.8,
+            max_depth: None,
+        }
+    }
+}
+
+impl SahParams {
+    /// The depth limit for a scene of `n_tris` triangles.
+    pub fn depth_limit(&self, n_tris: usize) -> u32 {
+        self.max_depth
+            .unwrap_or_else(|| (8.0 + 1.3 * (n_tris.max(1) as f64).log2()).floor() as u32)
+            .min(crate::tree::MAX_DEPTH)
+    }
+
+    /// The cost of a leaf with `n` triangles.
+    pub fn leaf_cost(&self, n: usize) -> f64 {
+        self.k_i * n as f64
+    }
+}
+
+/// Which child receives the triangles lying in the split plane.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Side {
+    Left,
+    Right,
+}
+
+/// A candidate split with its cost.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Split {
+    pub cost: f64,
+    pub axis: u8,
+    pub pos: f32,
+    pub planar: Side,
+}
+
+impl Split {
+    /// The documented total order: (cost, axis, position, planar side).
+    pub fn cmp_order(&self, other: &Split) -> Ordering {
+        self.cost
+            .total_cmp(&other.cost)
+            .then(self.axis.cmp(&other.axis))
+            .then(self.pos.total_cmp(&other.pos))
+            .then(self.planar.cmp(&other.planar))
+    }
+
+    /// Keeps the better of `best` and `self`.
+    #[inline]
+    pub fn keep_best(self, best: &mut Option<Split>) {
+        match best {
+            Some(b) if self.cmp_order(b) != Ordering::Less => {}
+            _ => *best = Some(self),
+        }
+    }
+}
+
+/// How the triangles of a node lie against one plane.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PlaneCounts {
+    /// Triangles whose box starts left of the plane (`min < pos`), straddlers
+    /// included.
+    pub left: usize,
+    /// Triangles whose box ends right of the plane (`max > pos`), straddlers
+    /// included.
+    pub right: usize,
+    /// Triangles lying in the plane (`min == max == pos`).
+    pub planar: usize,
+}
+
+/// The cost of splitting `cell` (surface area `sa_cell > 0`) at `axis = pos`.
+/// Returns the cheaper assignment of the planar triangles.
+#[inline]
+pub fn split_cost(params: &SahParams, cell: &Aabb, sa_cell: f64, axis: usize, pos: f32, counts: PlaneCounts) -> Split {
+    let PlaneCounts {
+        left: n_l,
+        right: n_r,
+        planar: n_p,
+    } = counts;
+    let (l, r) = cell.split(axis, pos);
+    let p_l = l.surface_area() / sa_cell;
+    let p_r = r.surface_area() / sa_cell;
+    let on_face = pos == cell.min[axis] || pos == cell.max[axis];
+    let cost = |nl: usize, nr: usize| {
+        let lambda = if (nl == 0 || nr == 0) && !on_face {
+            params.lambda_empty
+        } else {
+            1.0
+        };
+        params.k_t + params.k_i * lambda * (p_l * nl as f64 + p_r * nr as f64)
+    };
+    let c_left = cost(n_l + n_p, n_r);
+    let c_right = cost(n_l, n_r + n_p);
+    let (cost, planar) = if c_left <= c_right {
+        (c_left, Side::Left)
+    } else {
+        (c_right, Side::Right)
+    };
+    Split {
+        cost,
+        axis: axis as u8,
+        pos,
+        planar,
+    }
+}
+
+/// Whether a node becomes a leaf, given its best split.
+pub fn is_leaf(params: &SahParams, best: Option<&Split>, n: usize, depth: u32, depth_limit: u32) -> bool {
+    match best {
+        None => true,
+        Some(s) => depth >= depth_limit || s.cost >= params.leaf_cost(n),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn pc(left: usize, right: usize, planar: usize) -> PlaneCounts {
+        PlaneCounts { left, right, planar }
+    }
+
+    #[test]
+    fn empty_space_bonus_only_off_the_faces() {
+        let p = SahParams::default();
+        let cell = Aabb::new(Vec3::ZERO, Vec3::ONE);
+        let sa = cell.surface_area();
+        // One triangle on the right; cut off the empty left half.
+        let s = split_cost(&p, &cell, sa, 0, 0.5, pc(0, 1, 0));
+        let expect = 15.0 + 20.0 * 0.8 * (4.0 / 6.0);
+        assert_eq!(s.cost, expect);
+        // A plane on the face gets no bonus.
+        let s = split_cost(&p, &cell, sa, 0, 0.0, pc(0, 1, 0));
+        assert_eq!(s.cost, 15.0 + 20.0 * 1.0);
+    }
+
+    #[test]
+    fn planar_goes_to_cheaper_side() {
+        let p = SahParams::default();
+        let cell = Aabb::new(Vec3::ZERO, Vec3::new(4.0, 1.0, 1.0));
+        let sa = cell.surface_area();
+        // Plane near the left face: planar triangles are cheaper on the left.
+        let s = split_cost(&p, &cell, sa, 0, 1.0, pc(3, 3, 2));
+        assert_eq!(s.planar, Side::Left);
+        let s = split_cost(&p, &cell, sa, 0, 3.0, pc(3, 3, 2));
+        assert_eq!(s.planar, Side::Right);
+    }
+
+    #[test]
+    fn tie_break_is_total() {
+        let a = Split { cost: 1.0, axis: 0, pos: 2.0, planar: Side::Left };
+        let b = Split { cost: 1.0, axis: 1, pos: 0.0, planar: Side::Left };
+        let c = Split { cost: 1.0, axis: 0, pos: 2.0, planar: Side::Right };
+        assert_eq!(a.cmp_order(&b), Ordering::Less);
+        assert_eq!(a.cmp_order(&c), Ordering::Less);
+        let mut best = None;
+        b.keep_best(&mut best);
+        c.keep_best(&mut best);
+        a.keep_best(&mut best);
+        assert_eq!(best, Some(a));
+    }
+
+    #[test]
+    fn depth_limit_rule() {
+        let p = SahParams::default();
+        assert_eq!(p.depth_limit(0), 8);
+        assert_eq!(p.depth_limit(1024), 21);
+        assert_eq!(SahParams { max_depth: Some(3), ..p }.depth_limit(1024), 3);
+    }
+}

@@ -1,0 +1,229 @@
+//! The sequential O(N log N) builder of Wald & Havran (2006), §4.
+//!
+//! Each node keeps, per axis, its events (the starts and ends of its
+//! triangles' boxes, or one planar event for a flat box) sorted by
+//! (position, kind, triangle), with [`EventKind`] declared in sweep order
+//! End < Planar < Start. One sweep per axis finds the best plane. A child
+//! inherits the events of the triangles that lie wholly on its side through
+//! a stable partition (so they stay sorted); only the events of clipped
+//! straddlers are created, sorted and merged in. The tree is the same as
+//! [`super::naive`]'s (see [`super`] for the definition both follow).
+
+use super::sah::{self, PlaneCounts, Split};
+use super::{BuildConfig, Placement, Progress, TreeWriter, TriRef, classify, clip_straddler, root};
+use crate::geom::Aabb;
+use crate::scene::TriangleColumns;
+use crate::tree::{TreeIr, TriId};
+use std::cmp::Ordering;
+
+/// What an event marks, in sweep order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[repr(u8)]
+pub enum EventKind {
+    End = 0,
+    Planar = 1,
+    Start = 2,
+}
+
+/// A box bound on one axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Event {
+    pub pos: f32,
+    pub kind: EventKind,
+    pub tri: TriId,
+}
+
+impl Event {
+    /// The sort order: (position, kind, triangle). Total, since a triangle
+    /// has at most one event of each kind per axis.
+    #[inline]
+    pub fn cmp_order(&self, o: &Event) -> Ordering {
+        self.pos
+            .total_cmp(&o.pos)
+            .then(self.kind.cmp(&o.kind))
+            .then(self.tri.cmp(&o.tri))
+    }
+}
+
+/// Appends the events of `r` on `axis`.
+#[inline]
+pub fn push_events(r: &TriRef, axis: usize, out: &mut Vec<Event>) {
+    let (lo, hi) = (r.bounds.min[axis], r.bounds.max[axis]);
+    if lo == hi {
+        out.push(Event {
+            pos: lo,
+            kind: EventKind::Planar,
+            tri: r.tri,
+        });
+    } else {
+        out.push(Event {
+            pos: lo,
+            kind: EventKind::Start,
+            tri: r.tri,
+        });
+        out.push(Event {
+            pos: hi,
+            kind: EventKind::End,
+            tri: r.tri,
+        });
+    }
+}
+
+/// The sorted events of `refs` on `axis`.
+pub fn sorted_events(refs: &[TriRef], axis: usize) -> Vec<Event> {
+    let mut ev = Vec::with_capacity(refs.len() * 2);
+    for r in refs {
+        push_events(r, axis, &mut ev);
+    }
+    ev.sort_unstable_by(Event::cmp_order);
+    ev
+}
+
+/// Merges two sorted event lists.
+pub fn merge_events(a: Vec<Event>, b: &[Event]) -> Vec<Event> {
+    if b.is_empty() {
+        return a;
+    }
+    let mut out = Vec::with_capacity(a.len() + b.len());
+    let (mut i, mut j) = (0, 0);
+    while i < a.len() && j < b.len() {
+        if a[i].cmp_order(&b[j]) == Ordering::Less {
+            out.push(a[i]);
+            i += 1;
+        } else {
+            out.push(b[j]);
+            j += 1;
+        }
+    }
+    out.extend_from_slice(&a[i..]);
+    out.extend_from_slice(&b[j..]);
+    out
+}
+
+/// Sweeps the sorted events of one axis and keeps the best plane in `best`.
+pub fn sweep_axis(
+    params: &sah::SahParams,
+    cell: &Aabb,
+    sa: f64,
+    axis: usize,
+    events: &[Event],
+    n: usize,
+    best: &mut Option<Split>,
+) {
+    let (mut n_l, mut n_r) = (0usize, n);
+    let mut i = 0;
+    while i < events.len() {
+        let pos = events[i].pos;
+        let mut count = [0usize; 3];
+        while i < events.len() && events[i].pos == pos {
+            count[events[i].kind as usize] += 1;
+            i += 1;
+        }
+        let [ends, planar, starts] = count;
+        n_r -= planar + ends;
+        let counts = PlaneCounts {
+            left: n_l,
+            right: n_r,
+            planar,
+        };
+        sah::split_cost(params, cell, sa, axis, pos, counts).keep_best(best);
+        n_l += starts + planar;
+    }
+}
+
+pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Progress>) -> TreeIr {
+    let (bounds, refs) = root(scene);
+    let events = [0, 1, 2].map(|axis| sorted_events(&refs, axis));
+    let mut ctx = Ctx {
+        scene,
+        config,
+        depth_limit: config.sah.depth_limit(scene.len()),
+        out: TreeWriter::new(bounds),
+        place: vec![Placement::Left; scene.len()],
+        progress,
+    };
+    ctx.node(refs, events, bounds, 0, Progress::TOTAL);
+    ctx.out.tree
+}
+
+struct Ctx<'a> {
+    scene: &'a TriangleColumns,
+    config: &'a BuildConfig,
+    depth_limit: u32,
+    out: TreeWriter,
+    /// Scratch, indexed by triangle id: where each triangle of the node
+    /// being split goes. Only entries of that node's triangles are valid.
+    place: Vec<Placement>,
+    progress: Option<&'a Progress>,
+}
+
+impl Ctx<'_> {
+    fn node(&mut self, refs: Vec<TriRef>, events: [Vec<Event>; 3], cell: Aabb, depth: u32, weight: u64) {
+        let sa = cell.surface_area();
+        let mut best = None;
+        if !refs.is_empty() && sa > 0.0 {
+            for (axis, ev) in events.iter().enumerate() {
+                sweep_axis(&self.config.sah, &cell, sa, axis, ev, refs.len(), &mut best);
+            }
+        }
+        if sah::is_leaf(&self.config.sah, best.as_ref(), refs.len(), depth, self.depth_limit) {
+            self.out.leaf(refs.iter().map(|r| r.tri));
+            Progress::add(self.progress, weight);
+            return;
+        }
+        let split = best.expect("a split exists when the node is not a leaf");
+        let (left_cell, right_cell) = cell.split(split.axis as usize, split.pos);
+
+        // Classify; clip the straddlers.
+        let mut left = Vec::new();
+        let mut right = Vec::new();
+        let mut left_new = Vec::new();
+        let mut right_new = Vec::new();
+        for r in &refs {
+            let p = classify(&r.bounds, &split);
+            self.place[r.tri.0 as usize] = p;
+            match p {
+                Placement::Left => left.push(*r),
+                Placement::Right => right.push(*r),
+                Placement::Both => {
+                    let (lb, rb) = clip_straddler(self.scene, r, &left_cell, &right_cell);
+                    if let Some(bounds) = lb {
+                        let c = TriRef { tri: r.tri, bounds };
+                        left.push(c);
+                        left_new.push(c);
+                    }
+                    if let Some(bounds) = rb {
+                        let c = TriRef { tri: r.tri, bounds };
+                        right.push(c);
+                        right_new.push(c);
+                    }
+                }
+            }
+        }
+        drop(refs);
+
+        // Child events: inherited ones by stable partition, new ones sorted
+        // and merged.
+        let mut left_events: [Vec<Event>; 3] = Default::default();
+        let mut right_events: [Vec<Event>; 3] = Default::default();
+        for (axis, ev) in events.into_iter().enumerate() {
+            let mut l = Vec::with_capacity(ev.len());
+            let mut r = Vec::with_capacity(ev.len());
+            for e in ev {
+                match self.place[e.tri.0 as usize] {
+                    Placement::Left => l.push(e),
+                    Placement::Right => r.push(e),
+                    Placement::Both => {}
+                }
+            }
+            left_events[axis] = merge_events(l, &sorted_events(&left_new, axis));
+            right_events[axis] = merge_events(r, &sorted_events(&right_new, axis));
+        }
+
+        let (wl, wr) = Progress::share(weight, left.len(), right.len());
+        let me = self.out.inner(&split);
+        self.node(left, left_events, left_cell, depth + 1, wl);
+        self.out.right_child_next(me);
+        self.node(right, right_events, right_cell, depth + 1, wr);
+    }
+}

@@ -1,0 +1,168 @@
+//! Scenes: loading triangle meshes into structure-of-arrays columns.
+//!
+//! Consumes Wavefront OBJ files (through `tobj`: `v` and `f` lines, every
+//! index form `v`, `v/vt`, `v//vn`, `v/vt/vn`, negative (relative) indices,
+//! polygons fan-triangulated; everything else is ignored). Produces
+//! [`TriangleColumns`]: one column of vertex positions and one column of
+//! vertex-index triples, in file order.
+//!
+//! **Input rule.** Bad input is an error that names the file and, where it
+//! applies, the line: an unreadable file, text that is not UTF-8, a line that
+//! does not parse, a NaN or infinite coordinate, a face index out of range,
+//! and a file with no triangles. Loading never panics.
+//!
+//! **Degenerate rule.** A triangle whose vertices are repeated or collinear
+//! (twice its area, computed in `f64` from the `f32` positions, is exactly
+//! zero) can never be hit by the watertight test, so it is *dropped and
+//! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
+//! as `tobj` returns them (no welding).
+
+mod obj;
+
+pub use obj::{embedded_name, load_obj, load_obj_bytes};
+
+use crate::geom::{Aabb, double_area};
+use glam::Vec3;
+use std::fmt;
+use std::path::PathBuf;
+
+/// Triangles as columns.
+///
+/// Invariant: every index in `indices` is `< positions.len()`, every
+/// position is finite, and `indices.len() < u32::MAX` (triangle ids fit a
+/// `u32`).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriangleColumns {
+    pub positions: Vec<Vec3>,
+    pub indices: Vec<[u32; 3]>,
+}
+
+impl TriangleColumns {
+    /// Builds columns from positions and index triples, checking the
+    /// invariant. A coordinate of -0.0 becomes +0.0, so that equal split
+    /// planes always have equal bits.
+    pub fn new(mut positions: Vec<Vec3>, indices: Vec<[u32; 3]>) -> Result<TriangleColumns, String> {
+        for p in &mut positions {
+            *p += 0.0;
+        }
+        if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
+            return Err(format!("vertex {i} has a non-finite coordinate"));
+        }
+        let n = positions.len() as u64;
+        if let Some(t) = indices.iter().position(|t| t.iter().any(|&i| u64::from(i) >= n)) {
+            return Err(format!("triangle {t} has a vertex index out of range"));
+        }
+        if indices.len() >= u32::MAX as usize {
+            return Err("too many triangles for 32-bit ids".into());
+        }
+        Ok(TriangleColumns { positions, indices })
+    }
+
+    /// One vertex column per corner, for tests and generators: triangle `i`
+    /// is `tris[i]`.
+    pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<TriangleColumns, String> {
+        let positions = tris.iter().flatten().copied().collect();
+        let indices = (0..tris.len() as u32)
+            .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+            .collect();
+        TriangleColumns::new(positions, indices)
+    }
+
+    pub fn len(&self) -> usize {
+        self.indices.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.indices.is_empty()
+    }
+
+    /// The three vertices of triangle `i`.
+    #[inline]
+    pub fn tri(&self, i: u32) -> [Vec3; 3] {
+        let [a, b, c] = self.indices[i as usize];
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
+    }
+
+    /// The bounds of every triangle (empty for an empty scene).
+    pub fn bounds(&self) -> Aabb {
+        (0..self.len() as u32).fold(Aabb::EMPTY, |b, i| b.union(&Aabb::of_triangle(&self.tri(i))))
+    }
+
+    /// The geometric normal of triangle `i` (not normalised).
+    pub fn normal(&self, i: u32) -> Vec3 {
+        let [a, b, c] = self.tri(i);
+        (b - a).cross(c - a)
+    }
+
+    /// Drops degenerate triangles (see the module docs); returns how many.
+    pub fn drop_degenerate(&mut self) -> usize {
+        let before = self.indices.len();
+        let positions = &self.positions;
+        self.indices.retain(|t| {
+            let tri = [
+                positions[t[0] as usize],
+                positions[t[1] as usize],
+                positions[t[2] as usize],
+            ];
+            t[0] != t[1] && t[1] != t[2] && t[0] != t[2] && double_area(&tri) != 0.0
+        });
+        before - self.indices.len()
+    }
+}
+
+/// What a load did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LoadSummary {
+    /// Triangles kept (after fan triangulation and dropping).
+    pub triangles: usize,
+    pub vertices: usize,
+    /// Triangles dropped because they have zero area or repeat a vertex.
+    pub dropped_degenerate: usize,
+    /// Lines read.
+    pub lines: u64,
+}
+
+impl fmt::Display for LoadSummary {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{} triangles, {} vertices, {} degenerate triangles dropped",
+            self.triangles, self.vertices, self.dropped_degenerate
+        )
+    }
+}
+
+/// A scene that could not be loaded. Every variant names the file.
+#[derive(Debug)]
+pub enum SceneError {
+    Io { path: PathBuf, source: std::io::Error },
+    /// A problem with one line (1-based).
+    Line { path: PathBuf, line: u64, message: String },
+    /// A problem not tied to one line.
+    Invalid { path: PathBuf, message: String },
+}
+
+impl fmt::Display for SceneError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            SceneError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            SceneError::Line { path, line, message } => {
+                write!(f, "{}:{line}: {message}", path.display())
+            }
+            SceneError::Invalid { path, message } => write!(f, "{}: {message}", path.display()),
+        }
+    }
+}
+
+impl std::error::Error for SceneError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            SceneError::Io { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}

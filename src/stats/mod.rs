@@ -1,0 +1,77 @@
+//! Figures about a tree: node, leaf and reference counts, depths, the SAH
+//! cost, and the leaf-depth histogram (the figures of Choi et al. 2013,
+//! Table 3 and Figure 6, for the standard tree).
+
+use crate::build::sah::SahParams;
+use crate::tree::{Node, TreeIr};
+
+/// Summary figures of one tree.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TreeStats {
+    pub nodes: usize,
+    pub inner: usize,
+    pub leaves: usize,
+    pub empty_leaves: usize,
+    /// Triangle references in leaves (`leaf_tris.len()`).
+    pub refs: usize,
+    pub max_depth: u32,
+    /// Mean depth of the non-empty leaves.
+    pub mean_leaf_depth: f64,
+    /// `leaf_depths[d]` = number of leaves at depth `d`.
+    pub leaf_depths: Vec<u64>,
+    /// The SAH cost of the whole tree: `Σ_inner K_T·SA(n)/SA(root) +
+    /// Σ_leaf K_I·N(n)·SA(n)/SA(root)`.
+    pub sah_cost: f64,
+}
+
+impl TreeStats {
+    pub fn of(tree: &TreeIr, params: &SahParams) -> TreeStats {
+        let sa_root = tree.bounds.surface_area();
+        let mut s = TreeStats {
+            nodes: tree.nodes.len(),
+            inner: 0,
+            leaves: 0,
+            empty_leaves: 0,
+            refs: tree.leaf_tris.len(),
+            max_depth: 0,
+            mean_leaf_depth: 0.0,
+            leaf_depths: Vec::new(),
+            sah_cost: 0.0,
+        };
+        let mut depth_sum = 0u64;
+        tree.walk(|_, node, cell, depth| {
+            let p = if sa_root > 0.0 {
+                cell.surface_area() / sa_root
+            } else {
+                1.0
+            };
+            s.max_depth = s.max_depth.max(depth);
+            match *node {
+                Node::Inner { .. } => {
+                    s.inner += 1;
+                    s.sah_cost += params.k_t * p;
+                }
+                Node::Leaf { count, .. } => {
+                    s.leaves += 1;
+                    if count == 0 {
+                        s.empty_leaves += 1;
+                    } else {
+                        depth_sum += u64::from(depth);
+                    }
+                    if s.leaf_depths.len() <= depth as usize {
+                        s.leaf_depths.resize(depth as usize + 1, 0);
+                    }
+                    s.leaf_depths[depth as usize] += 1;
+                    s.sah_cost += params.k_i * f64::from(count) * p;
+                }
+            }
+        });
+        let full = s.leaves - s.empty_leaves;
+        s.mean_leaf_depth = if full > 0 {
+            depth_sum as f64 / full as f64
+        } else {
+            0.0
+        };
+        s
+    }
+}

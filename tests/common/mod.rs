@@ -1,0 +1,94 @@
+//! Shared test helpers: grid-snapped scenes and rays (vertices on integers,
+//! rays through half-integers, as svenstaro/bvh's test base does), and the
+//! checks every test ends with.
+
+#![allow(dead_code)]
+
+use glam::Vec3;
+use proptest::prelude::*;
+use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::geom::Ray;
+use slimkd::scene::TriangleColumns;
+use slimkd::trace;
+use slimkd::tree::TreeIr;
+
+/// A triangle with integer vertices in `[0, g]³`.
+pub fn grid_triangle(g: i32) -> impl Strategy<Value = [Vec3; 3]> {
+    let v = (0..=g, 0..=g, 0..=g).prop_map(|(x, y, z)| Vec3::new(x as f32, y as f32, z as f32));
+    [v.clone(), v.clone(), v]
+}
+
+/// 0–`max` grid triangles in `[0, g]³` for a random `g` in 1..=6.
+pub fn grid_scene(max: usize) -> impl Strategy<Value = Vec<[Vec3; 3]>> {
+    (1i32..=6).prop_flat_map(move |g| prop::collection::vec(grid_triangle(g), 0..=max))
+}
+
+/// A ray from a half-integer (or integer) point towards another, so that it
+/// passes through half-integers; sometimes axis-aligned, sometimes starting
+/// on a grid plane.
+pub fn grid_ray(g: i32) -> impl Strategy<Value = Ray> {
+    let coord = move || (-2..=2 * g + 2).prop_map(|k| k as f32 * 0.5);
+    let point = move || (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
+    (point(), point(), 0..4u8).prop_filter_map("zero direction", |(o, target, kind)| {
+        let mut d = target - o;
+        if kind == 0 {
+            // Axis-aligned: keep the largest component only.
+            let a = d.abs();
+            d = if a.x >= a.y && a.x >= a.z {
+                Vec3::new(d.x, 0.0, 0.0)
+            } else if a.y >= a.z {
+                Vec3::new(0.0, d.y, 0.0)
+            } else {
+                Vec3::new(0.0, 0.0, d.z)
+            };
+        }
+        (d != Vec3::ZERO).then(|| Ray::new(o, d))
+    })
+}
+
+pub fn columns(tris: &[[Vec3; 3]]) -> TriangleColumns {
+    TriangleColumns::from_triangles(tris).expect("finite test triangles")
+}
+
+/// Builds with both builders, asserts they produce the same tree and that
+/// it is valid; returns it.
+pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
+    let sweep = build::build(scene, config, Builder::Sweep, None);
+    let naive = build::build(scene, config, Builder::Naive, None);
+    assert_eq!(sweep, naive, "sweep and naive trees differ");
+    if let Err(e) = sweep.validate(scene) {
+        panic!("invalid tree: {e}\n{sweep:?}");
+    }
+    sweep
+}
+
+/// Asserts that traversal returns exactly brute force's hit for each ray.
+pub fn assert_traversal_matches(tree: &TreeIr, scene: &TriangleColumns, rays: &[Ray]) {
+    for ray in rays {
+        let want = trace::brute_force(scene, ray);
+        let got = trace::closest_hit(tree, scene, ray);
+        assert_eq!(got, want, "ray {ray:?}");
+    }
+}
+
+/// Rays from many half-integer points of `[-1, g+1]³` towards the centre
+/// and along the axes.
+pub fn ray_fan(g: f32) -> Vec<Ray> {
+    let mut rays = Vec::new();
+    let c = Vec3::splat(g * 0.5 + 0.25);
+    let steps = [-1.0, -0.5, 0.0, 0.5, 0.25 * g, 0.5 * g, g, g + 0.5, g + 1.0];
+    for &x in &steps {
+        for &y in &steps {
+            for &z in &steps {
+                let o = Vec3::new(x, y, z);
+                if o != c {
+                    rays.push(Ray::new(o, c - o));
+                }
+                for d in [Vec3::X, Vec3::Y, Vec3::Z, -Vec3::X, -Vec3::Y, -Vec3::Z] {
+                    rays.push(Ray::new(o, d));
+                }
+            }
+        }
+    }
+    rays
+}

@@ -1,0 +1,172 @@
+//! The renderer and the CLI agree with brute force on the shipped scenes at
+//! small resolutions: the per-pixel hits, the image, `--dump-t`, and the
+//! `hits`/`checksum` figures of `--json`.
+
+use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::render::{self, Camera, Shading};
+use slimkd::scene;
+use slimkd::trace::{BruteForce, TreeTracer};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn manifest(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+fn tmp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("slimkd-test-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn frames_match_brute_force_on_every_shipped_view() {
+    let views = render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap()).unwrap();
+    for name in ["nexuiz_dieselpower", "bunny_npm"] {
+        let path = manifest(&format!("scenes/{name}.obj"));
+        let (scene, _) = scene::load_obj(&path).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        tree.validate(&scene).unwrap();
+        let tracer = TreeTracer { tree: &tree, scene: &scene };
+        let mut n_views = 0;
+        for id in ["1", "2", "3"] {
+            let view = render::find_view(&views, &path, id).unwrap();
+            let cam = Camera::from_view(view, 40, 32);
+            let got = render::trace_frame(&tracer, &cam);
+            let want = render::trace_frame(&BruteForce(&scene), &cam);
+            assert_eq!(got.hits, want.hits, "{name} view {id}");
+            assert!(want.n_hits() > 40 * 32 / 2, "{name} view {id}: the view should mostly hit");
+            let a = render::shade(&got, &cam, &scene, Shading::EyeLight);
+            let b = render::shade(&want, &cam, &scene, Shading::EyeLight);
+            assert_eq!(a.rgb, b.rgb);
+            n_views += 1;
+        }
+        assert_eq!(n_views, 3);
+        // The default camera sees the scene too.
+        let cam = Camera::default_for(&tree.bounds, 24, 24);
+        let got = render::trace_frame(&tracer, &cam);
+        assert_eq!(got.hits, render::trace_frame(&BruteForce(&scene), &cam).hits);
+        assert!(got.n_hits() > 0);
+    }
+}
+
+fn slimkd(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_slimkd"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+#[test]
+fn cli_dump_t_and_json_match_brute_force() {
+    let dir = tmp_dir("cli");
+    let scene_path = manifest("scenes/bunny_npm.obj");
+    let views = manifest("scenes/views.txt");
+    let dump = dir.join("t.f32");
+    let img = dir.join("img.png");
+    let exr = dir.join("img.exr");
+    let out = slimkd(&[
+        "render",
+        scene_path.to_str().unwrap(),
+        "--views",
+        views.to_str().unwrap(),
+        "--view",
+        "3",
+        "--size",
+        "37x23",
+        "--dump-t",
+        dump.to_str().unwrap(),
+        "-o",
+        img.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for key in ["mode", "threads", "width", "height", "mrays_per_s", "hits", "checksum"] {
+        assert!(j.get(key).is_some(), "missing {key}");
+    }
+    assert_eq!(j["width"], 37);
+    assert_eq!(j["height"], 23);
+    assert_eq!(j["mode"], "single");
+
+    // Brute force in-process with the same camera.
+    let (scene, _) = scene::load_obj(&scene_path).unwrap();
+    let all = render::parse_views(&std::fs::read_to_string(&views).unwrap()).unwrap();
+    let cam = Camera::from_view(render::find_view(&all, &scene_path, "3").unwrap(), 37, 23);
+    let want = render::trace_frame(&BruteForce(&scene), &cam);
+    assert_eq!(j["hits"].as_u64().unwrap(), want.n_hits());
+    assert_eq!(j["checksum"].as_f64().unwrap(), want.checksum());
+
+    let bytes = std::fs::read(&dump).unwrap();
+    assert_eq!(bytes.len(), 37 * 23 * 4);
+    let ts: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+    let want_t: Vec<f32> = want.hits.iter().map(|h| h.t).collect();
+    assert_eq!(ts.iter().map(|t| t.to_bits()).collect::<Vec<_>>(), want_t.iter().map(|t| t.to_bits()).collect::<Vec<_>>());
+    assert!(ts.iter().any(|t| t.is_infinite()), "view 3 has misses");
+
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&img).unwrap()));
+    let reader = decoder.read_info().unwrap();
+    assert_eq!((reader.info().width, reader.info().height), (37, 23));
+
+    // The brute-force mode of the CLI reports the same figures, and EXR works.
+    let out = slimkd(&[
+        "render",
+        scene_path.to_str().unwrap(),
+        "--views",
+        views.to_str().unwrap(),
+        "--view",
+        "3",
+        "--size",
+        "37x23",
+        "--mode",
+        "brute",
+        "--threads",
+        "1",
+        "-o",
+        exr.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let b: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(b["hits"], j["hits"]);
+    assert_eq!(b["checksum"], j["checksum"]);
+    assert_eq!(b["threads"], 1);
+    assert!(exr.exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn cli_reports_errors_with_exit_codes() {
+    let out = slimkd(&["build", "/nonexistent/scene.obj"]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/nonexistent/scene.obj"), "{err}");
+
+    let dir = tmp_dir("cli-err");
+    let bad = dir.join("bad.obj");
+    std::fs::write(&bad, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n").unwrap();
+    let out = slimkd(&["build", bad.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bad.obj:4:"), "{err}");
+
+    let out = slimkd(&["render", "default", "--size", "0x5"]);
+    assert_eq!(out.status.code(), Some(2));
+    let out = slimkd(&["render", "default", "--size", "8x8", "--view", "9"]);
+    assert_eq!(out.status.code(), Some(1));
+    // A failed image write leaves nothing behind and fails.
+    let out = slimkd(&["render", "default", "--size", "8x8", "-o", dir.join("no/such/dir/x.png").to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn cli_build_json_has_the_figures() {
+    let out = slimkd(&["build", "default", "--json", "--threads", "1"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(j["triangles"], 34973);
+    assert!(j["nodes"].as_u64().unwrap() > 1000);
+    assert!(j["refs"].as_u64().unwrap() >= 34973);
+    assert!(j["build_s"].as_f64().unwrap() > 0.0);
+}
