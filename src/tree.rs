@@ -36,8 +36,16 @@ impl NodeId {
 #[derive(Clone, Copy, Debug)]
 pub enum Node {
     /// Split by the plane `axis = pos`; the left child (`< pos` side) is the
-    /// next node in pre-order, the right child is `right`.
-    Inner { axis: u8, pos: f32, right: NodeId },
+    /// next node in pre-order, the right child is `right`. `t_ref` is a
+    /// triangle hoisted into this node (Choi et al. 2013, a "type II" inner
+    /// node): it is tested whenever the node is visited, and the leaves
+    /// below need not list it. Standard trees have none.
+    Inner {
+        axis: u8,
+        pos: f32,
+        right: NodeId,
+        t_ref: Option<TriId>,
+    },
     /// Triangles `leaf_tris[start .. start + count]`.
     Leaf { start: u32, count: u32 },
 }
@@ -46,16 +54,26 @@ impl PartialEq for Node {
     fn eq(&self, other: &Node) -> bool {
         match (*self, *other) {
             (
-                Node::Inner { axis, pos, right },
+                Node::Inner {
+                    axis,
+                    pos,
+                    right,
+                    t_ref,
+                },
                 Node::Inner {
                     axis: a2,
                     pos: p2,
                     right: r2,
+                    t_ref: t2,
                 },
-            ) => axis == a2 && pos.to_bits() == p2.to_bits() && right == r2,
-            (Node::Leaf { start, count }, Node::Leaf { start: s2, count: c2 }) => {
-                start == s2 && count == c2
-            }
+            ) => axis == a2 && pos.to_bits() == p2.to_bits() && right == r2 && t_ref == t2,
+            (
+                Node::Leaf { start, count },
+                Node::Leaf {
+                    start: s2,
+                    count: c2,
+                },
+            ) => start == s2 && count == c2,
             _ => false,
         }
     }
@@ -76,11 +94,22 @@ pub struct TreeIr {
 
 impl TreeIr {
     pub fn n_leaves(&self) -> usize {
-        self.nodes.iter().filter(|n| matches!(n, Node::Leaf { .. })).count()
+        self.nodes
+            .iter()
+            .filter(|n| matches!(n, Node::Leaf { .. }))
+            .count()
     }
 
     pub fn n_inner(&self) -> usize {
         self.nodes.len() - self.n_leaves()
+    }
+
+    /// Inner nodes holding a hoisted triangle ("type II").
+    pub fn n_t_inner(&self) -> usize {
+        self.nodes
+            .iter()
+            .filter(|n| matches!(n, Node::Inner { t_ref: Some(_), .. }))
+            .count()
     }
 
     /// The triangles of a leaf.
@@ -94,7 +123,10 @@ impl TreeIr {
         while let Some((id, cell, depth)) = stack.pop() {
             let node = &self.nodes[id.0 as usize];
             visit(id, node, &cell, depth);
-            if let Node::Inner { axis, pos, right } = *node {
+            if let Node::Inner {
+                axis, pos, right, ..
+            } = *node
+            {
                 let (l, r) = cell.split(axis as usize, pos);
                 stack.push((right, r, depth + 1));
                 stack.push((NodeId(id.0 + 1), l, depth + 1));
@@ -109,7 +141,9 @@ impl TreeIr {
     /// - split planes lie inside their cells, so children nest;
     /// - leaf lists are contiguous in pre-order, ascending, and list only
     ///   triangles that overlap the leaf's cell;
-    /// - every triangle is reachable from the root (lies in some leaf).
+    /// - hoisted triangles overlap their node's cell;
+    /// - every triangle is reachable from the root (lies in some leaf or is
+    ///   hoisted into some inner node).
     pub fn validate(&self, scene: &TriangleColumns) -> Result<(), String> {
         let n = self.nodes.len();
         if n == 0 {
@@ -128,21 +162,45 @@ impl TreeIr {
                 return Err(format!("node {i} lies deeper than {MAX_DEPTH}"));
             }
             if i != expected_next {
-                return Err(format!("node {i} is not next in pre-order (expected {expected_next})"));
+                return Err(format!(
+                    "node {i} is not next in pre-order (expected {expected_next})"
+                ));
             }
             expected_next += 1;
             match self.nodes[i] {
-                Node::Inner { axis, pos, right } => {
+                Node::Inner {
+                    axis,
+                    pos,
+                    right,
+                    t_ref,
+                } => {
                     let r = right.0 as usize;
                     if axis > 2 {
                         return Err(format!("node {i}: axis {axis}"));
                     }
+                    if let Some(t) = t_ref {
+                        if t.0 as usize >= scene.len() {
+                            return Err(format!("node {i}: hoisted triangle {} out of range", t.0));
+                        }
+                        seen[t.0 as usize] = true;
+                        if clip_triangle(&scene.tri(t.0), &cell).is_none() {
+                            return Err(format!(
+                                "node {i}: hoisted triangle {} does not overlap the cell",
+                                t.0
+                            ));
+                        }
+                    }
                     if r <= i + 1 || r >= end {
-                        return Err(format!("node {i}: right child {r} outside ({}, {end})", i + 1));
+                        return Err(format!(
+                            "node {i}: right child {r} outside ({}, {end})",
+                            i + 1
+                        ));
                     }
                     let k = axis as usize;
                     if !(pos >= cell.min[k] && pos <= cell.max[k]) {
-                        return Err(format!("node {i}: split {pos} outside its cell on axis {k}"));
+                        return Err(format!(
+                            "node {i}: split {pos} outside its cell on axis {k}"
+                        ));
                     }
                     let (lc, rc) = cell.split(k, pos);
                     stack.push((r, end, rc, depth + 1));
@@ -153,7 +211,9 @@ impl TreeIr {
                         return Err(format!("leaf {i} does not end its range"));
                     }
                     if start != next_leaf_start {
-                        return Err(format!("leaf {i}: list starts at {start}, expected {next_leaf_start}"));
+                        return Err(format!(
+                            "leaf {i}: list starts at {start}, expected {next_leaf_start}"
+                        ));
                     }
                     let stop = start as u64 + count as u64;
                     if stop > self.leaf_tris.len() as u64 {
@@ -172,7 +232,10 @@ impl TreeIr {
                         }
                         seen[t.0 as usize] = true;
                         if clip_triangle(&scene.tri(t.0), &cell).is_none() {
-                            return Err(format!("leaf {i}: triangle {} does not overlap the cell", t.0));
+                            return Err(format!(
+                                "leaf {i}: triangle {} does not overlap the cell",
+                                t.0
+                            ));
                         }
                     }
                 }

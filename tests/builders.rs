@@ -37,7 +37,8 @@ proptest! {
 
 /// Non-grid scenes: random floats, so that clipping produces rounded boxes.
 fn float_triangle() -> impl Strategy<Value = [glam::Vec3; 3]> {
-    let v = (-10.0f32..10.0, -10.0f32..10.0, -10.0f32..10.0).prop_map(|(x, y, z)| glam::Vec3::new(x, y, z));
+    let v = (-10.0f32..10.0, -10.0f32..10.0, -10.0f32..10.0)
+        .prop_map(|(x, y, z)| glam::Vec3::new(x, y, z));
     [v.clone(), v.clone(), v]
 }
 

@@ -25,8 +25,21 @@ fn v(x: f32, y: f32, z: f32) -> Vec3 {
 
 /// The 12 triangles of an axis-aligned box.
 fn box_mesh(lo: Vec3, hi: Vec3) -> Vec<[Vec3; 3]> {
-    let c = |i: u32| v(if i & 1 == 0 { lo.x } else { hi.x }, if i & 2 == 0 { lo.y } else { hi.y }, if i & 4 == 0 { lo.z } else { hi.z });
-    let quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]];
+    let c = |i: u32| {
+        v(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    };
+    let quads = [
+        [0, 1, 3, 2],
+        [4, 6, 7, 5],
+        [0, 4, 5, 1],
+        [2, 3, 7, 6],
+        [0, 2, 6, 4],
+        [1, 5, 7, 3],
+    ];
     quads
         .iter()
         .flat_map(|q| [[c(q[0]), c(q[1]), c(q[2])], [c(q[0]), c(q[2]), c(q[3])]])
@@ -56,11 +69,18 @@ fn all_triangles_coplanar() {
         for j in 0..8 {
             let (x, y) = (i as f32, j as f32);
             tris.push([v(x, y, 2.0), v(x + 1.0, y, 2.0), v(x, y + 1.0, 2.0)]);
-            tris.push([v(x + 1.0, y, 2.0), v(x + 1.0, y + 1.0, 2.0), v(x, y + 1.0, 2.0)]);
+            tris.push([
+                v(x + 1.0, y, 2.0),
+                v(x + 1.0, y + 1.0, 2.0),
+                v(x, y + 1.0, 2.0),
+            ]);
         }
     }
     let (_, tree) = check(&tris, 8.0);
-    assert!(tree.n_leaves() > 1, "a flat scene still splits in its plane");
+    assert!(
+        tree.n_leaves() > 1,
+        "a flat scene still splits in its plane"
+    );
 }
 
 #[test]
@@ -119,7 +139,11 @@ fn needle_triangle() {
 
 #[test]
 fn one_huge_triangle_spanning_the_scene() {
-    let mut tris = vec![[v(-100.0, -100.0, 0.5), v(300.0, -100.0, 0.5), v(-100.0, 300.0, 0.5)]];
+    let mut tris = vec![[
+        v(-100.0, -100.0, 0.5),
+        v(300.0, -100.0, 0.5),
+        v(-100.0, 300.0, 0.5),
+    ]];
     for i in 0..6 {
         for j in 0..6 {
             let (x, y) = (i as f32 * 10.0, j as f32 * 10.0);
@@ -148,14 +172,19 @@ fn box_inside_a_box() {
 fn nan_and_inf_vertices_are_rejected_with_the_line() {
     for bad in ["nan", "inf", "-inf", "NaN"] {
         let text = format!("v 0 0 0\nv 1 0 0\nv 0 {bad} 0\nf 1 2 3\n");
-        let err = scene::load_obj_bytes(std::path::Path::new("bad.obj"), text.as_bytes()).unwrap_err();
+        let err =
+            scene::load_obj_bytes(std::path::Path::new("bad.obj"), text.as_bytes()).unwrap_err();
         let msg = err.to_string();
         assert!(msg.starts_with("bad.obj:3:"), "{msg}");
         assert!(msg.contains("non-finite"), "{msg}");
     }
     let bad = [[v(0.0, 0.0, 0.0), v(f32::NAN, 0.0, 0.0), v(0.0, 1.0, 0.0)]];
     assert!(TriangleColumns::from_triangles(&bad).is_err());
-    let bad = [[v(0.0, 0.0, 0.0), v(f32::INFINITY, 0.0, 0.0), v(0.0, 1.0, 0.0)]];
+    let bad = [[
+        v(0.0, 0.0, 0.0),
+        v(f32::INFINITY, 0.0, 0.0),
+        v(0.0, 1.0, 0.0),
+    ]];
     assert!(TriangleColumns::from_triangles(&bad).is_err());
 }
 

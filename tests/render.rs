@@ -21,13 +21,18 @@ fn tmp_dir(name: &str) -> PathBuf {
 
 #[test]
 fn frames_match_brute_force_on_every_shipped_view() {
-    let views = render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap()).unwrap();
+    let views =
+        render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
+            .unwrap();
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
         let path = manifest(&format!("scenes/{name}.obj"));
         let (scene, _) = scene::load_obj(&path).unwrap();
         let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
         tree.validate(&scene).unwrap();
-        let tracer = TreeTracer { tree: &tree, scene: &scene };
+        let tracer = TreeTracer {
+            tree: &tree,
+            scene: &scene,
+        };
         let mut n_views = 0;
         for id in ["1", "2", "3"] {
             let view = render::find_view(&views, &path, id).unwrap();
@@ -35,7 +40,10 @@ fn frames_match_brute_force_on_every_shipped_view() {
             let got = render::trace_frame(&tracer, &cam);
             let want = render::trace_frame(&BruteForce(&scene), &cam);
             assert_eq!(got.hits, want.hits, "{name} view {id}");
-            assert!(want.n_hits() > 40 * 32 / 2, "{name} view {id}: the view should mostly hit");
+            assert!(
+                want.n_hits() > 40 * 32 / 2,
+                "{name} view {id}: the view should mostly hit"
+            );
             let a = render::shade(&got, &cam, &scene, Shading::EyeLight);
             let b = render::shade(&want, &cam, &scene, Shading::EyeLight);
             assert_eq!(a.rgb, b.rgb);
@@ -45,7 +53,10 @@ fn frames_match_brute_force_on_every_shipped_view() {
         // The default camera sees the scene too.
         let cam = Camera::default_for(&tree.bounds, 24, 24);
         let got = render::trace_frame(&tracer, &cam);
-        assert_eq!(got.hits, render::trace_frame(&BruteForce(&scene), &cam).hits);
+        assert_eq!(
+            got.hits,
+            render::trace_frame(&BruteForce(&scene), &cam).hits
+        );
         assert!(got.n_hits() > 0);
     }
 }
@@ -80,9 +91,21 @@ fn cli_dump_t_and_json_match_brute_force() {
         img.to_str().unwrap(),
         "--json",
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    for key in ["mode", "threads", "width", "height", "mrays_per_s", "hits", "checksum"] {
+    for key in [
+        "mode",
+        "threads",
+        "width",
+        "height",
+        "mrays_per_s",
+        "hits",
+        "checksum",
+    ] {
         assert!(j.get(key).is_some(), "missing {key}");
     }
     assert_eq!(j["width"], 37);
@@ -99,9 +122,15 @@ fn cli_dump_t_and_json_match_brute_force() {
 
     let bytes = std::fs::read(&dump).unwrap();
     assert_eq!(bytes.len(), 37 * 23 * 4);
-    let ts: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+    let ts: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
     let want_t: Vec<f32> = want.hits.iter().map(|h| h.t).collect();
-    assert_eq!(ts.iter().map(|t| t.to_bits()).collect::<Vec<_>>(), want_t.iter().map(|t| t.to_bits()).collect::<Vec<_>>());
+    assert_eq!(
+        ts.iter().map(|t| t.to_bits()).collect::<Vec<_>>(),
+        want_t.iter().map(|t| t.to_bits()).collect::<Vec<_>>()
+    );
     assert!(ts.iter().any(|t| t.is_infinite()), "view 3 has misses");
 
     let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&img).unwrap()));
@@ -126,7 +155,11 @@ fn cli_dump_t_and_json_match_brute_force() {
         exr.to_str().unwrap(),
         "--json",
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let b: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(b["hits"], j["hits"]);
     assert_eq!(b["checksum"], j["checksum"]);
@@ -155,7 +188,14 @@ fn cli_reports_errors_with_exit_codes() {
     let out = slimkd(&["render", "default", "--size", "8x8", "--view", "9"]);
     assert_eq!(out.status.code(), Some(1));
     // A failed image write leaves nothing behind and fails.
-    let out = slimkd(&["render", "default", "--size", "8x8", "-o", dir.join("no/such/dir/x.png").to_str().unwrap()]);
+    let out = slimkd(&[
+        "render",
+        "default",
+        "--size",
+        "8x8",
+        "-o",
+        dir.join("no/such/dir/x.png").to_str().unwrap(),
+    ]);
     assert_eq!(out.status.code(), Some(1));
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -163,7 +203,11 @@ fn cli_reports_errors_with_exit_codes() {
 #[test]
 fn cli_build_json_has_the_figures() {
     let out = slimkd(&["build", "default", "--json", "--threads", "1"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(j["triangles"], 34973);
     assert!(j["nodes"].as_u64().unwrap() > 1000);

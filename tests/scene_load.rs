@@ -39,7 +39,9 @@ fn load(name: &str, text: impl AsRef<[u8]>) -> (PathBuf, Loaded) {
     let from_memory = load_obj_bytes(&path, bytes);
     match (&from_file, &from_memory) {
         (Ok(a), Ok(b)) => assert_eq!(a, b, "file and memory loads differ"),
-        (Err(a), Err(b)) => assert_eq!(a.to_string(), b.to_string(), "file and memory loads differ"),
+        (Err(a), Err(b)) => {
+            assert_eq!(a.to_string(), b.to_string(), "file and memory loads differ")
+        }
         (a, b) => panic!("file load {a:?} but memory load {b:?}"),
     }
     std::fs::remove_file(&path).ok();
@@ -49,14 +51,23 @@ fn load(name: &str, text: impl AsRef<[u8]>) -> (PathBuf, Loaded) {
 /// Checks the invariant of loaded columns and that the summary matches.
 fn check_columns(columns: &TriangleColumns, summary: &LoadSummary) {
     let n = columns.positions.len();
-    assert!(columns.indices.iter().flatten().all(|&i| (i as usize) < n), "index out of range");
-    assert!(columns.positions.iter().all(|p| p.is_finite()), "non-finite position");
+    assert!(
+        columns.indices.iter().flatten().all(|&i| (i as usize) < n),
+        "index out of range"
+    );
+    assert!(
+        columns.positions.iter().all(|p| p.is_finite()),
+        "non-finite position"
+    );
     assert_eq!(summary.triangles, columns.len());
     assert_eq!(summary.vertices, n);
     for i in 0..columns.len() as u32 {
         let [a, b, c] = columns.indices[i as usize];
         assert!(a != b && b != c && a != c, "triangle {i} repeats a vertex");
-        assert!(double_area(&columns.tri(i)) != 0.0, "triangle {i} is degenerate");
+        assert!(
+            double_area(&columns.tri(i)) != 0.0,
+            "triangle {i} is degenerate"
+        );
     }
 }
 
@@ -86,7 +97,10 @@ fn v(x: f32, y: f32, z: f32) -> Vec3 {
 fn expect_line_error(name: &str, text: impl AsRef<[u8]>, line: u64) -> String {
     let (path, result) = load(name, text);
     let err = match result {
-        Ok((c, s)) => panic!("{name}: loaded {} triangles ({s}), expected an error at line {line}", c.len()),
+        Ok((c, s)) => panic!(
+            "{name}: loaded {} triangles ({s}), expected an error at line {line}",
+            c.len()
+        ),
         Err(e) => e,
     };
     let shown = err.to_string();
@@ -99,7 +113,10 @@ fn expect_line_error(name: &str, text: impl AsRef<[u8]>, line: u64) -> String {
             assert_eq!(p, path, "{name}: wrong path in {shown}");
             assert_eq!(l, line, "{name}: wrong line in {shown}");
             let prefix = format!("{}:{line}: ", path.display());
-            assert!(shown.starts_with(&prefix), "{name}: `{shown}` does not start with `{prefix}`");
+            assert!(
+                shown.starts_with(&prefix),
+                "{name}: `{shown}` does not start with `{prefix}`"
+            );
             assert!(!message.is_empty());
             message
         }
@@ -113,7 +130,10 @@ fn expect_line_error(name: &str, text: impl AsRef<[u8]>, line: u64) -> String {
 fn expect_invalid(name: &str, text: impl AsRef<[u8]>) -> String {
     let (path, result) = load(name, text);
     let err = match result {
-        Ok((c, s)) => panic!("{name}: loaded {} triangles ({s}), expected an error", c.len()),
+        Ok((c, s)) => panic!(
+            "{name}: loaded {} triangles ({s}), expected an error",
+            c.len()
+        ),
         Err(e) => e,
     };
     let shown = err.to_string();
@@ -167,7 +187,9 @@ fn face_form_vertex_normal() {
 
 #[test]
 fn face_form_vertex_texcoord_normal() {
-    let text = format!("{FOUR}vt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1\nf 3/1/1 4/2/1 1/3/1\n");
+    let text = format!(
+        "{FOUR}vt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1\nf 3/1/1 4/2/1 1/3/1\n"
+    );
     let (c, _) = load_ok("vtvn", text);
     assert_eq!(tris(&c), vec![p([1, 2, 3]), p([3, 4, 1])]);
 }
@@ -199,7 +221,13 @@ fn face_forms_mixed_on_one_line_and_across_lines() {
     let (c, _) = load_ok("mixed", text);
     assert_eq!(
         tris(&c),
-        vec![p([1, 2, 3]), p([1, 2, 4]), p([4, 2, 3]), p([2, 3, 4]), p([2, 4, 1])]
+        vec![
+            p([1, 2, 3]),
+            p([1, 2, 4]),
+            p([4, 2, 3]),
+            p([2, 3, 4]),
+            p([2, 4, 1])
+        ]
     );
 }
 
@@ -208,8 +236,16 @@ fn vertex_reused_across_faces_keeps_its_position() {
     // tobj re-indexes; positions must follow the file's indices anyway.
     let text = "v 5 0 0\nv 0 6 0\nv 0 0 7\nv 1 1 1\nf 4 1 2\nf 3 4 1\nf 2 3 4\n";
     let (c, _) = load_ok("reuse", text);
-    let q = [v(5.0, 0.0, 0.0), v(0.0, 6.0, 0.0), v(0.0, 0.0, 7.0), v(1.0, 1.0, 1.0)];
-    assert_eq!(tris(&c), vec![[q[3], q[0], q[1]], [q[2], q[3], q[0]], [q[1], q[2], q[3]]]);
+    let q = [
+        v(5.0, 0.0, 0.0),
+        v(0.0, 6.0, 0.0),
+        v(0.0, 0.0, 7.0),
+        v(1.0, 1.0, 1.0),
+    ];
+    assert_eq!(
+        tris(&c),
+        vec![[q[3], q[0], q[1]], [q[2], q[3], q[0]], [q[1], q[2], q[3]]]
+    );
 }
 
 #[test]
@@ -223,14 +259,21 @@ fn vertex_coordinates_are_read_exactly() {
     ];
     assert_eq!(tris(&c), vec![expect]);
     // -0 is stored as +0 (equal split planes have equal bits).
-    assert!(c.positions.iter().all(|q| q.x.to_bits() != (-0.0f32).to_bits()));
+    assert!(
+        c.positions
+            .iter()
+            .all(|q| q.x.to_bits() != (-0.0f32).to_bits())
+    );
 }
 
 #[test]
 fn vertex_weight_divides_the_position() {
     let text = "v 2 4 6 2\nv 1 0 0 0.5\nv 0 1 0 1\nf 1 2 3\n";
     let (c, _) = load_ok("weight", text);
-    assert_eq!(tris(&c), vec![[v(1.0, 2.0, 3.0), v(2.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]);
+    assert_eq!(
+        tris(&c),
+        vec![[v(1.0, 2.0, 3.0), v(2.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]
+    );
 }
 
 #[test]
@@ -248,7 +291,12 @@ fn vertex_colours_are_ignored() {
 fn quad_is_fan_triangulated() {
     let text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n";
     let (c, _) = load_ok("quad", text);
-    let q = [v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(1.0, 1.0, 0.0), v(0.0, 1.0, 0.0)];
+    let q = [
+        v(0.0, 0.0, 0.0),
+        v(1.0, 0.0, 0.0),
+        v(1.0, 1.0, 0.0),
+        v(0.0, 1.0, 0.0),
+    ];
     assert_eq!(tris(&c), vec![[q[0], q[1], q[2]], [q[0], q[2], q[3]]]);
 }
 
@@ -290,7 +338,10 @@ fn polygon_fan_drops_only_its_degenerate_triangles() {
     // The first fan triangle (0,1,2) is collinear; (0,2,3) is kept.
     let text = "v 0 0 0\nv 1 0 0\nv 2 0 0\nv 1 1 0\nf 1 2 3 4\n";
     let (c, s) = load_ok("fan-degenerate", text);
-    assert_eq!(tris(&c), vec![[v(0.0, 0.0, 0.0), v(2.0, 0.0, 0.0), v(1.0, 1.0, 0.0)]]);
+    assert_eq!(
+        tris(&c),
+        vec![[v(0.0, 0.0, 0.0), v(2.0, 0.0, 0.0), v(1.0, 1.0, 0.0)]]
+    );
     assert_eq!(s.dropped_degenerate, 1);
 }
 
@@ -376,7 +427,8 @@ f 1 3 4
 
 #[test]
 fn material_lines_without_names_or_with_tabs_are_ignored() {
-    let text = format!("{FOUR}mtllib\nusemtl\nusemtl\tred\nmtllib\tx.mtl\nf 1 2 3\nusemtl \nf 2 3 4\n");
+    let text =
+        format!("{FOUR}mtllib\nusemtl\nusemtl\tred\nmtllib\tx.mtl\nf 1 2 3\nusemtl \nf 2 3 4\n");
     let (c, _) = load_ok("mtl-odd", text);
     assert_eq!(tris(&c), vec![p([1, 2, 3]), p([2, 3, 4])]);
 }
@@ -473,7 +525,13 @@ f 2 -4 3
     assert_eq!(tris(&c), vec![p([1, 2, 3]), p([2, 3, 1])]);
     assert_eq!(s.dropped_degenerate, 5);
     assert_eq!(s.triangles, 2);
-    assert_eq!(s.to_string(), format!("2 triangles, {} vertices, 5 degenerate triangles dropped", s.vertices));
+    assert_eq!(
+        s.to_string(),
+        format!(
+            "2 triangles, {} vertices, 5 degenerate triangles dropped",
+            s.vertices
+        )
+    );
 }
 
 // ---------------------------------------------------------------------------
@@ -491,7 +549,10 @@ fn error_nonexistent_file() {
         }
         other => panic!("expected an Io error, got {other:?}"),
     }
-    assert!(shown.starts_with(&format!("{}: ", path.display())), "{shown}");
+    assert!(
+        shown.starts_with(&format!("{}: ", path.display())),
+        "{shown}"
+    );
     assert!(std::error::Error::source(&load_obj(&path).unwrap_err()).is_some());
 }
 
@@ -501,8 +562,14 @@ fn error_reading_a_folder() {
     std::fs::create_dir_all(&dir).unwrap();
     let err = load_obj(&dir).unwrap_err();
     let shown = err.to_string();
-    assert!(matches!(&err, SceneError::Io { path, .. } if *path == dir), "{err:?}");
-    assert!(shown.starts_with(&format!("{}: ", dir.display())), "{shown}");
+    assert!(
+        matches!(&err, SceneError::Io { path, .. } if *path == dir),
+        "{err:?}"
+    );
+    assert!(
+        shown.starts_with(&format!("{}: ", dir.display())),
+        "{shown}"
+    );
 }
 
 const TAIL: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\n";
@@ -558,7 +625,11 @@ fn error_face_index_zero() {
     assert!(m.contains('0'), "{m}");
     expect_line_error("zero-slash", format!("{FOUR}vt 0 0\nf 1/1 2/1 0/1\n"), 6);
     expect_line_error("zero-texcoord", format!("{FOUR}vt 0 0\nf 1/1 2/0 3/1\n"), 6);
-    expect_line_error("zero-normal", format!("{FOUR}vn 0 0 1\nf 1//1 2//1 3//0\n"), 6);
+    expect_line_error(
+        "zero-normal",
+        format!("{FOUR}vn 0 0 1\nf 1//1 2//1 3//0\n"),
+        6,
+    );
 }
 
 #[test]
@@ -586,19 +657,47 @@ f 1 2 3
     let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\no a\nf 1 2 3\no b\nf 3 2 1\nf 3 4 1\n# end\n\n";
     expect_line_error("beyond-last-object", text, 8);
     // Vertices defined only after the bad face, but not enough of them.
-    expect_line_error("beyond-forward", "f 1 2 5\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n", 1);
+    expect_line_error(
+        "beyond-forward",
+        "f 1 2 5\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n",
+        1,
+    );
     // Two bad faces: the first one is named.
-    expect_line_error("beyond-two", format!("{FOUR}f 1 2 3\nf 7 1 2\nf 1 8 2\n"), 6);
+    expect_line_error(
+        "beyond-two",
+        format!("{FOUR}f 1 2 3\nf 7 1 2\nf 1 8 2\n"),
+        6,
+    );
     // A huge index.
-    expect_line_error("beyond-huge", format!("{FOUR}f 1 2 18446744073709551615\n"), 5);
+    expect_line_error(
+        "beyond-huge",
+        format!("{FOUR}f 1 2 18446744073709551615\n"),
+        5,
+    );
 }
 
 #[test]
 fn error_texcoord_or_normal_index_out_of_range() {
-    expect_line_error("vt-beyond", format!("{FOUR}vt 0 0\nf 1/1 2/2 3/1\nf 1 2 4\n"), 6);
-    expect_line_error("vn-beyond", format!("{FOUR}vn 0 0 1\nf 1//1 2//1 3//3\nf 1 2 4\n"), 6);
-    expect_line_error("vt-relative", format!("{FOUR}vt 0 0\nf 1/-1 2/-3 3/-1\n"), 6);
-    expect_line_error("vn-relative", format!("{FOUR}vn 0 0 1\nf 1//-1 2//-1 3//-2\n"), 6);
+    expect_line_error(
+        "vt-relative",
+        format!("{FOUR}vt 0 0\nf 1/-1 2/-3 3/-1\n"),
+        6,
+    );
+    expect_line_error(
+        "vt-beyond",
+        format!("{FOUR}vt 0 0\nf 1/1 2/2 3/1\nf 1 2 4\n"),
+        6,
+    );
+    expect_line_error(
+        "vn-beyond",
+        format!("{FOUR}vn 0 0 1\nf 1//1 2//1 3//3\nf 1 2 4\n"),
+        6,
+    );
+    expect_line_error(
+        "vn-relative",
+        format!("{FOUR}vn 0 0 1\nf 1//-1 2//-1 3//-2\n"),
+        6,
+    );
     expect_line_error("vt-none", format!("{FOUR}f 1/1 2/1 3/1\n"), 5);
 }
 
@@ -606,10 +705,22 @@ fn error_texcoord_or_normal_index_out_of_range() {
 fn error_relative_index_too_negative() {
     let m = expect_line_error("too-negative", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -5 -1 -2\n", 4);
     assert!(m.contains("-5"), "{m}");
-    expect_line_error("too-negative-by-one", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -4\n", 4);
+    expect_line_error(
+        "too-negative-by-one",
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -1 -2 -4\n",
+        4,
+    );
     // Relative indices count only the vertices before the face.
-    expect_line_error("too-negative-early", "v 0 0 0\nv 1 0 0\nf -3 -2 -1\nv 0 1 0\n", 3);
-    expect_line_error("too-negative-huge", format!("{FOUR}f 1 2 -9223372036854775808\n"), 5);
+    expect_line_error(
+        "too-negative-early",
+        "v 0 0 0\nv 1 0 0\nf -3 -2 -1\nv 0 1 0\n",
+        3,
+    );
+    expect_line_error(
+        "too-negative-huge",
+        format!("{FOUR}f 1 2 -9223372036854775808\n"),
+        5,
+    );
 }
 
 #[test]
@@ -617,11 +728,23 @@ fn error_unparsable_face() {
     let m = expect_line_error("f-a", format!("{FOUR}f 1 a 3\n"), 5);
     assert!(m.contains('a'), "{m}");
     expect_line_error("f-float", format!("{FOUR}f 1 2 3.5\n"), 5);
-    expect_line_error("f-four-parts", format!("{FOUR}vt 0 0\nvn 0 0 1\nf 1/1/1/1 2 3\n"), 7);
+    expect_line_error(
+        "f-four-parts",
+        format!("{FOUR}vt 0 0\nvn 0 0 1\nf 1/1/1/1 2 3\n"),
+        7,
+    );
     expect_line_error("f-no-vertex", format!("{FOUR}vt 0 0\nf /1 2/1 3/1\n"), 6);
     expect_line_error("f-suffix", format!("{FOUR}f 1 2 3x\n"), 5);
-    expect_line_error("f-bad-texcoord", format!("{FOUR}vt 0 0\nf 1/x 2/1 3/1\n"), 6);
-    expect_line_error("f-overflow", format!("{FOUR}f 1 2 99999999999999999999999\n"), 5);
+    expect_line_error(
+        "f-bad-texcoord",
+        format!("{FOUR}vt 0 0\nf 1/x 2/1 3/1\n"),
+        6,
+    );
+    expect_line_error(
+        "f-overflow",
+        format!("{FOUR}f 1 2 99999999999999999999999\n"),
+        5,
+    );
     expect_line_error("f-empty", format!("{FOUR}f\nf 1 2 3\n"), 5);
 }
 
@@ -642,16 +765,27 @@ fn error_invalid_utf8() {
     let mut text = b"v 0 0 0\r\nv 1 0 0\r\nv 0 1 0\r\nf 1 2 3\r\no \xff\xfe\r\n".to_vec();
     text.extend_from_slice(b"f 1 2 3\r\n");
     expect_line_error("bad-utf8-object", &text, 5);
-    expect_line_error("bad-utf8-vertex", b"v 0 0 0\nv 1 \x80 0\nv 0 1 0\nf 1 2 3\n", 2);
+    expect_line_error(
+        "bad-utf8-vertex",
+        b"v 0 0 0\nv 1 \x80 0\nv 0 1 0\nf 1 2 3\n",
+        2,
+    );
     // A lone surrogate half encoded in UTF-8 style is not UTF-8 either.
-    expect_line_error("surrogate", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n#\xed\xa0\x80", 5);
+    expect_line_error(
+        "surrogate",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n#\xed\xa0\x80",
+        5,
+    );
 }
 
 #[test]
 fn error_no_triangles() {
     let m = expect_invalid("vertices-only", "v 0 0 0\nv 1 0 0\nv 0 1 0\n");
     assert!(m.contains("no triangles"), "{m}");
-    let m = expect_invalid("short-faces-only", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\nf 3\nl 1 2 3\np 1 2 3\n");
+    let m = expect_invalid(
+        "short-faces-only",
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\nf 3\nl 1 2 3\np 1 2 3\n",
+    );
     assert!(m.contains("no triangles"), "{m}");
     let m = expect_invalid("comments-only", "# nothing\n\n# at all\r\n");
     assert!(m.contains("no triangles"), "{m}");
@@ -669,16 +803,25 @@ fn error_empty_file() {
 fn error_only_degenerate_faces() {
     let text = "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\nf 1 1 2\nf 3 3 3\n";
     let m = expect_invalid("all-degenerate", text);
-    assert!(m.contains("no triangles") && m.contains('3') && m.contains("degenerate"), "{m}");
+    assert!(
+        m.contains("no triangles") && m.contains('3') && m.contains("degenerate"),
+        "{m}"
+    );
 }
 
 #[test]
 fn error_display_names_file_and_line() {
     let name = Path::new("scenes/some thing.obj");
     let err = load_obj_bytes(name, b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 x\n").unwrap_err();
-    assert!(err.to_string().starts_with("scenes/some thing.obj:5: "), "{err}");
+    assert!(
+        err.to_string().starts_with("scenes/some thing.obj:5: "),
+        "{err}"
+    );
     let err = load_obj_bytes(name, b"").unwrap_err();
-    assert!(err.to_string().starts_with("scenes/some thing.obj: "), "{err}");
+    assert!(
+        err.to_string().starts_with("scenes/some thing.obj: "),
+        "{err}"
+    );
 }
 
 #[test]
@@ -698,15 +841,25 @@ fn shipped_scenes_load() {
 // ---------------------------------------------------------------------------
 // Properties.
 
+/// The number of lines in `bytes` (a last line need not end in `\n`).
+fn line_count(bytes: &[u8]) -> u64 {
+    bytes.split(|&b| b == b'\n').count() as u64
+        - u64::from(bytes.last().is_none_or(|&b| b == b'\n'))
+}
+
 /// Checks that loading returns without panicking, and that what it returns
 /// obeys the rules.
 fn check_returns(bytes: &[u8]) -> Result<(), TestCaseError> {
     let name = Path::new("fuzz/input.obj");
     let result = std::panic::catch_unwind(|| load_obj_bytes(name, bytes));
-    let lines = bytes.split(|&b| b == b'\n').count() as u64 - u64::from(bytes.last().is_none_or(|&b| b == b'\n'));
+    let lines = line_count(bytes);
     match result {
         Err(_) => {
-            prop_assert!(false, "the loader panicked on {:?}", String::from_utf8_lossy(bytes));
+            prop_assert!(
+                false,
+                "the loader panicked on {:?}",
+                String::from_utf8_lossy(bytes)
+            );
         }
         Ok(Ok((columns, summary))) => {
             let n = columns.positions.len();
@@ -720,7 +873,13 @@ fn check_returns(bytes: &[u8]) -> Result<(), TestCaseError> {
             let shown = e.to_string();
             prop_assert!(shown.contains("fuzz/input.obj"), "{}", shown);
             if let SceneError::Line { line, .. } = e {
-                prop_assert!(line >= 1 && line <= lines, "line {} of {}: {}", line, lines, shown);
+                prop_assert!(
+                    line >= 1 && line <= lines,
+                    "line {} of {}: {}",
+                    line,
+                    lines,
+                    shown
+                );
             }
         }
     }
@@ -770,8 +929,34 @@ fn word() -> impl Strategy<Value = String> {
         ((-8i64..8), (-3i64..3), (-3i64..3)).prop_map(|(a, b, c)| format!("{a}/{b}/{c}")),
         ((-8i64..8), (-3i64..3)).prop_map(|(a, b)| format!("{a}//{b}")),
         prop::sample::select(vec![
-            "nan", "inf", "-inf", "1e40", "-1e39", "1e-45", "0", "-0", "x", "", "/", "//", "#", "v", "vt",
-            "vn", "f", "o", "g", "l", "p", "usemtl", "mtllib", "\t", "\r", "\u{feff}", "é", "99999999999999999999",
+            "nan",
+            "inf",
+            "-inf",
+            "1e40",
+            "-1e39",
+            "1e-45",
+            "0",
+            "-0",
+            "x",
+            "",
+            "/",
+            "//",
+            "#",
+            "v",
+            "vt",
+            "vn",
+            "f",
+            "o",
+            "g",
+            "l",
+            "p",
+            "usemtl",
+            "mtllib",
+            "\t",
+            "\r",
+            "\u{feff}",
+            "é",
+            "99999999999999999999",
         ])
         .prop_map(str::to_string),
         "[ -~]{0,8}",
@@ -784,7 +969,8 @@ fn edit() -> impl Strategy<Value = Edit> {
         any::<prop::sample::Index>().prop_map(|i| Edit::Duplicate(i.index(64))),
         (0usize..64, 0usize..64).prop_map(|(a, b)| Edit::Swap(a, b)),
         (0usize..64, 0usize..8, word()).prop_map(|(l, w, s)| Edit::Replace(l, w, s)),
-        (0usize..64, prop::collection::vec(word(), 0..6)).prop_map(|(l, ws)| Edit::Insert(l, ws.join(" "))),
+        (0usize..64, prop::collection::vec(word(), 0..6))
+            .prop_map(|(l, ws)| Edit::Insert(l, ws.join(" "))),
     ]
 }
 
@@ -839,7 +1025,11 @@ fn event() -> impl Strategy<Value = Event> {
 /// The text of a scene and its triangles by the loader's rules (fan
 /// triangulation, file order, degenerate triangles dropped).
 fn render(events: &[Event]) -> (Vec<String>, Vec<[Vec3; 3]>, usize) {
-    let mut lines = vec!["vt 0 0".to_string(), "vt 1 1".to_string(), "vn 0 0 1".to_string()];
+    let mut lines = vec![
+        "vt 0 0".to_string(),
+        "vt 1 1".to_string(),
+        "vn 0 0 1".to_string(),
+    ];
     let mut positions: Vec<Vec3> = Vec::new();
     let mut expected = Vec::new();
     let mut dropped = 0;
@@ -856,7 +1046,11 @@ fn render(events: &[Event]) -> (Vec<String>, Vec<[Vec3; 3]>, usize) {
                 for (choice, form) in corners {
                     let i = choice.index(n) + 1; // 1-based
                     abs.push(i);
-                    let shown = if form & 4 != 0 { format!("-{}", n + 1 - i) } else { i.to_string() };
+                    let shown = if form & 4 != 0 {
+                        format!("-{}", n + 1 - i)
+                    } else {
+                        i.to_string()
+                    };
                     words.push(match form & 3 {
                         0 => shown,
                         1 => format!("{shown}/2"),
@@ -916,7 +1110,11 @@ const BAD_LINES: &[&[u8]] = &[
 ];
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(512))]
+    #![proptest_config(ProptestConfig {
+        cases: 2048,
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })]
 
     #[test]
     fn never_panics_on_random_bytes(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
@@ -951,7 +1149,7 @@ proptest! {
             let (columns, summary) = result.map_err(|e| TestCaseError::fail(format!("{e}\n{text}")))?;
             prop_assert_eq!(tris(&columns), expected, "{}", text);
             prop_assert_eq!(summary.dropped_degenerate, dropped);
-            prop_assert_eq!(summary.lines, lines.len() as u64);
+            prop_assert_eq!(summary.lines, line_count(text.as_bytes()));
         }
     }
 

@@ -64,7 +64,11 @@ fn bunny_rays_match_brute_force() {
             let u = (i as f32 + 0.5) / 40.0;
             let v = (j as f32 + 0.5) / 40.0;
             let target = b.min + (b.max - b.min) * glam::Vec3::new(u, v, 0.5);
-            for o in [b.min - 1.0, b.max + 1.0, glam::Vec3::new(b.min.x - 1.0, b.max.y + 1.0, b.center().z)] {
+            for o in [
+                b.min - 1.0,
+                b.max + 1.0,
+                glam::Vec3::new(b.min.x - 1.0, b.max.y + 1.0, b.center().z),
+            ] {
                 rays.push(Ray::new(o, target - o));
             }
         }

@@ -24,7 +24,11 @@ const DEFAULT_VIEWS: &str = include_str!("../../scenes/views.txt");
 const DEFAULT_ARG: &str = "default";
 
 #[derive(Parser)]
-#[command(name = "slimkd", version, about = "Build, store and trace SAH kd-trees for large triangle scenes.")]
+#[command(
+    name = "slimkd",
+    version,
+    about = "Build, store and trace SAH kd-trees for large triangle scenes."
+)]
 #[command(
     long_about = "Build, store and trace SAH kd-trees for large triangle scenes.\n\nWithout a command, builds the tree of the embedded default scene, prints a summary, renders slimkd.png into the current directory and prints Mrays/s.\n\nSCENE is an OBJ file, or `default` for the embedded scene."
 )]
@@ -222,8 +226,10 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
             if bar.is_none() && !quiet && start.elapsed() > Duration::from_secs(1) {
                 let b = ProgressBar::new(1000);
                 b.set_style(
-                    ProgressStyle::with_template("building {bar:40} {percent:>3}% {elapsed_precise}")
-                        .expect("the template is valid"),
+                    ProgressStyle::with_template(
+                        "building {bar:40} {percent:>3}% {elapsed_precise}",
+                    )
+                    .expect("the template is valid"),
                 );
                 bar = Some(b);
             }
@@ -245,7 +251,12 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
 }
 
 fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
-    println!("scene      {} ({}; loaded in {:.3} s)", loaded.path.display(), loaded.summary, loaded.seconds);
+    println!(
+        "scene      {} ({}; loaded in {:.3} s)",
+        loaded.path.display(),
+        loaded.summary,
+        loaded.seconds
+    );
     println!(
         "tree       {} nodes ({} inner, {} leaves, {} empty), {} triangle references ({:.2} per triangle)",
         stats.nodes,
@@ -266,7 +277,12 @@ fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
     );
 }
 
-fn build_json(loaded: &Loaded, built: &Built, stats: &TreeStats, threads: usize) -> serde_json::Value {
+fn build_json(
+    loaded: &Loaded,
+    built: &Built,
+    stats: &TreeStats,
+    threads: usize,
+) -> serde_json::Value {
     json!({
         "scene": loaded.path.display().to_string(),
         "triangles": loaded.scene.len(),
@@ -296,7 +312,10 @@ fn cmd_build(path: &Path, args: &BuildArgs, json: bool) -> Res<()> {
         let built = build_tree(&loaded.scene, args, json)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
         if json {
-            println!("{}", build_json(&loaded, &built, &stats, pool.current_num_threads()));
+            println!(
+                "{}",
+                build_json(&loaded, &built, &stats, pool.current_num_threads())
+            );
         } else {
             print_summary(&loaded, &built, &stats);
         }
@@ -312,7 +331,8 @@ fn camera_for(args: &RenderArgs, loaded: &Loaded, tree: &TreeIr) -> Res<Camera> 
     if let Some(id) = &args.view {
         let views: Vec<View> = match &args.views {
             Some(file) => {
-                let text = std::fs::read_to_string(file).map_err(|e| format!("{}: {e}", file.display()))?;
+                let text = std::fs::read_to_string(file)
+                    .map_err(|e| format!("{}: {e}", file.display()))?;
                 render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
             }
             None => render::parse_views(DEFAULT_VIEWS)?,
@@ -320,7 +340,11 @@ fn camera_for(args: &RenderArgs, loaded: &Loaded, tree: &TreeIr) -> Res<Camera> 
         let view = render::find_view(&views, &loaded.path, id).ok_or_else(|| {
             format!(
                 "no view `{id}` for scene `{}` in the views file",
-                loaded.path.file_stem().unwrap_or_default().to_string_lossy()
+                loaded
+                    .path
+                    .file_stem()
+                    .unwrap_or_default()
+                    .to_string_lossy()
             )
         })?;
         cam = Camera::from_view(view, w, h);
@@ -348,7 +372,11 @@ fn camera_for(args: &RenderArgs, loaded: &Loaded, tree: &TreeIr) -> Res<Camera> 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     let n = v.len();
-    if n % 2 == 1 { v[n / 2] } else { (v[n / 2 - 1] + v[n / 2]) / 2.0 }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
 }
 
 fn cmd_render(args: &RenderArgs) -> Res<()> {

@@ -43,7 +43,12 @@ pub enum Builder {
 }
 
 /// Builds the standard tree with the chosen builder.
-pub fn build(scene: &TriangleColumns, config: &BuildConfig, builder: Builder, progress: Option<&Progress>) -> TreeIr {
+pub fn build(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    builder: Builder,
+    progress: Option<&Progress>,
+) -> TreeIr {
     match builder {
         Builder::Naive => naive::build(scene, config, progress),
         Builder::Sweep => sweep::build(scene, config, progress),
@@ -87,7 +92,12 @@ pub fn classify(bounds: &Aabb, split: &Split) -> Placement {
 }
 
 /// The boxes of a straddler in the two children (see the module docs).
-pub fn clip_straddler(scene: &TriangleColumns, r: &TriRef, left_cell: &Aabb, right_cell: &Aabb) -> (Option<Aabb>, Option<Aabb>) {
+pub fn clip_straddler(
+    scene: &TriangleColumns,
+    r: &TriRef,
+    left_cell: &Aabb,
+    right_cell: &Aabb,
+) -> (Option<Aabb>, Option<Aabb>) {
     let tri = scene.tri(r.tri.0);
     let clip = |cell: &Aabb| {
         clip_triangle(&tri, cell)
@@ -143,6 +153,7 @@ impl TreeWriter {
             axis: split.axis,
             pos: split.pos,
             right: NodeId(u32::MAX),
+            t_ref: None,
         });
         self.tree.nodes.len() - 1
     }

@@ -53,7 +53,8 @@ impl Ctx<'_> {
                             counts.right += usize::from(hi > pos);
                         }
                     }
-                    sah::split_cost(&self.config.sah, cell, sa, axis, pos, counts).keep_best(&mut best);
+                    sah::split_cost(&self.config.sah, cell, sa, axis, pos, counts)
+                        .keep_best(&mut best);
                 }
             }
         }
@@ -62,7 +63,13 @@ impl Ctx<'_> {
 
     fn node(&mut self, refs: Vec<TriRef>, cell: Aabb, depth: u32, weight: u64) {
         let best = self.best_split(&refs, &cell);
-        if sah::is_leaf(&self.config.sah, best.as_ref(), refs.len(), depth, self.depth_limit) {
+        if sah::is_leaf(
+            &self.config.sah,
+            best.as_ref(),
+            refs.len(),
+            depth,
+            self.depth_limit,
+        ) {
             self.out.leaf(refs.iter().map(|r| r.tri));
             Progress::add(self.progress, weight);
             return;

@@ -112,7 +112,14 @@ pub struct PlaneCounts {
 /// The cost of splitting `cell` (surface area `sa_cell > 0`) at `axis = pos`.
 /// Returns the cheaper assignment of the planar triangles.
 #[inline]
-pub fn split_cost(params: &SahParams, cell: &Aabb, sa_cell: f64, axis: usize, pos: f32, counts: PlaneCounts) -> Split {
+pub fn split_cost(
+    params: &SahParams,
+    cell: &Aabb,
+    sa_cell: f64,
+    axis: usize,
+    pos: f32,
+    counts: PlaneCounts,
+) -> Split {
     let PlaneCounts {
         left: n_l,
         right: n_r,
@@ -146,7 +153,13 @@ pub fn split_cost(params: &SahParams, cell: &Aabb, sa_cell: f64, axis: usize, po
 }
 
 /// Whether a node becomes a leaf, given its best split.
-pub fn is_leaf(params: &SahParams, best: Option<&Split>, n: usize, depth: u32, depth_limit: u32) -> bool {
+pub fn is_leaf(
+    params: &SahParams,
+    best: Option<&Split>,
+    n: usize,
+    depth: u32,
+    depth_limit: u32,
+) -> bool {
     match best {
         None => true,
         Some(s) => depth >= depth_limit || s.cost >= params.leaf_cost(n),
@@ -159,7 +172,11 @@ mod tests {
     use glam::Vec3;
 
     fn pc(left: usize, right: usize, planar: usize) -> PlaneCounts {
-        PlaneCounts { left, right, planar }
+        PlaneCounts {
+            left,
+            right,
+            planar,
+        }
     }
 
     #[test]
@@ -190,9 +207,24 @@ mod tests {
 
     #[test]
     fn tie_break_is_total() {
-        let a = Split { cost: 1.0, axis: 0, pos: 2.0, planar: Side::Left };
-        let b = Split { cost: 1.0, axis: 1, pos: 0.0, planar: Side::Left };
-        let c = Split { cost: 1.0, axis: 0, pos: 2.0, planar: Side::Right };
+        let a = Split {
+            cost: 1.0,
+            axis: 0,
+            pos: 2.0,
+            planar: Side::Left,
+        };
+        let b = Split {
+            cost: 1.0,
+            axis: 1,
+            pos: 0.0,
+            planar: Side::Left,
+        };
+        let c = Split {
+            cost: 1.0,
+            axis: 0,
+            pos: 2.0,
+            planar: Side::Right,
+        };
         assert_eq!(a.cmp_order(&b), Ordering::Less);
         assert_eq!(a.cmp_order(&c), Ordering::Less);
         let mut best = None;
@@ -207,6 +239,13 @@ mod tests {
         let p = SahParams::default();
         assert_eq!(p.depth_limit(0), 8);
         assert_eq!(p.depth_limit(1024), 21);
-        assert_eq!(SahParams { max_depth: Some(3), ..p }.depth_limit(1024), 3);
+        assert_eq!(
+            SahParams {
+                max_depth: Some(3),
+                ..p
+            }
+            .depth_limit(1024),
+            3
+        );
     }
 }

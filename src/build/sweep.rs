@@ -158,7 +158,14 @@ struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
-    fn node(&mut self, refs: Vec<TriRef>, events: [Vec<Event>; 3], cell: Aabb, depth: u32, weight: u64) {
+    fn node(
+        &mut self,
+        refs: Vec<TriRef>,
+        events: [Vec<Event>; 3],
+        cell: Aabb,
+        depth: u32,
+        weight: u64,
+    ) {
         let sa = cell.surface_area();
         let mut best = None;
         if !refs.is_empty() && sa > 0.0 {
@@ -166,7 +173,13 @@ impl Ctx<'_> {
                 sweep_axis(&self.config.sah, &cell, sa, axis, ev, refs.len(), &mut best);
             }
         }
-        if sah::is_leaf(&self.config.sah, best.as_ref(), refs.len(), depth, self.depth_limit) {
+        if sah::is_leaf(
+            &self.config.sah,
+            best.as_ref(),
+            refs.len(),
+            depth,
+            self.depth_limit,
+        ) {
             self.out.leaf(refs.iter().map(|r| r.tri));
             Progress::add(self.progress, weight);
             return;

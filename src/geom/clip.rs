@@ -108,7 +108,11 @@ pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
             f32_round_down(lo[1]),
             f32_round_down(lo[2]),
         ),
-        Vec3::new(f32_round_up(hi[0]), f32_round_up(hi[1]), f32_round_up(hi[2])),
+        Vec3::new(
+            f32_round_up(hi[0]),
+            f32_round_up(hi[1]),
+            f32_round_up(hi[2]),
+        ),
     );
     let clipped = rounded.intersection(bx).intersection(&tb);
     if clipped.is_empty() {

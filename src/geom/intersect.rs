@@ -130,18 +130,33 @@ mod tests {
     fn shared_edge_is_watertight() {
         // Two triangles sharing the diagonal of a square; a ray exactly
         // through the diagonal hits at least one.
-        let t1 = [Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 0.0, 1.0), Vec3::new(1.0, 1.0, 1.0)];
-        let t2 = [Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 1.0, 1.0), Vec3::new(0.0, 1.0, 1.0)];
+        let t1 = [
+            Vec3::new(0.0, 0.0, 1.0),
+            Vec3::new(1.0, 0.0, 1.0),
+            Vec3::new(1.0, 1.0, 1.0),
+        ];
+        let t2 = [
+            Vec3::new(0.0, 0.0, 1.0),
+            Vec3::new(1.0, 1.0, 1.0),
+            Vec3::new(0.0, 1.0, 1.0),
+        ];
         for i in 1..10 {
             let p = i as f32 / 10.0;
             let r = Ray::new(Vec3::new(p, p, 0.0), Vec3::Z);
-            assert!(intersect_ray_triangle(&r, &t1).is_some() || intersect_ray_triangle(&r, &t2).is_some());
+            assert!(
+                intersect_ray_triangle(&r, &t1).is_some()
+                    || intersect_ray_triangle(&r, &t2).is_some()
+            );
         }
     }
 
     #[test]
     fn degenerate_is_never_hit() {
-        let t = [Vec3::new(0.0, 0.0, 1.0), Vec3::new(1.0, 1.0, 1.0), Vec3::new(2.0, 2.0, 1.0)];
+        let t = [
+            Vec3::new(0.0, 0.0, 1.0),
+            Vec3::new(1.0, 1.0, 1.0),
+            Vec3::new(2.0, 2.0, 1.0),
+        ];
         let r = Ray::new(Vec3::new(1.0, 1.0, 0.0), Vec3::Z);
         assert_eq!(intersect_ray_triangle(&r, &t), None);
         let p = [Vec3::ONE; 3];

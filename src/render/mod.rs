@@ -43,7 +43,11 @@ fn normalize(v: DVec3) -> DVec3 {
 }
 
 fn cross(a: DVec3, b: DVec3) -> DVec3 {
-    DVec3::new(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x)
+    DVec3::new(
+        a.y * b.z - a.z * b.y,
+        a.z * b.x - a.x * b.z,
+        a.x * b.y - a.y * b.x,
+    )
 }
 
 impl Camera {
@@ -52,7 +56,11 @@ impl Camera {
     pub fn default_for(bounds: &Aabb, width: u32, height: u32) -> Camera {
         let lo = bounds.min.as_dvec3();
         let hi = bounds.max.as_dvec3();
-        let c = DVec3::new((lo.x + hi.x) / 2.0, (lo.y + hi.y) / 2.0, (lo.z + hi.z) / 2.0);
+        let c = DVec3::new(
+            (lo.x + hi.x) / 2.0,
+            (lo.y + hi.y) / 2.0,
+            (lo.z + hi.z) / 2.0,
+        );
         let e = hi - lo;
         let d = (e.x * e.x + e.y * e.y + e.z * e.z).sqrt();
         let n = normalize(DVec3::new(0.6, 0.4, 1.0));
@@ -114,7 +122,10 @@ pub fn parse_views(text: &str) -> Result<Vec<View>, String> {
         }
         let bad = |what: &str| format!("line {}: {what}: {raw}", i + 1);
         let mut words = line.split_whitespace();
-        let scene = words.next().ok_or_else(|| bad("no scene name"))?.to_string();
+        let scene = words
+            .next()
+            .ok_or_else(|| bad("no scene name"))?
+            .to_string();
         let id = words.next().ok_or_else(|| bad("no view id"))?.to_string();
         let (mut eye, mut at, mut up, mut fov) = (None, None, None, None);
         for w in words {
@@ -141,7 +152,10 @@ pub fn parse_views(text: &str) -> Result<Vec<View>, String> {
 
 /// Parses `x,y,z`.
 pub fn parse_vec3(s: &str) -> Option<DVec3> {
-    let v: Vec<f64> = s.split(',').map(|c| c.trim().parse().ok()).collect::<Option<_>>()?;
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|c| c.trim().parse().ok())
+        .collect::<Option<_>>()?;
     (v.len() == 3 && v.iter().all(|c| c.is_finite())).then(|| DVec3::new(v[0], v[1], v[2]))
 }
 
@@ -195,7 +209,10 @@ impl HitBuffer {
     }
 }
 
-/// Traces every pixel, tiles in parallel on the current rayon pool.
+/// Traces every pixel, tiles in parallel on the current rayon pool. Each
+/// tile is traced in 4×4 blocks through [`ClosestHit::closest_hit_4x4`]
+/// (packets, for a packet tracer); blocks cut by the image border go ray
+/// by ray.
 pub fn trace_frame(tracer: &dyn ClosestHit, camera: &Camera) -> HitBuffer {
     let (w, h) = (camera.width, camera.height);
     let tiles_x = w.div_ceil(TILE);
@@ -205,10 +222,28 @@ pub fn trace_frame(tracer: &dyn ClosestHit, camera: &Camera) -> HitBuffer {
         .into_par_iter()
         .map(|tile| {
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
-            let mut out = Vec::with_capacity((TILE * TILE) as usize);
-            for y in y0..(y0 + TILE).min(h) {
-                for x in x0..(x0 + TILE).min(w) {
-                    out.push(tracer.closest_hit(&camera.ray(x, y)));
+            let (tw, th) = ((x0 + TILE).min(w) - x0, (y0 + TILE).min(h) - y0);
+            let mut out = vec![Hit::MISS; (tw * th) as usize];
+            for by in (0..th).step_by(4) {
+                for bx in (0..tw).step_by(4) {
+                    if bx + 4 <= tw && by + 4 <= th {
+                        let rays: [Ray; 16] = std::array::from_fn(|i| {
+                            camera.ray(x0 + bx + i as u32 % 4, y0 + by + i as u32 / 4)
+                        });
+                        let mut hits = [Hit::MISS; 16];
+                        tracer.closest_hit_4x4(&rays, &mut hits);
+                        for (i, hit) in hits.into_iter().enumerate() {
+                            let (x, y) = (bx + i as u32 % 4, by + i as u32 / 4);
+                            out[(y * tw + x) as usize] = hit;
+                        }
+                    } else {
+                        for y in by..(by + 4).min(th) {
+                            for x in bx..(bx + 4).min(tw) {
+                                out[(y * tw + x) as usize] =
+                                    tracer.closest_hit(&camera.ray(x0 + x, y0 + y));
+                            }
+                        }
+                    }
                 }
             }
             out
@@ -234,7 +269,12 @@ pub fn trace_frame(tracer: &dyn ClosestHit, camera: &Camera) -> HitBuffer {
 }
 
 /// Colours a traced frame.
-pub fn shade(buffer: &HitBuffer, camera: &Camera, scene: &TriangleColumns, shading: Shading) -> Frame {
+pub fn shade(
+    buffer: &HitBuffer,
+    camera: &Camera,
+    scene: &TriangleColumns,
+    shading: Shading,
+) -> Frame {
     let background = [0.05f32, 0.05, 0.08];
     let rgb = (0..buffer.hits.len())
         .into_par_iter()
@@ -301,7 +341,15 @@ mod tests {
         assert_eq!(v.fov_deg, 45.0);
         assert_eq!(v.at, DVec3::new(0.0, 0.0, 1.0));
         assert!(find_view(&views, Path::new("cat.obj"), "1").is_none());
-        assert!(parse_views("a 1 eye=1,2 at=0,0,0 up=0,1,0 fov=60").unwrap_err().contains("line 1"));
-        assert!(parse_views("a 1 at=0,0,0 up=0,1,0 fov=60").unwrap_err().contains("missing eye"));
+        assert!(
+            parse_views("a 1 eye=1,2 at=0,0,0 up=0,1,0 fov=60")
+                .unwrap_err()
+                .contains("line 1")
+        );
+        assert!(
+            parse_views("a 1 at=0,0,0 up=0,1,0 fov=60")
+                .unwrap_err()
+                .contains("missing eye")
+        );
     }
 }

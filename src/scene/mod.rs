@@ -1,15 +1,39 @@
 //! Scenes: loading triangle meshes into structure-of-arrays columns.
 //!
-//! Consumes Wavefront OBJ files (through `tobj`: `v` and `f` lines, every
-//! index form `v`, `v/vt`, `v//vn`, `v/vt/vn`, negative (relative) indices,
-//! polygons fan-triangulated; everything else is ignored). Produces
+//! Consumes Wavefront OBJ files (through `tobj`). Produces
 //! [`TriangleColumns`]: one column of vertex positions and one column of
 //! vertex-index triples, in file order.
 //!
+//! **What is read.**
+//! - `v x y z`, optionally followed by a weight `w` (the position is
+//!   `(x/w, y/w, z/w)`, computed in `f32`) or by a colour `r g b` (ignored).
+//! - `f` with every index form `v`, `v/vt`, `v//vn`, `v/vt/vn`, mixed
+//!   freely. A negative index is relative: `-1` is the last vertex
+//!   (texture coordinate, normal) defined before the line. A positive index
+//!   may refer to a vertex defined later in the file. Polygons are
+//!   fan-triangulated: `(v0, v1, v2), (v0, v2, v3), ...`. A face of one or
+//!   two vertices is ignored.
+//! - `vt` (1 to 3 numbers) and `vn` (3 numbers) lines are checked and
+//!   counted, so that face indices into them can be checked, and otherwise
+//!   unused.
+//! - Everything else (`o`, `g`, `s`, `l`, `p`, `mtllib`, `usemtl`, ...) is
+//!   ignored; objects and groups do not change the order of triangles, and
+//!   no material file is opened. `#` starts a comment, at the start of a
+//!   line or after a statement. Lines end in LF or CRLF; words are
+//!   separated by any whitespace; a UTF-8 byte-order mark at the start of
+//!   the file is skipped.
+//!
 //! **Input rule.** Bad input is an error that names the file and, where it
-//! applies, the line: an unreadable file, text that is not UTF-8, a line that
-//! does not parse, a NaN or infinite coordinate, a face index out of range,
-//! and a file with no triangles. Loading never panics.
+//! applies, the line (1-based): an unreadable file, text that is not UTF-8
+//! (anywhere, comments included), a `v`, `vt`, `vn` or `f` line that does
+//! not parse (a word that is not a number, the wrong number of values, an
+//! index 0, a face vertex of more than three parts or without a vertex
+//! index, an `f` line without vertices), a vertex weight of zero, a NaN or
+//! infinite coordinate (including a number too large for `f32`, and one
+//! made so by the weight), a face index out of range (a relative index
+//! before the first element, or an index past the last element of the
+//! file; reported at the face's line), and a file with no triangles.
+//! Loading never panics.
 //!
 //! **Degenerate rule.** A triangle whose vertices are repeated or collinear
 //! (twice its area, computed in `f64` from the `f32` positions, is exactly
@@ -41,7 +65,10 @@ impl TriangleColumns {
     /// Builds columns from positions and index triples, checking the
     /// invariant. A coordinate of -0.0 becomes +0.0, so that equal split
     /// planes always have equal bits.
-    pub fn new(mut positions: Vec<Vec3>, indices: Vec<[u32; 3]>) -> Result<TriangleColumns, String> {
+    pub fn new(
+        mut positions: Vec<Vec3>,
+        indices: Vec<[u32; 3]>,
+    ) -> Result<TriangleColumns, String> {
         for p in &mut positions {
             *p += 0.0;
         }
@@ -49,7 +76,10 @@ impl TriangleColumns {
             return Err(format!("vertex {i} has a non-finite coordinate"));
         }
         let n = positions.len() as u64;
-        if let Some(t) = indices.iter().position(|t| t.iter().any(|&i| u64::from(i) >= n)) {
+        if let Some(t) = indices
+            .iter()
+            .position(|t| t.iter().any(|&i| u64::from(i) >= n))
+        {
             return Err(format!("triangle {t} has a vertex index out of range"));
         }
         if indices.len() >= u32::MAX as usize {
@@ -89,7 +119,9 @@ impl TriangleColumns {
 
     /// The bounds of every triangle (empty for an empty scene).
     pub fn bounds(&self) -> Aabb {
-        (0..self.len() as u32).fold(Aabb::EMPTY, |b, i| b.union(&Aabb::of_triangle(&self.tri(i))))
+        (0..self.len() as u32).fold(Aabb::EMPTY, |b, i| {
+            b.union(&Aabb::of_triangle(&self.tri(i)))
+        })
     }
 
     /// The geometric normal of triangle `i` (not normalised).
@@ -139,9 +171,16 @@ impl fmt::Display for LoadSummary {
 /// A scene that could not be loaded. Every variant names the file.
 #[derive(Debug)]
 pub enum SceneError {
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     /// A problem with one line (1-based).
-    Line { path: PathBuf, line: u64, message: String },
+    Line {
+        path: PathBuf,
+        line: u64,
+        message: String,
+    },
     /// A problem not tied to one line.
     Invalid { path: PathBuf, message: String },
 }
@@ -150,7 +189,11 @@ impl fmt::Display for SceneError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             SceneError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-            SceneError::Line { path, line, message } => {
+            SceneError::Line {
+                path,
+                line,
+                message,
+            } => {
                 write!(f, "{}:{line}: {message}", path.display())
             }
             SceneError::Invalid { path, message } => write!(f, "{}: {message}", path.display()),

@@ -1,0 +1,225 @@
+//! The `.kd` file: a kd-tree and its geometry in one little-endian file that
+//! opens with `mmap` and is traversed in place (no parsing, no
+//! deserialisation).
+//!
+//! Consumes a [`TreeIr`](crate::tree::TreeIr) and its
+//! [`TriangleColumns`](crate::scene::TriangleColumns) ([`write`]); produces
+//! a [`KdFile`] over any byte source ([`read`]). [`KdFile::from_bytes`]
+//! validates every count, offset, node and index before any traversal, so
+//! that no byte string makes traversal panic, read out of bounds or loop.
+//!
+//! # Layout, version 1
+//!
+//! The header (384 bytes) comes first; every section starts at a multiple of
+//! 64 bytes, in the order of the section table, and nothing overlaps.
+//!
+//! | offset | size | field |
+//! |---:|---:|---|
+//! | 0 | 8 | magic `89 53 4C 4B 44 0D 0A 1A` (`\x89SLKD\r\n\x1a`) |
+//! | 8 | 4 | format version (1) |
+//! | 12 | 4 | endianness check `0x0A0B0C0D` |
+//! | 16 | 4 | header size (384) |
+//! | 20 | 4 | flags: bit 0 = triangles reordered (the `tri_map` section is present) |
+//! | 24 | 8 | `K_T` (f64) |
+//! | 32 | 8 | `K_I` (f64) |
+//! | 40 | 8 | λ for empty space (f64) |
+//! | 48 | 4 | depth limit used by the build |
+//! | 52 | 4 | preset: 0 std, 1 fast, 2 small, 3 custom |
+//! | 56 | 4 | τ_occu (f32) |
+//! | 60 | 4 | τ_freq (f32) |
+//! | 64 | 4 | `max_t2rn` |
+//! | 68 | 4 | maximum node depth |
+//! | 72 | 8 | node words (inner + t-inner + leaves + T-references) |
+//! | 80 | 8 | type I inner nodes |
+//! | 88 | 8 | type II inner nodes (t-inner) |
+//! | 96 | 8 | leaves |
+//! | 104 | 8 | idx32 entries |
+//! | 112 | 8 | idx16 entries |
+//! | 120 | 8 | triangles |
+//! | 128 | 8 | vertices |
+//! | 136 | 24 | scene bounds: min xyz, max xyz (f32) |
+//! | 160 | 32 | reserved (zero) |
+//! | 192 | 6 × 24 | section table: per section, byte offset (u64), byte length (u64), CRC-32 (u32), reserved (u32) |
+//! | 336 | 4 | CRC-32 of bytes 0..336 |
+//! | 340 | 44 | reserved (zero) |
+//!
+//! Sections, in order: `nodes` (u64 node words, see [`node`]), `idx32`
+//! (u32), `idx16` (u16), `vertices` (3 × f32), `triangles` (3 × u32 vertex
+//! indices), `tri_map` (u32: file triangle id → input triangle id; empty
+//! unless reordered). The root is node 0. Every child block lies strictly
+//! after its parent, so there are no cycles; the node section is limited to
+//! 2^29 nodes (4 GiB) by the 29-bit offset field, and the writer refuses
+//! larger trees rather than wrap.
+//!
+//! Hit ids reported by traversal are always input ids (through `tri_map`).
+
+pub mod node;
+mod read;
+mod write;
+
+pub use read::{AlignedBytes, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
+pub use write::{FileConfig, Preset, WriteOptions, write_file, write_to_vec};
+
+use std::fmt;
+use std::path::PathBuf;
+
+pub const MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
+pub const VERSION: u32 = 1;
+pub const ENDIAN_CHECK: u32 = 0x0A0B_0C0D;
+pub const HEADER_SIZE: usize = 384;
+pub const SECTION_ALIGN: usize = 64;
+pub const FLAG_REORDERED: u32 = 1;
+
+/// The sections, in file order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Section {
+    Nodes = 0,
+    Idx32 = 1,
+    Idx16 = 2,
+    Vertices = 3,
+    Triangles = 4,
+    TriMap = 5,
+}
+
+impl Section {
+    pub const ALL: [Section; 6] = [
+        Section::Nodes,
+        Section::Idx32,
+        Section::Idx16,
+        Section::Vertices,
+        Section::Triangles,
+        Section::TriMap,
+    ];
+
+    pub fn name(self) -> &'static str {
+        [
+            "nodes",
+            "idx32",
+            "idx16",
+            "vertices",
+            "triangles",
+            "tri_map",
+        ][self as usize]
+    }
+
+    /// Bytes per element.
+    pub fn elem_size(self) -> u64 {
+        [8, 4, 2, 12, 12, 4][self as usize]
+    }
+}
+
+pub(crate) const SECTION_TABLE: usize = 192;
+pub(crate) const SECTION_ENTRY: usize = 24;
+pub(crate) const HEADER_CRC: usize = 336;
+
+// The header table must fit before the header checksum.
+const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);
+const _: () = assert!(HEADER_CRC + 4 <= HEADER_SIZE && HEADER_SIZE.is_multiple_of(SECTION_ALIGN));
+const _: () = assert!(std::mem::size_of::<u64>() == 8);
+
+/// Why a file could not be written or opened. Every variant says what is
+/// wrong; `Io` names the file.
+#[derive(Debug)]
+pub enum FormatError {
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// Shorter than the header or than a section it announces.
+    Truncated {
+        needed: u64,
+        got: u64,
+    },
+    BadMagic,
+    Version {
+        expected: u32,
+        got: u32,
+    },
+    /// Written on a machine of the other byte order.
+    Endianness,
+    /// The byte source is not 8-byte aligned (mmap always is).
+    Misaligned,
+    HeaderChecksum {
+        expected: u32,
+        got: u32,
+    },
+    /// A header field out of range.
+    Header(String),
+    /// A section's placement or size.
+    Section {
+        section: &'static str,
+        message: String,
+    },
+    /// A node word that is malformed or points outside the file.
+    Node {
+        index: u64,
+        message: String,
+    },
+    ChecksumMismatch {
+        section: &'static str,
+        expected: u32,
+        got: u32,
+    },
+    /// An index or vertex reference out of range.
+    Index {
+        section: &'static str,
+        position: u64,
+        message: String,
+    },
+    /// The tree does not fit the format (e.g. more than 2^29 nodes).
+    TooLarge(String),
+}
+
+impl fmt::Display for FormatError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            FormatError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            FormatError::Truncated { needed, got } => {
+                write!(f, "truncated file: needs {needed} bytes, has {got}")
+            }
+            FormatError::BadMagic => write!(f, "not a slimkd .kd file (bad magic)"),
+            FormatError::Version { expected, got } => {
+                write!(
+                    f,
+                    "unsupported format version {got} (this build reads {expected})"
+                )
+            }
+            FormatError::Endianness => {
+                write!(f, "the file's byte order does not match this machine")
+            }
+            FormatError::Misaligned => write!(f, "the byte buffer is not 8-byte aligned"),
+            FormatError::HeaderChecksum { expected, got } => {
+                write!(
+                    f,
+                    "header checksum mismatch (stored {expected:#010x}, computed {got:#010x})"
+                )
+            }
+            FormatError::Header(m) => write!(f, "bad header: {m}"),
+            FormatError::Section { section, message } => write!(f, "section {section}: {message}"),
+            FormatError::Node { index, message } => write!(f, "node {index}: {message}"),
+            FormatError::ChecksumMismatch {
+                section,
+                expected,
+                got,
+            } => write!(
+                f,
+                "section {section}: checksum mismatch (stored {expected:#010x}, computed {got:#010x})"
+            ),
+            FormatError::Index {
+                section,
+                position,
+                message,
+            } => write!(f, "section {section}, entry {position}: {message}"),
+            FormatError::TooLarge(m) => write!(f, "tree too large for the format: {m}"),
+        }
+    }
+}
+
+impl std::error::Error for FormatError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            FormatError::Io { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}

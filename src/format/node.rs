@@ -1,0 +1,188 @@
+//! The 8-byte node word: encoding and decoding (Wald 2004, extended by Choi,
+//! Chang & Ihm 2013 with type II inner nodes and T-reference nodes).
+//!
+//! ```text
+//! bit   63 ........ 32 31 ............ 16 15 ...... 5 4 3 2 1 0
+//! I     split pos (f32) left-child byte offset (bits 3-31)  0 a a   type I inner, axis aa
+//! II    split pos (f32) T-ref block byte offset (bits 3-31) 1 a a   type II inner, axis aa
+//! T     triangle index  0 .................................  1 1 1   T-reference
+//! L32   first in idx32  count (27 bits, 5-31)        0 0  0 1 1   leaf, 4-byte indices
+//! L16   first in idx16  upper 16 bits | count (11, 5-15) 0 1  0 1 1 leaf, 2-byte indices
+//! ```
+//!
+//! Worked example: `0x4040_0000_0000_0011` is a type I inner node (A = 001,
+//! split on y) at y = 3.0 (`0x40400000`) whose children sit at byte offsets
+//! 0x10 and 0x18 (node slots 2 and 3). `0x0000_0007_0001_0C2B` is a leaf
+//! (A = 011) in 2-byte mode (E = 01) holding 0x61 = 97 indices whose upper
+//! 16 bits are 0x0001, starting at idx16 position 7.
+
+/// Node type bits `A` (bits 0–2).
+pub const A_MASK: u64 = 0b111;
+pub const A_LEAF: u64 = 0b011;
+pub const A_TREF: u64 = 0b111;
+/// Set in `A` for a type II inner node.
+pub const A_TYPE2: u64 = 0b100;
+
+/// Leaf mode `E` (bits 3–4).
+pub const E_IDX32: u64 = 0b00;
+pub const E_IDX16: u64 = 0b01;
+
+/// The largest count a 4-byte-mode leaf can hold (27 bits).
+pub const MAX_LEAF32: u32 = (1 << 27) - 1;
+/// A 2-byte-mode leaf holds fewer than this many indices (11 bits).
+pub const LEAF16_LIMIT: u32 = 1 << 11;
+/// The node section can address 2^32 bytes: 2^29 nodes (512 M).
+pub const MAX_NODES: u64 = 1 << 29;
+
+/// A decoded node word. Offsets are node indices (byte offset / 8).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum NodeWord {
+    /// Type I (`t_ref == false`): children at `block`, `block + 1`. Type II:
+    /// the T-reference at `block`, children at `block + 1`, `block + 2`.
+    Inner {
+        axis: u8,
+        t_ref: bool,
+        block: u32,
+        pos: f32,
+    },
+    Leaf32 {
+        count: u32,
+        start: u32,
+    },
+    Leaf16 {
+        count: u32,
+        upper: u16,
+        start: u32,
+    },
+    TRef {
+        tri: u32,
+    },
+}
+
+/// Encodes an inner node; `block` is the node index of its child block.
+pub fn encode_inner(axis: u8, t_ref: bool, block: u32, pos: f32) -> u64 {
+    debug_assert!(axis < 3 && u64::from(block) < MAX_NODES);
+    let a = u64::from(axis) | if t_ref { A_TYPE2 } else { 0 };
+    (u64::from(pos.to_bits()) << 32) | (u64::from(block) << 3) | a
+}
+
+pub fn encode_leaf32(count: u32, start: u32) -> u64 {
+    debug_assert!(count <= MAX_LEAF32);
+    (u64::from(start) << 32) | (u64::from(count) << 5) | (E_IDX32 << 3) | A_LEAF
+}
+
+pub fn encode_leaf16(count: u32, upper: u16, start: u32) -> u64 {
+    debug_assert!(count < LEAF16_LIMIT);
+    (u64::from(start) << 32)
+        | (u64::from(upper) << 16)
+        | (u64::from(count) << 5)
+        | (E_IDX16 << 3)
+        | A_LEAF
+}
+
+pub fn encode_tref(tri: u32) -> u64 {
+    (u64::from(tri) << 32) | A_TREF
+}
+
+/// Decodes a word; `Err` names what is malformed (unknown mode bits, or
+/// non-zero bits a T-reference does not use).
+#[inline]
+pub fn decode(w: u64) -> Result<NodeWord, &'static str> {
+    let hi = (w >> 32) as u32;
+    match w & A_MASK {
+        A_LEAF => match (w >> 3) & 0b11 {
+            E_IDX32 => Ok(NodeWord::Leaf32 {
+                count: ((w as u32) >> 5) & MAX_LEAF32,
+                start: hi,
+            }),
+            E_IDX16 => Ok(NodeWord::Leaf16 {
+                count: ((w as u32) >> 5) & (LEAF16_LIMIT - 1),
+                upper: (w >> 16) as u16,
+                start: hi,
+            }),
+            _ => Err("unknown leaf mode"),
+        },
+        A_TREF => {
+            if w as u32 != A_TREF as u32 {
+                Err("T-reference with unused bits set")
+            } else {
+                Ok(NodeWord::TRef { tri: hi })
+            }
+        }
+        a => Ok(NodeWord::Inner {
+            axis: (a & 0b11) as u8,
+            t_ref: a & A_TYPE2 != 0,
+            block: (w as u32) >> 3,
+            pos: f32::from_bits(hi),
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn worked_examples() {
+        assert_eq!(encode_inner(1, false, 2, 3.0), 0x4040_0000_0000_0011);
+        assert_eq!(encode_leaf16(97, 1, 7), 0x0000_0007_0001_0C2B);
+        assert_eq!(
+            decode(0x0000_0007_0001_0C2B),
+            Ok(NodeWord::Leaf16 {
+                count: 97,
+                upper: 1,
+                start: 7
+            })
+        );
+    }
+
+    #[test]
+    fn round_trips_at_the_limits() {
+        let cases = [
+            NodeWord::Inner {
+                axis: 2,
+                t_ref: true,
+                block: (MAX_NODES - 1) as u32,
+                pos: -1.5,
+            },
+            NodeWord::Inner {
+                axis: 0,
+                t_ref: false,
+                block: 1,
+                pos: f32::MAX,
+            },
+            NodeWord::Leaf32 {
+                count: MAX_LEAF32,
+                start: u32::MAX,
+            },
+            NodeWord::Leaf32 { count: 0, start: 0 },
+            NodeWord::Leaf16 {
+                count: LEAF16_LIMIT - 1,
+                upper: u16::MAX,
+                start: u32::MAX,
+            },
+            NodeWord::TRef { tri: u32::MAX },
+        ];
+        for c in cases {
+            let w = match c {
+                NodeWord::Inner {
+                    axis,
+                    t_ref,
+                    block,
+                    pos,
+                } => encode_inner(axis, t_ref, block, pos),
+                NodeWord::Leaf32 { count, start } => encode_leaf32(count, start),
+                NodeWord::Leaf16 {
+                    count,
+                    upper,
+                    start,
+                } => encode_leaf16(count, upper, start),
+                NodeWord::TRef { tri } => encode_tref(tri),
+            };
+            assert_eq!(decode(w), Ok(c));
+        }
+        assert!(decode(0b1_0011).is_err());
+        assert!(decode(0b1_1011).is_err());
+        assert!(decode(0b100_0111).is_err());
+    }
+}

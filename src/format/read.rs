@@ -1,0 +1,640 @@
+//! Opening a `.kd` file: [`KdFile::from_bytes`] validates everything, then
+//! the accessors hand out typed slices of the bytes without copying.
+
+use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
+use super::write::{FileConfig, Preset};
+use super::{
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
+    SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
+};
+use crate::geom::Aabb;
+use crate::tree::MAX_DEPTH;
+use glam::Vec3;
+use std::ops::Range;
+use std::path::Path;
+
+/// A validated `.kd` file over any byte source: a `Vec<u8>`, a `&[u8]`, or
+/// a memory map ([`KdFile::open`]).
+///
+/// `D::as_ref` must return the same bytes every time it is called (every
+/// ordinary byte container does); validation happens once, in
+/// [`KdFile::from_bytes`].
+pub struct KdFile<D> {
+    data: D,
+    /// Byte ranges of the sections; each starts 64-byte aligned and lies
+    /// inside `data`, checked by `from_bytes`.
+    ranges: [Range<usize>; 6],
+    config: FileConfig,
+    reordered: bool,
+    bounds: Aabb,
+    max_depth: u32,
+    counts: TreeFigures,
+}
+
+/// The counts the paper reports for a tree (Choi et al. 2013, Table 3(a)).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TreeFigures {
+    pub inner: u64,
+    pub t_inner: u64,
+    pub leaves: u64,
+    pub idx32: u64,
+    pub idx16: u64,
+    pub triangles: u64,
+    pub vertices: u64,
+    /// Node words in the file (inner + t-inner + leaves + T-references).
+    pub words: u64,
+}
+
+impl TreeFigures {
+    /// Nodes as the paper counts them: inner, t-inner and leaves.
+    pub fn nodes(&self) -> u64 {
+        self.inner + self.t_inner + self.leaves
+    }
+
+    /// Tree memory as the paper counts it:
+    /// `8·(nodes + T-references) + 4·|idx32| + 2·|idx16|` bytes.
+    pub fn tree_bytes(&self) -> u64 {
+        8 * (self.nodes() + self.t_inner) + 4 * self.idx32 + 2 * self.idx16
+    }
+
+    /// Vertex positions and vertex-index triples as stored.
+    pub fn geometry_bytes(&self) -> u64 {
+        12 * self.vertices + 12 * self.triangles
+    }
+}
+
+/// The triangle ids of one leaf, in the file's numbering.
+#[derive(Clone, Copy, Debug)]
+pub enum LeafIndices<'a> {
+    Idx32(&'a [u32]),
+    Idx16 { upper: u32, low: &'a [u16] },
+}
+
+impl LeafIndices<'_> {
+    pub fn len(&self) -> usize {
+        match self {
+            LeafIndices::Idx32(s) => s.len(),
+            LeafIndices::Idx16 { low, .. } => low.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    #[inline]
+    pub fn for_each(&self, mut f: impl FnMut(u32)) {
+        match *self {
+            LeafIndices::Idx32(s) => s.iter().for_each(|&t| f(t)),
+            LeafIndices::Idx16 { upper, low } => low.iter().for_each(|&t| f(upper | u32::from(t))),
+        }
+    }
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
+}
+
+fn u64_at(b: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+}
+
+impl<D: AsRef<[u8]>> KdFile<D> {
+    /// Validates `data` and wraps it. Checks the magic, version, byte
+    /// order, header checksum, every count and section offset, every node
+    /// word (known type and mode bits, child blocks strictly forward and
+    /// inside the node section, depth at most [`MAX_DEPTH`]), every leaf
+    /// range and index, every vertex index and the triangle map. Section
+    /// checksums are checked by [`KdFile::verify`]. Never panics.
+    pub fn from_bytes(data: D) -> Result<KdFile<D>, FormatError> {
+        let b = data.as_ref();
+        let got = b.len() as u64;
+        if b.len() < HEADER_SIZE {
+            return Err(FormatError::Truncated {
+                needed: HEADER_SIZE as u64,
+                got,
+            });
+        }
+        if b[0..8] != MAGIC {
+            return Err(FormatError::BadMagic);
+        }
+        let version = u32_at(b, 8);
+        if version != VERSION {
+            return Err(FormatError::Version {
+                expected: VERSION,
+                got: version,
+            });
+        }
+        if u32_at(b, 12) != ENDIAN_CHECK {
+            return Err(FormatError::Endianness);
+        }
+        let stored = u32_at(b, HEADER_CRC);
+        let computed = crc32fast::hash(&b[..HEADER_CRC]);
+        if stored != computed {
+            return Err(FormatError::HeaderChecksum {
+                expected: stored,
+                got: computed,
+            });
+        }
+        if u32_at(b, 16) as usize != HEADER_SIZE {
+            return Err(FormatError::Header(format!(
+                "header size {}",
+                u32_at(b, 16)
+            )));
+        }
+        if b.as_ptr().align_offset(8) != 0 {
+            return Err(FormatError::Misaligned);
+        }
+        let flags = u32_at(b, 20);
+        if flags & !FLAG_REORDERED != 0 {
+            return Err(FormatError::Header(format!("unknown flags {flags:#x}")));
+        }
+        let reordered = flags & FLAG_REORDERED != 0;
+        let preset = Preset::from_u32(u32_at(b, 52))
+            .ok_or_else(|| FormatError::Header(format!("unknown preset {}", u32_at(b, 52))))?;
+        let config = FileConfig {
+            k_t: f64::from_bits(u64_at(b, 24)),
+            k_i: f64::from_bits(u64_at(b, 32)),
+            lambda_empty: f64::from_bits(u64_at(b, 40)),
+            depth_limit: u32_at(b, 48),
+            preset,
+            tau_occu: f32::from_bits(u32_at(b, 56)),
+            tau_freq: f32::from_bits(u32_at(b, 60)),
+            max_t2rn: u32_at(b, 64),
+        };
+        let max_depth = u32_at(b, 68);
+        let counts = TreeFigures {
+            words: u64_at(b, 72),
+            inner: u64_at(b, 80),
+            t_inner: u64_at(b, 88),
+            leaves: u64_at(b, 96),
+            idx32: u64_at(b, 104),
+            idx16: u64_at(b, 112),
+            triangles: u64_at(b, 120),
+            vertices: u64_at(b, 128),
+        };
+        let f = |k: usize| f32::from_bits(u32_at(b, 136 + 4 * k));
+        let bounds = Aabb::new(Vec3::new(f(0), f(1), f(2)), Vec3::new(f(3), f(4), f(5)));
+        if !(bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmple(bounds.max).all())
+        {
+            return Err(FormatError::Header(
+                "scene bounds are not a finite box".into(),
+            ));
+        }
+        if counts.words == 0 || counts.words > MAX_NODES {
+            return Err(FormatError::Header(format!("{} node words", counts.words)));
+        }
+        if counts.triangles > u64::from(u32::MAX) || counts.vertices > u64::from(u32::MAX) {
+            return Err(FormatError::Header(
+                "more than 2^32 triangles or vertices".into(),
+            ));
+        }
+        // The node counts must add up: a binary tree has one more leaf than
+        // inner nodes, and each type II node adds one T-reference word.
+        let inner_all = counts.inner.checked_add(counts.t_inner);
+        if inner_all.and_then(|n| n.checked_add(1)) != Some(counts.leaves)
+            || inner_all
+                .and_then(|n| n.checked_add(counts.leaves))
+                .and_then(|n| n.checked_add(counts.t_inner))
+                != Some(counts.words)
+        {
+            return Err(FormatError::Header("node counts do not add up".into()));
+        }
+        if max_depth > MAX_DEPTH {
+            return Err(FormatError::Header(format!(
+                "depth {max_depth} over {MAX_DEPTH}"
+            )));
+        }
+
+        // Section table.
+        let expected_len = |s: Section| {
+            match s {
+                Section::Nodes => Some(counts.words),
+                Section::Idx32 => Some(counts.idx32),
+                Section::Idx16 => Some(counts.idx16),
+                Section::Vertices => Some(counts.vertices),
+                Section::Triangles => Some(counts.triangles),
+                Section::TriMap => Some(if reordered { counts.triangles } else { 0 }),
+            }
+            .and_then(|n| n.checked_mul(s.elem_size()))
+        };
+        let mut ranges: [Range<usize>; 6] = Default::default();
+        let mut end_prev = HEADER_SIZE as u64;
+        for s in Section::ALL {
+            let e = SECTION_TABLE + s as usize * SECTION_ENTRY;
+            let (ofs, len) = (u64_at(b, e), u64_at(b, e + 8));
+            let bad = |message: String| FormatError::Section {
+                section: s.name(),
+                message,
+            };
+            if Some(len) != expected_len(s) {
+                return Err(bad(format!("{len} bytes do not match the header's count")));
+            }
+            if ofs % SECTION_ALIGN as u64 != 0 || ofs < end_prev {
+                return Err(bad(format!(
+                    "offset {ofs} misplaced (not 64-aligned or overlapping)"
+                )));
+            }
+            let end = ofs
+                .checked_add(len)
+                .ok_or_else(|| bad("offset overflows".into()))?;
+            if end > got {
+                return Err(FormatError::Truncated { needed: end, got });
+            }
+            ranges[s as usize] = ofs as usize..end as usize;
+            end_prev = end;
+        }
+        let file = KdFile {
+            data,
+            ranges,
+            config,
+            reordered,
+            bounds,
+            max_depth,
+            counts,
+        };
+        file.validate_contents()?;
+        Ok(file)
+    }
+
+    /// Checks nodes, leaves, indices, vertices and the triangle map.
+    fn validate_contents(&self) -> Result<(), FormatError> {
+        let words = self.nodes();
+        let n = words.len() as u64;
+        let n_tris = self.counts.triangles;
+        let node_err = |index: u64, message: String| FormatError::Node { index, message };
+        // Depth of each node along the longest path from the root; children
+        // lie strictly forward, so one pass in index order is enough.
+        let mut depth = vec![0u8; words.len()];
+        let mut referenced = vec![false; words.len()];
+        referenced[0] = true;
+        let (mut inner, mut t_inner, mut leaves, mut trefs) = (0u64, 0u64, 0u64, 0u64);
+        for (i, &w) in words.iter().enumerate() {
+            let decoded = node::decode(w).map_err(|m| node_err(i as u64, m.to_string()))?;
+            if !referenced[i] {
+                return Err(node_err(
+                    i as u64,
+                    "not referenced by any inner node".into(),
+                ));
+            }
+            match decoded {
+                NodeWord::Inner {
+                    axis,
+                    t_ref,
+                    block,
+                    pos,
+                } => {
+                    if axis > 2 {
+                        return Err(node_err(i as u64, "axis 3".into()));
+                    }
+                    if !pos.is_finite() {
+                        return Err(node_err(i as u64, "split position is not finite".into()));
+                    }
+                    let block = u64::from(block);
+                    let size = if t_ref { 3 } else { 2 };
+                    if block <= i as u64 || block + size > n {
+                        return Err(node_err(
+                            i as u64,
+                            format!("child block {block} is not forward and inside {n} nodes"),
+                        ));
+                    }
+                    let d = depth[i] + 1;
+                    if u32::from(d) > MAX_DEPTH || u32::from(d) > self.max_depth {
+                        return Err(node_err(
+                            i as u64,
+                            "deeper than the header's maximum depth".into(),
+                        ));
+                    }
+                    for c in block..block + size {
+                        let c = c as usize;
+                        if referenced[c] {
+                            return Err(node_err(i as u64, format!("node {c} has two parents")));
+                        }
+                        referenced[c] = true;
+                        depth[c] = d;
+                        let is_tref = words[c] & node::A_MASK == node::A_TREF;
+                        let want_tref = t_ref && c as u64 == block;
+                        if is_tref != want_tref {
+                            return Err(node_err(
+                                i as u64,
+                                "T-reference missing from, or misplaced in, a child block".into(),
+                            ));
+                        }
+                    }
+                    if t_ref {
+                        t_inner += 1;
+                    } else {
+                        inner += 1;
+                    }
+                }
+                NodeWord::TRef { tri } => {
+                    if u64::from(tri) >= n_tris {
+                        return Err(node_err(
+                            i as u64,
+                            format!("T-reference to triangle {tri} of {n_tris}"),
+                        ));
+                    }
+                    if i == 0 {
+                        return Err(node_err(0, "the root is a T-reference".into()));
+                    }
+                    trefs += 1;
+                }
+                NodeWord::Leaf32 { count, start } => {
+                    leaves += 1;
+                    let end = u64::from(start) + u64::from(count);
+                    if end > self.counts.idx32 {
+                        return Err(node_err(
+                            i as u64,
+                            format!("leaf range {start}+{count} outside idx32"),
+                        ));
+                    }
+                }
+                NodeWord::Leaf16 {
+                    count,
+                    upper,
+                    start,
+                } => {
+                    leaves += 1;
+                    let end = u64::from(start) + u64::from(count);
+                    if count >= LEAF16_LIMIT || end > self.counts.idx16 {
+                        return Err(node_err(
+                            i as u64,
+                            format!("leaf range {start}+{count} outside idx16"),
+                        ));
+                    }
+                    // Every index of the leaf is `upper << 16 | low`.
+                    let idx16 = self.idx16();
+                    let base = u64::from(upper) << 16;
+                    if let Some(&low) = idx16[start as usize..end as usize]
+                        .iter()
+                        .find(|&&low| base + u64::from(low) >= n_tris)
+                    {
+                        return Err(node_err(
+                            i as u64,
+                            format!("triangle {} of {n_tris}", base + u64::from(low)),
+                        ));
+                    }
+                }
+            }
+        }
+        if (inner, t_inner, leaves, trefs)
+            != (
+                self.counts.inner,
+                self.counts.t_inner,
+                self.counts.leaves,
+                t_inner,
+            )
+        {
+            return Err(FormatError::Header(
+                "node counts do not match the nodes".into(),
+            ));
+        }
+        if let Some(p) = self.idx32().iter().position(|&t| u64::from(t) >= n_tris) {
+            return Err(FormatError::Index {
+                section: "idx32",
+                position: p as u64,
+                message: format!("triangle {} of {n_tris}", self.idx32()[p]),
+            });
+        }
+        let n_vertices = self.counts.vertices;
+        if let Some(p) = self
+            .triangles()
+            .iter()
+            .position(|t| t.iter().any(|&v| u64::from(v) >= n_vertices))
+        {
+            return Err(FormatError::Index {
+                section: "triangles",
+                position: p as u64,
+                message: format!("vertex index out of {n_vertices}"),
+            });
+        }
+        if let Some(p) = self
+            .vertices()
+            .iter()
+            .position(|v| !v.iter().all(|c| c.is_finite()))
+        {
+            return Err(FormatError::Index {
+                section: "vertices",
+                position: p as u64,
+                message: "non-finite coordinate".into(),
+            });
+        }
+        if let Some(map) = self.tri_map() {
+            let mut seen = vec![false; map.len()];
+            for (p, &t) in map.iter().enumerate() {
+                if u64::from(t) >= n_tris || std::mem::replace(&mut seen[t as usize], true) {
+                    return Err(FormatError::Index {
+                        section: "tri_map",
+                        position: p as u64,
+                        message: "not a permutation of the triangles".into(),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks every section's checksum.
+    pub fn verify(&self) -> Result<(), FormatError> {
+        let b = self.data.as_ref();
+        for s in Section::ALL {
+            let e = SECTION_TABLE + s as usize * SECTION_ENTRY;
+            let stored = u32_at(b, e + 16);
+            let computed = crc32fast::hash(&b[self.ranges[s as usize].clone()]);
+            if stored != computed {
+                return Err(FormatError::ChecksumMismatch {
+                    section: s.name(),
+                    expected: stored,
+                    got: computed,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    fn section<T: bytemuck::Pod>(&self, s: Section) -> &[T] {
+        let bytes = &self.data.as_ref()[self.ranges[s as usize].clone()];
+        // from_bytes checked that the data is 8-byte aligned and that every
+        // section starts at a multiple of 64 with a whole number of
+        // elements, so the cast cannot fail for a stable `AsRef`.
+        bytemuck::try_cast_slice(bytes).unwrap_or(&[])
+    }
+
+    /// The node words; the root is `nodes()[0]`.
+    pub fn nodes(&self) -> &[u64] {
+        self.section(Section::Nodes)
+    }
+
+    pub fn idx32(&self) -> &[u32] {
+        self.section(Section::Idx32)
+    }
+
+    pub fn idx16(&self) -> &[u16] {
+        self.section(Section::Idx16)
+    }
+
+    pub fn vertices(&self) -> &[[f32; 3]] {
+        self.section(Section::Vertices)
+    }
+
+    /// Vertex-index triples, in the file's triangle numbering.
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        self.section(Section::Triangles)
+    }
+
+    /// File triangle id → input triangle id, when the triangles were
+    /// reordered.
+    pub fn tri_map(&self) -> Option<&[u32]> {
+        self.reordered.then(|| self.section(Section::TriMap))
+    }
+
+    /// The input id of file triangle `t`.
+    #[inline]
+    pub fn input_id(&self, t: u32) -> u32 {
+        match self.tri_map() {
+            Some(map) => map[t as usize],
+            None => t,
+        }
+    }
+
+    /// The vertices of file triangle `t`.
+    #[inline]
+    pub fn triangle(&self, t: u32) -> [Vec3; 3] {
+        let v = self.vertices();
+        self.triangles()[t as usize].map(|i| Vec3::from_array(v[i as usize]))
+    }
+
+    /// The indices of a leaf word (validated by `from_bytes`).
+    #[inline]
+    pub fn leaf(&self, w: NodeWord) -> LeafIndices<'_> {
+        match w {
+            NodeWord::Leaf32 { count, start } => {
+                LeafIndices::Idx32(&self.idx32()[start as usize..(start + count) as usize])
+            }
+            NodeWord::Leaf16 {
+                count,
+                upper,
+                start,
+            } => LeafIndices::Idx16 {
+                upper: u32::from(upper) << 16,
+                low: &self.idx16()[start as usize..(start + count) as usize],
+            },
+            _ => LeafIndices::Idx32(&[]),
+        }
+    }
+
+    pub fn config(&self) -> &FileConfig {
+        &self.config
+    }
+
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    pub fn max_depth(&self) -> u32 {
+        self.max_depth
+    }
+
+    pub fn figures(&self) -> TreeFigures {
+        self.counts
+    }
+
+    pub fn is_reordered(&self) -> bool {
+        self.reordered
+    }
+
+    /// Leaves per depth (root = 0).
+    pub fn leaf_depth_histogram(&self) -> Vec<u64> {
+        let words = self.nodes();
+        let mut hist = Vec::new();
+        let mut stack = vec![(0usize, 0usize)];
+        while let Some((i, d)) = stack.pop() {
+            match node::decode(words[i]) {
+                Ok(NodeWord::Inner { t_ref, block, .. }) => {
+                    let first = block as usize + usize::from(t_ref);
+                    stack.push((first + 1, d + 1));
+                    stack.push((first, d + 1));
+                }
+                Ok(NodeWord::Leaf32 { .. } | NodeWord::Leaf16 { .. }) => {
+                    if hist.len() <= d {
+                        hist.resize(d + 1, 0);
+                    }
+                    hist[d] += 1;
+                }
+                _ => {}
+            }
+        }
+        hist
+    }
+
+    pub fn as_bytes(&self) -> &[u8] {
+        self.data.as_ref()
+    }
+}
+
+/// A read-only memory map of a `.kd` file.
+pub struct Mapped(memmap2::Mmap);
+
+impl AsRef<[u8]> for Mapped {
+    fn as_ref(&self) -> &[u8] {
+        &self.0
+    }
+}
+
+impl KdFile<Mapped> {
+    /// Maps a file and validates it; with `verify_checksums`, also checks
+    /// every section's checksum (reads the whole file).
+    ///
+    /// **Soundness.** A memory map is only as immutable as the file behind
+    /// it: as `memmap2` documents, the file must not be modified or
+    /// truncated while it is mapped, or reads through the map may change
+    /// under the program (or fault on truncation). slimkd writes `.kd` files
+    /// by atomic rename, never in place, so a map of a file slimkd wrote
+    /// stays valid when the file is rewritten; the caller must not let any
+    /// other process modify it in place.
+    pub fn open(path: &Path, verify_checksums: bool) -> Result<KdFile<Mapped>, FormatError> {
+        let io = |source| FormatError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let file = std::fs::File::open(path).map_err(io)?;
+        // SAFETY: the map is read-only and private to this process; the
+        // remaining precondition (nobody modifies the file in place while
+        // it is mapped) is the caller's, documented above.
+        let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
+        let kd = KdFile::from_bytes(Mapped(map))?;
+        if verify_checksums {
+            kd.verify()?;
+        }
+        Ok(kd)
+    }
+}
+
+/// Copies arbitrary bytes into an 8-byte-aligned buffer, for
+/// [`KdFile::from_bytes`] on data of unknown alignment (e.g. `fs::read`).
+pub fn aligned_copy(bytes: &[u8]) -> AlignedBytes {
+    let mut words = vec![0u64; bytes.len().div_ceil(8)];
+    bytemuck::cast_slice_mut::<u64, u8>(&mut words)[..bytes.len()].copy_from_slice(bytes);
+    AlignedBytes {
+        words,
+        len: bytes.len(),
+    }
+}
+
+/// Bytes stored in a `Vec<u64>` (so 8-byte aligned).
+pub struct AlignedBytes {
+    words: Vec<u64>,
+    len: usize,
+}
+
+impl AsRef<[u8]> for AlignedBytes {
+    fn as_ref(&self) -> &[u8] {
+        &bytemuck::cast_slice::<u64, u8>(&self.words)[..self.len]
+    }
+}
+
+#[allow(dead_code)]
+fn _assert_sizes() {
+    const _: () = assert!(std::mem::size_of::<[f32; 3]>() == 12);
+    const _: () = assert!(std::mem::size_of::<[u32; 3]>() == 12);
+}
