@@ -12,6 +12,7 @@
 
 use crate::geom::{Aabb, clip_triangle};
 use crate::scene::TriangleColumns;
+use glam::Vec3;
 
 /// The deepest a node may lie (root = 0). Builders clamp their depth limit
 /// to it and [`TreeIr::validate`] checks it, so traversal stacks have a
@@ -140,7 +141,8 @@ impl TreeIr {
     ///   after the left subtree, every node reached once);
     /// - split planes lie inside their cells, so children nest;
     /// - leaf lists are contiguous in pre-order, ascending, and list only
-    ///   triangles that overlap the leaf's cell;
+    ///   triangles that overlap the leaf's cell (up to a rounding margin of
+    ///   2⁻²⁰ of the scene's largest coordinate);
     /// - hoisted triangles overlap their node's cell;
     /// - every triangle is reachable from the root (lies in some leaf or is
     ///   hoisted into some inner node).
@@ -152,6 +154,18 @@ impl TreeIr {
         if n > u32::MAX as usize {
             return Err("too many nodes".into());
         }
+        // "Overlaps" is checked against the cell grown by a rounding margin:
+        // a triangle that only touches a cell's face may be computed just
+        // outside it when clipped afresh against that small cell, while the
+        // builder (correctly) kept it from a clip against a larger one.
+        let scale = self
+            .bounds
+            .min
+            .abs()
+            .max(self.bounds.max.abs())
+            .max_element();
+        let margin = Vec3::splat(scale * (1.0 / (1u32 << 20) as f32) + f32::MIN_POSITIVE);
+        let grown = |c: &Aabb| Aabb::new(c.min - margin, c.max + margin);
         // Structure: recurse over (node, end of its pre-order range).
         let mut expected_next = 0usize;
         let mut next_leaf_start = 0u32;
@@ -183,7 +197,7 @@ impl TreeIr {
                             return Err(format!("node {i}: hoisted triangle {} out of range", t.0));
                         }
                         seen[t.0 as usize] = true;
-                        if clip_triangle(&scene.tri(t.0), &cell).is_none() {
+                        if clip_triangle(&scene.tri(t.0), &grown(&cell)).is_none() {
                             return Err(format!(
                                 "node {i}: hoisted triangle {} does not overlap the cell",
                                 t.0
@@ -231,7 +245,7 @@ impl TreeIr {
                             return Err(format!("leaf {i}: triangle {} out of range", t.0));
                         }
                         seen[t.0 as usize] = true;
-                        if clip_triangle(&scene.tri(t.0), &cell).is_none() {
+                        if clip_triangle(&scene.tri(t.0), &grown(&cell)).is_none() {
                             return Err(format!(
                                 "leaf {i}: triangle {} does not overlap the cell",
                                 t.0

@@ -10,7 +10,7 @@ use slimkd::build::BuildConfig;
 use slimkd::build::sah::SahParams;
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(512))]
+    #![proptest_config(cases(512))]
 
     #[test]
     fn sweep_equals_naive(tris in grid_scene(40)) {
@@ -43,7 +43,7 @@ fn float_triangle() -> impl Strategy<Value = [glam::Vec3; 3]> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(256))]
+    #![proptest_config(cases(256))]
 
     #[test]
     fn sweep_equals_naive_on_float_scenes(tris in prop::collection::vec(float_triangle(), 1..60)) {

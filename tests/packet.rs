@@ -44,7 +44,7 @@ fn check_packets(src: &impl trace::KdSource, rays: &[Ray; 16]) {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(384))]
+    #![proptest_config(cases(384))]
 
     #[test]
     fn packets_equal_scalar_and_brute_force(

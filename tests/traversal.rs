@@ -10,7 +10,7 @@ use slimkd::geom::Ray;
 use slimkd::trace;
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(512))]
+    #![proptest_config(cases(512))]
 
     #[test]
     fn traversal_equals_brute_force(

@@ -1,16 +1,19 @@
-//! The `slimkd` command line: build a kd-tree for a scene, render it, and
-//! report figures. Without arguments it runs the main job on the embedded
-//! default scene. Exit codes: 0 success, 1 failure (bad input, I/O), 2 bad
+//! The `slimkd` command line: build a kd-tree for a scene, store it as a
+//! `.kd` file, inspect and verify files, render, and report figures.
+//! Without arguments it runs the main job on the embedded default scene.
+//! Exit codes: 0 success, 1 failure (bad input, invalid file, I/O), 2 bad
 //! usage.
 
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use slimkd::build::{self, BuildConfig, Builder, Progress};
+use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::stats::TreeStats;
-use slimkd::trace::{BruteForce, ClosestHit, TreeTracer};
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -27,10 +30,11 @@ const DEFAULT_ARG: &str = "default";
 #[command(
     name = "slimkd",
     version,
-    about = "Build, store and trace SAH kd-trees for large triangle scenes."
-)]
-#[command(
-    long_about = "Build, store and trace SAH kd-trees for large triangle scenes.\n\nWithout a command, builds the tree of the embedded default scene, prints a summary, renders slimkd.png into the current directory and prints Mrays/s.\n\nSCENE is an OBJ file, or `default` for the embedded scene."
+    about = "Build, store and trace SAH kd-trees for large triangle scenes.",
+    long_about = "Build, store and trace SAH kd-trees for large triangle scenes.\n\n\
+        Without a command, builds the tree of the embedded default scene, prints a summary, \
+        renders slimkd.png into the current directory and prints Mrays/s.\n\n\
+        SCENE is an OBJ file, or `default` for the embedded scene."
 )]
 struct Cli {
     #[command(subcommand)]
@@ -39,18 +43,35 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Build the standard SAH kd-tree of a scene and print its figures.
+    /// Build the standard SAH kd-tree of a scene; print its figures and
+    /// optionally write it as a .kd file.
     Build {
         /// OBJ file, or `default`.
         scene: PathBuf,
         #[command(flatten)]
         build: BuildArgs,
+        /// Write the tree and its geometry to this .kd file (atomically).
+        #[arg(short = 'o', long)]
+        output: Option<PathBuf>,
+        /// Renumber triangles in Morton order before writing, so that most
+        /// leaves fit 2-byte mode.
+        #[arg(long)]
+        reorder: bool,
         /// Print one JSON object instead of text.
         #[arg(long)]
         json: bool,
     },
-    /// Build the tree of a scene and render it.
+    /// Render a scene (built on the fly) or a .kd file.
     Render(Box<RenderArgs>),
+    /// Print the header and figures of a .kd file.
+    Info {
+        file: PathBuf,
+        /// Print one JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check a .kd file completely, checksums included; exit 0 if valid.
+    Verify { file: PathBuf },
 }
 
 #[derive(clap::Args, Clone)]
@@ -82,13 +103,25 @@ enum ShadingArg {
 enum ModeArg {
     /// Scalar traversal, one ray at a time.
     Single,
+    /// 4×4 SIMD ray packets.
+    Packet,
     /// Brute force: every ray against every triangle (reference).
     Brute,
 }
 
+impl ModeArg {
+    fn name(self) -> &'static str {
+        match self {
+            ModeArg::Single => "single",
+            ModeArg::Packet => "packet",
+            ModeArg::Brute => "brute",
+        }
+    }
+}
+
 #[derive(clap::Args)]
 struct RenderArgs {
-    /// OBJ file, or `default`.
+    /// OBJ file, `default`, or a .kd file written by `slimkd build -o`.
     scene: PathBuf,
     #[command(flatten)]
     build: BuildArgs,
@@ -120,7 +153,7 @@ struct RenderArgs {
     /// Frames to trace; Mrays/s is the median.
     #[arg(long, default_value_t = 1)]
     reps: usize,
-    /// Output image (.png or .exr with a depth channel).
+    /// Output image (.png, or .exr with a depth channel).
     #[arg(short = 'o', long)]
     output: Option<PathBuf>,
     /// Write W·H little-endian f32 hit distances (+inf for a miss).
@@ -153,8 +186,16 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         None => main_job(),
-        Some(Command::Build { scene, build, json }) => cmd_build(&scene, &build, json),
+        Some(Command::Build {
+            scene,
+            build,
+            output,
+            reorder,
+            json,
+        }) => cmd_build(&scene, &build, output.as_deref(), reorder, json),
         Some(Command::Render(args)) => cmd_render(&args),
+        Some(Command::Info { file, json }) => cmd_info(&file, json),
+        Some(Command::Verify { file }) => cmd_verify(&file),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -250,6 +291,17 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
     })
 }
 
+fn file_config(built: &Built, n_tris: usize) -> FileConfig {
+    FileConfig {
+        k_t: built.config.sah.k_t,
+        k_i: built.config.sah.k_i,
+        lambda_empty: built.config.sah.lambda_empty,
+        depth_limit: built.config.sah.depth_limit(n_tris),
+        preset: Preset::Std,
+        ..FileConfig::default()
+    }
+}
+
 fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
     println!(
         "scene      {} ({}; loaded in {:.3} s)",
@@ -260,7 +312,7 @@ fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
     println!(
         "tree       {} nodes ({} inner, {} leaves, {} empty), {} triangle references ({:.2} per triangle)",
         stats.nodes,
-        stats.inner,
+        stats.inner + stats.t_inner,
         stats.leaves,
         stats.empty_leaves,
         stats.refs,
@@ -293,6 +345,7 @@ fn build_json(
         "threads": threads,
         "nodes": stats.nodes,
         "inner": stats.inner,
+        "t_inner": stats.t_inner,
         "leaves": stats.leaves,
         "empty_leaves": stats.empty_leaves,
         "refs": stats.refs,
@@ -305,29 +358,202 @@ fn build_json(
     })
 }
 
-fn cmd_build(path: &Path, args: &BuildArgs, json: bool) -> Res<()> {
+fn merge(into: &mut serde_json::Value, extra: serde_json::Value) {
+    if let (Some(a), serde_json::Value::Object(b)) = (into.as_object_mut(), extra) {
+        a.extend(b);
+    }
+}
+
+fn figures_json(f: &TreeFigures) -> serde_json::Value {
+    json!({
+        "nodes_inner": f.inner,
+        "nodes_t_inner": f.t_inner,
+        "nodes_leaf": f.leaves,
+        "nodes_total": f.nodes(),
+        "idx32": f.idx32,
+        "idx16": f.idx16,
+        "tree_bytes": f.tree_bytes(),
+        "geometry_bytes": f.geometry_bytes(),
+    })
+}
+
+fn cmd_build(
+    path: &Path,
+    args: &BuildArgs,
+    output: Option<&Path>,
+    reorder: bool,
+    json: bool,
+) -> Res<()> {
     let pool = pool(args.threads)?;
     pool.install(|| {
         let loaded = load(path)?;
         let built = build_tree(&loaded.scene, args, json)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
+        let mut written = None;
+        if let Some(out) = output {
+            let start = Instant::now();
+            let options = WriteOptions {
+                reorder,
+                config: file_config(&built, loaded.scene.len()),
+            };
+            format::write_file(out, &built.tree, &loaded.scene, &options)?;
+            let secs = start.elapsed().as_secs_f64();
+            let file = KdFile::open(out, false)?;
+            written = Some((out.to_path_buf(), file.figures(), secs));
+        }
         if json {
-            println!(
-                "{}",
-                build_json(&loaded, &built, &stats, pool.current_num_threads())
-            );
+            let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
+            if let Some((out, fig, secs)) = &written {
+                merge(&mut j, figures_json(fig));
+                merge(
+                    &mut j,
+                    json!({"output": out.display().to_string(), "write_s": secs, "reorder": reorder}),
+                );
+            }
+            println!("{j}");
         } else {
             print_summary(&loaded, &built, &stats);
+            if let Some((out, fig, secs)) = &written {
+                println!(
+                    "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
+                    out.display(),
+                    secs,
+                    fig.tree_bytes() as f64 / (1 << 20) as f64,
+                    fig.idx32,
+                    fig.idx16,
+                    fig.geometry_bytes() as f64 / (1 << 20) as f64
+                );
+            }
         }
         Ok(())
     })
 }
 
+fn is_kd_file(path: &Path) -> bool {
+    let mut magic = [0u8; 8];
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("kd"))
+        || std::fs::File::open(path)
+            .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic))
+            .is_ok_and(|()| magic == format::MAGIC)
+}
+
+fn cmd_info(path: &Path, json: bool) -> Res<()> {
+    let start = Instant::now();
+    let file = KdFile::open(path, false)?;
+    let open_ms = start.elapsed().as_secs_f64() * 1e3;
+    let f = file.figures();
+    let c = file.config();
+    let hist = file.leaf_depth_histogram();
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
+    if json {
+        let mut j = figures_json(&f);
+        merge(
+            &mut j,
+            json!({
+                "file": path.display().to_string(),
+                "file_bytes": file.as_bytes().len(),
+                "version": format::VERSION,
+                "preset": c.preset.name(),
+                "k_t": c.k_t, "k_i": c.k_i, "lambda_empty": c.lambda_empty,
+                "depth_limit": c.depth_limit,
+                "tau_occu": c.tau_occu, "tau_freq": c.tau_freq, "max_t2rn": c.max_t2rn,
+                "reordered": file.is_reordered(),
+                "triangles": f.triangles,
+                "vertices": f.vertices,
+                "tree_bytes_per_triangle": per_tri(f.tree_bytes()),
+                "max_depth": file.max_depth(),
+                "leaf_depth_histogram": hist,
+                "open_ms": open_ms,
+            }),
+        );
+        println!("{j}");
+        return Ok(());
+    }
+    let b = file.bounds();
+    println!(
+        "file        {} ({} bytes, format version {})",
+        path.display(),
+        file.as_bytes().len(),
+        format::VERSION
+    );
+    println!(
+        "build       preset {}, K_T {}, K_I {}, λ {}, depth limit {}, τ_occu {}, τ_freq {}, max_t2rn {}",
+        c.preset.name(),
+        c.k_t,
+        c.k_i,
+        c.lambda_empty,
+        c.depth_limit,
+        c.tau_occu,
+        c.tau_freq,
+        c.max_t2rn
+    );
+    println!(
+        "scene       {} triangles{}, {} vertices, bounds ({}, {}, {}) – ({}, {}, {})",
+        f.triangles,
+        if file.is_reordered() {
+            " (Morton-reordered)"
+        } else {
+            ""
+        },
+        f.vertices,
+        b.min.x,
+        b.min.y,
+        b.min.z,
+        b.max.x,
+        b.max.y,
+        b.max.z
+    );
+    println!(
+        "table 3(a)  inner      t-inner     leaf       total      4-byte idx  2-byte idx  memory (MiB)"
+    );
+    println!(
+        "            {:<10} {:<11} {:<10} {:<10} {:<11} {:<11} {:.2}",
+        f.inner,
+        f.t_inner,
+        f.leaves,
+        f.nodes(),
+        f.idx32,
+        f.idx16,
+        mib(f.tree_bytes())
+    );
+    println!(
+        "bytes       tree {} ({:.1} per triangle), geometry {} ({:.1} per triangle)",
+        f.tree_bytes(),
+        per_tri(f.tree_bytes()),
+        f.geometry_bytes(),
+        per_tri(f.geometry_bytes())
+    );
+    println!("depth       max {}; leaves per depth:", file.max_depth());
+    let peak = hist.iter().copied().max().unwrap_or(1).max(1);
+    for (d, &n) in hist.iter().enumerate() {
+        if n > 0 {
+            let bar = "#".repeat(((n as f64 / peak as f64) * 50.0).ceil() as usize);
+            println!("            {d:>3} {n:>10} {bar}");
+        }
+    }
+    println!("open        {open_ms:.3} ms (mmap + validation)");
+    Ok(())
+}
+
+fn cmd_verify(path: &Path) -> Res<()> {
+    let file = KdFile::open(path, true).map_err(|e| format!("{}: invalid: {e}", path.display()))?;
+    let f = file.figures();
+    println!(
+        "{}: ok ({} nodes, {} triangles, all checksums match)",
+        path.display(),
+        f.nodes(),
+        f.triangles
+    );
+    Ok(())
+}
+
 /// The camera: explicit flags override a view, a view overrides the
 /// default camera of the scene box.
-fn camera_for(args: &RenderArgs, loaded: &Loaded, tree: &TreeIr) -> Res<Camera> {
+fn camera_for(args: &RenderArgs, scene_path: &Path, bounds: &slimkd::geom::Aabb) -> Res<Camera> {
     let (w, h) = args.size;
-    let mut cam = Camera::default_for(&tree.bounds, w, h);
+    let mut cam = Camera::default_for(bounds, w, h);
     if let Some(id) = &args.view {
         let views: Vec<View> = match &args.views {
             Some(file) => {
@@ -337,14 +563,10 @@ fn camera_for(args: &RenderArgs, loaded: &Loaded, tree: &TreeIr) -> Res<Camera> 
             }
             None => render::parse_views(DEFAULT_VIEWS)?,
         };
-        let view = render::find_view(&views, &loaded.path, id).ok_or_else(|| {
+        let view = render::find_view(&views, scene_path, id).ok_or_else(|| {
             format!(
                 "no view `{id}` for scene `{}` in the views file",
-                loaded
-                    .path
-                    .file_stem()
-                    .unwrap_or_default()
-                    .to_string_lossy()
+                scene_path.file_stem().unwrap_or_default().to_string_lossy()
             )
         })?;
         cam = Camera::from_view(view, w, h);
@@ -379,22 +601,58 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
+/// What a render traces: a tree built from a scene, or a mapped file.
+enum Source {
+    Built {
+        loaded: Loaded,
+        built: Built,
+        stats: TreeStats,
+    },
+    File {
+        file: KdFile<Mapped>,
+        columns: TriangleColumns,
+        open_ms: f64,
+    },
+}
+
 fn cmd_render(args: &RenderArgs) -> Res<()> {
     if args.reps == 0 {
         return Err("--reps must be at least 1".into());
     }
     let pool = pool(args.build.threads)?;
     pool.install(|| {
-        let loaded = load(&args.scene)?;
-        let built = build_tree(&loaded.scene, &args.build, args.json)?;
-        let stats = TreeStats::of(&built.tree, &built.config.sah);
-        let camera = camera_for(args, &loaded, &built.tree)?;
-        let tracer: Box<dyn ClosestHit> = match args.mode {
-            ModeArg::Single => Box::new(TreeTracer {
+        let source = if args.scene.as_os_str() != DEFAULT_ARG && is_kd_file(&args.scene) {
+            let start = Instant::now();
+            let file = KdFile::open(&args.scene, false)?;
+            let open_ms = start.elapsed().as_secs_f64() * 1e3;
+            let columns = file.to_columns();
+            Source::File { file, columns, open_ms }
+        } else {
+            let loaded = load(&args.scene)?;
+            let built = build_tree(&loaded.scene, &args.build, args.json)?;
+            let stats = TreeStats::of(&built.tree, &built.config.sah);
+            Source::Built { loaded, built, stats }
+        };
+        let (scene_path, columns, bounds) = match &source {
+            Source::Built { loaded, built, .. } => (loaded.path.clone(), &loaded.scene, built.tree.bounds),
+            Source::File { file, columns, .. } => (args.scene.clone(), columns, file.bounds()),
+        };
+        let camera = camera_for(args, &scene_path, &bounds)?;
+        let tree_tracer = match &source {
+            Source::Built { loaded, built, .. } => Some(TreeTracer {
                 tree: &built.tree,
                 scene: &loaded.scene,
             }),
-            ModeArg::Brute => Box::new(BruteForce(&loaded.scene)),
+            Source::File { .. } => None,
+        };
+        let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode) {
+            (_, ModeArg::Brute) => Box::new(BruteForce(columns)),
+            (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar(tree_tracer.as_ref().expect("built"))),
+            (Source::Built { .. }, ModeArg::Packet) => {
+                Box::new(PacketTracer::new(tree_tracer.as_ref().expect("built")))
+            }
+            (Source::File { file, .. }, ModeArg::Single) => Box::new(Scalar(file)),
+            (Source::File { file, .. }, ModeArg::Packet) => Box::new(PacketTracer::new(file)),
         };
         let mut rates = Vec::new();
         let mut last: Option<HitBuffer> = None;
@@ -408,7 +666,7 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
             ShadingArg::EyeLight => Shading::EyeLight,
             ShadingArg::Normals => Shading::Normals,
         };
-        let frame = render::shade(&buf, &camera, &loaded.scene, shading);
+        let frame = render::shade(&buf, &camera, columns, shading);
         if let Some(out) = &args.output {
             render::write_image(out, &frame)?;
         }
@@ -416,36 +674,57 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
             render::write_depth_f32(out, &frame)?;
         }
         let mrays = median(rates);
-        let mode = match args.mode {
-            ModeArg::Single => "single",
-            ModeArg::Brute => "brute",
+        let mode = args.mode.name();
+        let simd = if args.mode == ModeArg::Packet {
+            SimdLevel::detect().name()
+        } else {
+            "scalar"
         };
+        let threads = pool.current_num_threads();
         if args.json {
-            let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
-            let extra = json!({
-                "mode": mode,
-                "width": camera.width,
-                "height": camera.height,
-                "reps": args.reps,
-                "mrays_per_s": mrays,
-                "hits": buf.n_hits(),
-                "checksum": buf.checksum(),
-                "eye": [camera.eye.x, camera.eye.y, camera.eye.z],
-                "at": [camera.at.x, camera.at.y, camera.at.z],
-                "up": [camera.up.x, camera.up.y, camera.up.z],
-                "fov": camera.fov_deg,
-            });
-            if let (Some(a), serde_json::Value::Object(b)) = (j.as_object_mut(), extra) {
-                a.extend(b);
-            }
+            let mut j = match &source {
+                Source::Built { loaded, built, stats } => build_json(loaded, built, stats, threads),
+                Source::File { file, open_ms, .. } => {
+                    let mut j = figures_json(&file.figures());
+                    merge(
+                        &mut j,
+                        json!({"file": args.scene.display().to_string(), "open_ms": open_ms,
+                               "triangles": file.figures().triangles, "threads": threads}),
+                    );
+                    j
+                }
+            };
+            merge(
+                &mut j,
+                json!({
+                    "mode": mode,
+                    "simd": simd,
+                    "width": camera.width,
+                    "height": camera.height,
+                    "reps": args.reps,
+                    "mrays_per_s": mrays,
+                    "hits": buf.n_hits(),
+                    "checksum": buf.checksum(),
+                    "eye": [camera.eye.x, camera.eye.y, camera.eye.z],
+                    "at": [camera.at.x, camera.at.y, camera.at.z],
+                    "up": [camera.up.x, camera.up.y, camera.up.z],
+                    "fov": camera.fov_deg,
+                }),
+            );
             println!("{j}");
         } else {
-            print_summary(&loaded, &built, &stats);
+            match &source {
+                Source::Built { loaded, built, stats } => print_summary(loaded, built, stats),
+                Source::File { file, open_ms, .. } => println!(
+                    "file       {} ({} triangles), opened in {open_ms:.3} ms",
+                    args.scene.display(),
+                    file.figures().triangles
+                ),
+            }
             println!(
-                "render     {}x{} {mode}, {} threads: {:.2} Mrays/s (median of {}), {} hits, checksum {:.6}",
+                "render     {}x{} {mode} ({simd}), {threads} threads: {:.2} Mrays/s (median of {}), {} hits, checksum {:.6}",
                 camera.width,
                 camera.height,
-                pool.current_num_threads(),
                 mrays,
                 args.reps,
                 buf.n_hits(),
@@ -475,7 +754,7 @@ fn main_job() -> Res<()> {
         size: (1024, 1024),
         views: None,
         view: Some("1".into()),
-        mode: ModeArg::Single,
+        mode: ModeArg::Packet,
         reps: 3,
         output: Some(PathBuf::from("slimkd.png")),
         dump_t: None,

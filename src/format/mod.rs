@@ -10,8 +10,17 @@
 //!
 //! # Layout, version 1
 //!
-//! The header (384 bytes) comes first; every section starts at a multiple of
-//! 64 bytes, in the order of the section table, and nothing overlaps.
+//! The header (384 bytes) comes first; then the sections, in the order of
+//! the section table, each starting at the first multiple of 64 bytes at or
+//! after the end of the previous one (the header, for the first); the file
+//! ends at the first multiple of 64 at or after the end of the last section.
+//! The layout is thus canonical, and the reader checks it.
+//!
+//! Every byte is checked: the header by its CRC (bytes 0..336), each section
+//! by its CRC in the section table ([`KdFile::verify`]), and the reserved
+//! header bytes 340..384 and the padding after each section must be zero
+//! ([`KdFile::from_bytes`]). So any single corrupted bit makes
+//! `from_bytes` or `verify` fail.
 //!
 //! | offset | size | field |
 //! |---:|---:|---|

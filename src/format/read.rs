@@ -104,8 +104,11 @@ impl<D: AsRef<[u8]>> KdFile<D> {
     /// order, header checksum, every count and section offset, every node
     /// word (known type and mode bits, child blocks strictly forward and
     /// inside the node section, depth at most [`MAX_DEPTH`]), every leaf
-    /// range and index, every vertex index and the triangle map. Section
-    /// checksums are checked by [`KdFile::verify`]. Never panics.
+    /// range and index, every vertex index and the triangle map, the
+    /// canonical placement of the sections and the file length, and that
+    /// every byte outside the header and the sections (reserved header
+    /// bytes, padding) is zero. Section checksums are checked by
+    /// [`KdFile::verify`]. Never panics.
     pub fn from_bytes(data: D) -> Result<KdFile<D>, FormatError> {
         let b = data.as_ref();
         let got = b.len() as u64;
@@ -230,9 +233,12 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             if Some(len) != expected_len(s) {
                 return Err(bad(format!("{len} bytes do not match the header's count")));
             }
-            if ofs % SECTION_ALIGN as u64 != 0 || ofs < end_prev {
+            // The layout is canonical: each section starts at the first
+            // multiple of 64 at or after the end of the previous one.
+            let want = end_prev.next_multiple_of(SECTION_ALIGN as u64);
+            if ofs != want {
                 return Err(bad(format!(
-                    "offset {ofs} misplaced (not 64-aligned or overlapping)"
+                    "offset {ofs} misplaced (expected {want}: 64-aligned, right after the previous section)"
                 )));
             }
             let end = ofs
@@ -243,6 +249,40 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             }
             ranges[s as usize] = ofs as usize..end as usize;
             end_prev = end;
+        }
+        // The file ends with the padding of the last section.
+        let file_end = end_prev.next_multiple_of(SECTION_ALIGN as u64);
+        if got < file_end {
+            return Err(FormatError::Truncated {
+                needed: file_end,
+                got,
+            });
+        }
+        if got > file_end {
+            return Err(FormatError::Header(format!(
+                "{} bytes after the end of the file at byte {file_end}",
+                got - file_end
+            )));
+        }
+        // Every byte outside the checksummed header and sections is zero, so
+        // that no byte of a file goes unchecked.
+        if b[HEADER_CRC + 4..HEADER_SIZE].iter().any(|&x| x != 0) {
+            return Err(FormatError::Header(format!(
+                "reserved bytes {}..{HEADER_SIZE} are not zero",
+                HEADER_CRC + 4
+            )));
+        }
+        for s in Section::ALL {
+            let pad_end = match Section::ALL.get(s as usize + 1) {
+                Some(&next) => ranges[next as usize].start,
+                None => file_end as usize,
+            };
+            if b[ranges[s as usize].end..pad_end].iter().any(|&x| x != 0) {
+                return Err(FormatError::Section {
+                    section: s.name(),
+                    message: "non-zero padding after the section".into(),
+                });
+            }
         }
         let file = KdFile {
             data,
@@ -509,7 +549,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
     pub fn leaf(&self, w: NodeWord) -> LeafIndices<'_> {
         match w {
             NodeWord::Leaf32 { count, start } => {
-                LeafIndices::Idx32(&self.idx32()[start as usize..(start + count) as usize])
+                LeafIndices::Idx32(&self.idx32()[start as usize..start as usize + count as usize])
             }
             NodeWord::Leaf16 {
                 count,
@@ -517,7 +557,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 start,
             } => LeafIndices::Idx16 {
                 upper: u32::from(upper) << 16,
-                low: &self.idx16()[start as usize..(start + count) as usize],
+                low: &self.idx16()[start as usize..start as usize + count as usize],
             },
             _ => LeafIndices::Idx32(&[]),
         }
@@ -569,6 +609,21 @@ impl<D: AsRef<[u8]>> KdFile<D> {
 
     pub fn as_bytes(&self) -> &[u8] {
         self.data.as_ref()
+    }
+    /// The geometry back in input order, as columns (for brute force and
+    /// shading by input id).
+    pub fn to_columns(&self) -> crate::scene::TriangleColumns {
+        let positions = self
+            .vertices()
+            .iter()
+            .map(|&v| Vec3::from_array(v))
+            .collect();
+        let tris = self.triangles();
+        let mut indices = vec![[0u32; 3]; tris.len()];
+        for (t, tri) in tris.iter().enumerate() {
+            indices[self.input_id(t as u32) as usize] = *tri;
+        }
+        crate::scene::TriangleColumns { positions, indices }
     }
 }
 

@@ -6,9 +6,10 @@ use super::{
     SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::scene::TriangleColumns;
-use crate::tree::{Node, TreeIr, TriId};
+use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId};
 use std::io::Write;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The build preset recorded in the header.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -114,7 +115,17 @@ struct Layout {
     max_depth: u32,
 }
 
-fn layout(tree: &TreeIr, new_id: &dyn Fn(TriId) -> u32) -> Result<Layout, FormatError> {
+/// Lays out the node words and index arrays. Refuses, rather than writing
+/// a file the reader would reject, a tree that does not fit the format
+/// (too many nodes, a leaf over [`MAX_LEAF32`] triangles, deeper than
+/// [`MAX_DEPTH`]) or that is malformed (a child or leaf list out of range,
+/// a node reached twice, an axis over 2, a non-finite split, a triangle id
+/// of `n_tris` or more).
+fn layout(
+    tree: &TreeIr,
+    n_tris: usize,
+    new_id: &dyn Fn(TriId) -> u32,
+) -> Result<Layout, FormatError> {
     let mut out = Layout {
         words: vec![0],
         idx32: Vec::new(),
@@ -125,21 +136,54 @@ fn layout(tree: &TreeIr, new_id: &dyn Fn(TriId) -> u32) -> Result<Layout, Format
         max_depth: 0,
     };
     let too_large = |what: &str| FormatError::TooLarge(what.to_string());
+    let bad_node = |i: usize, message: String| FormatError::Node {
+        index: i as u64,
+        message,
+    };
+    let bad_tri = |i: usize, t: TriId| FormatError::Index {
+        section: "tree",
+        position: i as u64,
+        message: format!("node {i} lists triangle {} of {n_tris}", t.0),
+    };
+    // Each IR node is laid out at most once, so a malformed tree (a cycle,
+    // shared children) cannot make the loop run away.
+    let mut visited = vec![false; tree.nodes.len()];
     // (IR node, slot in `words`, depth), processed left subtree first.
     let mut stack = vec![(0usize, 0usize, 0u32)];
     let mut ids = Vec::new();
     while let Some((i, slot, depth)) = stack.pop() {
+        let Some(&node) = tree.nodes.get(i) else {
+            return Err(bad_node(
+                i,
+                format!("a child outside the {} nodes", tree.nodes.len()),
+            ));
+        };
+        if std::mem::replace(&mut visited[i], true) {
+            return Err(bad_node(i, "reached twice (not a tree)".into()));
+        }
+        if depth > MAX_DEPTH {
+            return Err(too_large(&format!("a node deeper than {MAX_DEPTH}")));
+        }
         out.max_depth = out.max_depth.max(depth);
-        match tree.nodes[i] {
+        match node {
             Node::Inner {
                 axis,
                 pos,
                 right,
                 t_ref,
             } => {
+                if axis > 2 {
+                    return Err(bad_node(i, format!("axis {axis}")));
+                }
+                if !pos.is_finite() {
+                    return Err(bad_node(i, "split position is not finite".into()));
+                }
                 let block = out.words.len();
                 let first_child = match t_ref {
                     Some(t) => {
+                        if t.0 as usize >= n_tris {
+                            return Err(bad_tri(i, t));
+                        }
                         out.n_t_inner += 1;
                         out.words.push(node::encode_tref(new_id(t)));
                         block + 1
@@ -160,9 +204,31 @@ fn layout(tree: &TreeIr, new_id: &dyn Fn(TriId) -> u32) -> Result<Layout, Format
                 stack.push((i + 1, first_child, depth + 1));
             }
             Node::Leaf { start, count } => {
+                // Checked before the list is read: a leaf this large is
+                // always in 4-byte mode, whose count field has 27 bits.
+                if count > MAX_LEAF32 {
+                    return Err(too_large(&format!(
+                        "a leaf with {count} triangles (at most 2^27 - 1)"
+                    )));
+                }
+                let list = tree
+                    .leaf_tris
+                    .get(start as usize..start as usize + count as usize)
+                    .ok_or_else(|| {
+                        bad_node(
+                            i,
+                            format!(
+                                "leaf list {start}+{count} outside the {} listed triangles",
+                                tree.leaf_tris.len()
+                            ),
+                        )
+                    })?;
+                if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
+                    return Err(bad_tri(i, t));
+                }
                 out.n_leaves += 1;
                 ids.clear();
-                ids.extend(tree.leaf(start, count).iter().map(|&t| new_id(t)));
+                ids.extend(list.iter().map(|&t| new_id(t)));
                 ids.sort_unstable();
                 let upper = ids.first().map_or(0, |&t| t >> 16);
                 let two_byte =
@@ -173,9 +239,6 @@ fn layout(tree: &TreeIr, new_id: &dyn Fn(TriId) -> u32) -> Result<Layout, Format
                     out.idx16.extend(ids.iter().map(|&t| t as u16));
                     node::encode_leaf16(ids.len() as u32, upper as u16, first)
                 } else {
-                    if ids.len() as u64 > u64::from(MAX_LEAF32) {
-                        return Err(too_large("a leaf with more than 2^27 - 1 triangles"));
-                    }
                     let first = u32::try_from(out.idx32.len())
                         .map_err(|_| too_large("idx32 over 2^32 entries"))?;
                     out.idx32.extend_from_slice(&ids);
@@ -202,6 +265,37 @@ pub fn write_to_vec(
     options: &WriteOptions,
 ) -> Result<Vec<u8>, FormatError> {
     let n_tris = scene.len();
+    // Refuse what the reader would reject.
+    let b = tree.bounds;
+    if !(b.min.is_finite() && b.max.is_finite() && b.min.cmple(b.max).all()) {
+        return Err(FormatError::Header(
+            "scene bounds are not a finite box".into(),
+        ));
+    }
+    if n_tris > u32::MAX as usize || scene.positions.len() > u32::MAX as usize {
+        return Err(FormatError::TooLarge(
+            "more than 2^32 triangles or vertices".into(),
+        ));
+    }
+    if let Some(p) = scene.positions.iter().position(|p| !p.is_finite()) {
+        return Err(FormatError::Index {
+            section: "vertices",
+            position: p as u64,
+            message: "non-finite coordinate".into(),
+        });
+    }
+    let n_vertices = scene.positions.len() as u64;
+    if let Some(p) = scene
+        .indices
+        .iter()
+        .position(|t| t.iter().any(|&v| u64::from(v) >= n_vertices))
+    {
+        return Err(FormatError::Index {
+            section: "triangles",
+            position: p as u64,
+            message: format!("vertex index out of {n_vertices}"),
+        });
+    }
     let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
     let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
         let mut inv = vec![0u32; p.len()];
@@ -211,7 +305,7 @@ pub fn write_to_vec(
         inv
     });
     let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
-    let lay = layout(tree, &new_id)?;
+    let lay = layout(tree, n_tris, &new_id)?;
 
     let mut sections: [Vec<u8>; 6] = Default::default();
     sections[Section::Nodes as usize] = lay.words.iter().flat_map(|w| w.to_le_bytes()).collect();
@@ -260,7 +354,6 @@ pub fn write_to_vec(
     put_u64(&mut header, 112, lay.idx16.len() as u64);
     put_u64(&mut header, 120, n_tris as u64);
     put_u64(&mut header, 128, scene.positions.len() as u64);
-    let b = tree.bounds;
     for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
         .into_iter()
         .enumerate()
@@ -287,9 +380,14 @@ pub fn write_to_vec(
     Ok(out)
 }
 
-/// Writes a `.kd` file atomically: a temporary file in the same directory,
-/// fsync, rename. A failed or killed write leaves no file at `path` (and
-/// never a half-written one that could pass for valid).
+/// Distinguishes the temporary files of concurrent writes in one process.
+static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
+
+/// Writes a `.kd` file atomically: a temporary file in the same directory
+/// (a fresh name per call, so concurrent writes to one path never share
+/// it), fsync, rename, then a best-effort fsync of the directory. A failed
+/// or killed write leaves no file at `path` (and never a half-written one
+/// that could pass for valid); a failed write removes its temporary file.
 pub fn write_file(
     path: &Path,
     tree: &TreeIr,
@@ -308,13 +406,28 @@ pub fn write_file(
     let name = path
         .file_name()
         .ok_or_else(|| io(std::io::Error::other("not a file name")))?;
-    let tmp = dir.join(format!(
-        ".{}.tmp.{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
+    // A name left behind by a killed writer is skipped, never reused.
+    let mut attempt = 0;
+    let (tmp, mut f) = loop {
+        let tmp = dir.join(format!(
+            ".{}.tmp.{}.{}",
+            name.to_string_lossy(),
+            std::process::id(),
+            TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
+        ));
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
+            Ok(f) => break (tmp, f),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && attempt < 100 => {
+                attempt += 1;
+            }
+            Err(e) => return Err(io(e)),
+        }
+    };
     let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
         f.write_all(&bytes)?;
         f.sync_all()?;
         drop(f);
@@ -323,6 +436,10 @@ pub fn write_file(
     if let Err(e) = result {
         let _ = std::fs::remove_file(&tmp);
         return Err(io(e));
+    }
+    // Make the rename durable; not every platform can open a directory.
+    if let Ok(d) = std::fs::File::open(&dir) {
+        let _ = d.sync_all();
     }
     Ok(())
 }

@@ -9,7 +9,10 @@ use crate::tree::{Node, TreeIr};
 #[derive(Clone, Debug, PartialEq)]
 pub struct TreeStats {
     pub nodes: usize,
+    /// Inner nodes without a hoisted triangle (type I).
     pub inner: usize,
+    /// Inner nodes holding a hoisted triangle (type II, "t-inner").
+    pub t_inner: usize,
     pub leaves: usize,
     pub empty_leaves: usize,
     /// Triangle references in leaves (`leaf_tris.len()`).
@@ -30,6 +33,7 @@ impl TreeStats {
         let mut s = TreeStats {
             nodes: tree.nodes.len(),
             inner: 0,
+            t_inner: 0,
             leaves: 0,
             empty_leaves: 0,
             refs: tree.leaf_tris.len(),
@@ -47,8 +51,12 @@ impl TreeStats {
             };
             s.max_depth = s.max_depth.max(depth);
             match *node {
-                Node::Inner { .. } => {
-                    s.inner += 1;
+                Node::Inner { t_ref, .. } => {
+                    if t_ref.is_some() {
+                        s.t_inner += 1;
+                    } else {
+                        s.inner += 1;
+                    }
                     s.sah_cost += params.k_t * p;
                 }
                 Node::Leaf { count, .. } => {

@@ -12,15 +12,14 @@
 //! the same order (no fused multiply–add), so a packet returns exactly the
 //! scalar traverser's hits, bit for bit, whatever instruction set ran it.
 //!
-//! **Instruction sets.** The leaf kernel is compiled three times, for
-//! AVX-512, for AVX2 and for the x86-64 baseline (SSE2), and chosen at run
-//! time by CPU feature detection; on other architectures the portable
-//! version runs. The kernel is written as plain loops over 16 lanes that
-//! LLVM vectorises to the widest registers the target feature allows.
+//! **Instruction sets.** The whole packet traversal (split decisions and
+//! leaf kernel) is compiled three times, for AVX-512, for AVX2 and for the
+//! x86-64 baseline (SSE2), and chosen at run time by CPU feature detection;
+//! on other architectures the portable version runs. The lane work is
+//! written as branch-free loops over 16 lanes that LLVM vectorises to the
+//! widest registers the target feature allows.
 
-use super::{
-    ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, SourceNode, clip_ray, split_visit, traverse,
-};
+use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, SourceNode, clip_ray, traverse};
 use crate::geom::{Ray, RayPrecomp, intersect_triangle};
 use glam::Vec3;
 
@@ -124,8 +123,8 @@ fn kernel_body(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best)
         let u = cx * by - cy * bx;
         let v = ax * cy - ay * cx;
         let w = bx * ay - by * ax;
-        fallback[i] = u == 0.0 || v == 0.0 || w == 0.0;
-        let mixed = (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0);
+        fallback[i] = (u == 0.0) | (v == 0.0) | (w == 0.0);
+        let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
         let det = u + v + w;
         let az = p.sz[i] * akz;
         let bz = p.sz[i] * bkz;
@@ -137,7 +136,7 @@ fn kernel_body(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best)
             p.tmax[i]
         };
         t_out[i] = t;
-        ok[i] = !mixed && det != 0.0 && t > p.tmin[i] && t <= limit;
+        ok[i] = !mixed & (det != 0.0) & (t > p.tmin[i]) & (t <= limit);
     }
     let mut need_fallback = 0u16;
     for i in 0..LANES {
@@ -153,38 +152,6 @@ fn kernel_body(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best)
         }
     }
     need_fallback
-}
-
-type Kernel = fn(&Packet, &[Vec3; 3], u32, u16, &mut Best) -> u16;
-
-fn kernel_portable(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best) -> u16 {
-    kernel_body(p, tri, id, mask, best)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn kernel_avx2_impl(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best) -> u16 {
-    kernel_body(p, tri, id, mask, best)
-}
-
-#[cfg(target_arch = "x86_64")]
-fn kernel_avx2(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best) -> u16 {
-    // SAFETY: this function is only selected by `choose_kernel` after
-    // `is_x86_feature_detected!("avx2")` returned true.
-    unsafe { kernel_avx2_impl(p, tri, id, mask, best) }
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn kernel_avx512_impl(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best) -> u16 {
-    kernel_body(p, tri, id, mask, best)
-}
-
-#[cfg(target_arch = "x86_64")]
-fn kernel_avx512(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best) -> u16 {
-    // SAFETY: this function is only selected by `choose_kernel` after
-    // `is_x86_feature_detected!("avx512f")` returned true.
-    unsafe { kernel_avx512_impl(p, tri, id, mask, best) }
 }
 
 /// The instruction set the packet kernel uses on this CPU.
@@ -227,22 +194,11 @@ impl SimdLevel {
             .filter(|l| *l as u8 >= best as u8)
             .collect()
     }
-
-    fn kernel(self) -> Kernel {
-        match self {
-            #[cfg(target_arch = "x86_64")]
-            SimdLevel::Avx512 => kernel_avx512,
-            #[cfg(target_arch = "x86_64")]
-            SimdLevel::Avx2 => kernel_avx2,
-            _ => kernel_portable,
-        }
-    }
 }
 
 /// Packet traversal of any source; also answers single rays (scalar).
 pub struct PacketTracer<'a, S> {
     pub src: &'a S,
-    kernel: Kernel,
     pub level: SimdLevel,
 }
 
@@ -260,11 +216,7 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         } else {
             SimdLevel::Baseline
         };
-        PacketTracer {
-            src,
-            kernel: level.kernel(),
-            level,
-        }
+        PacketTracer { src, level }
     }
 }
 
@@ -274,7 +226,20 @@ impl<S: KdSource> ClosestHit for PacketTracer<'_, S> {
     }
 
     fn closest_hit_4x4(&self, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
-        trace_packet(self.src, self.kernel, rays, out);
+        match self.level {
+            #[cfg(target_arch = "x86_64")]
+            SimdLevel::Avx512 => {
+                // SAFETY: `with_level` keeps a level only if it is in
+                // `SimdLevel::available()`, i.e. the CPU reported avx512f.
+                unsafe { trace_packet_avx512(self.src, rays, out) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            SimdLevel::Avx2 => {
+                // SAFETY: as above, the CPU reported avx2.
+                unsafe { trace_packet_avx2(self.src, rays, out) }
+            }
+            _ => trace_packet(self.src, rays, out),
+        }
     }
 }
 
@@ -293,12 +258,75 @@ struct Entry {
     tmax: Lanes,
 }
 
-fn trace_packet<S: KdSource + ?Sized>(
-    src: &S,
-    kernel: Kernel,
-    rays: &[Ray; LANES],
-    out: &mut [Hit; LANES],
-) {
+/// The per-lane children and intervals at a split.
+struct LaneSplit {
+    left: u16,
+    right: u16,
+    l_tmin: Lanes,
+    l_tmax: Lanes,
+    r_tmin: Lanes,
+    r_tmax: Lanes,
+}
+
+/// [`super::split_visit`] for 16 lanes at once, written branch-free so that
+/// it vectorises. Each lane makes exactly the scalar decision: the cases
+/// (ray starts in the plane, near only, far only, both) and intervals are
+/// the same expressions.
+#[inline(always)]
+fn split_lanes(p: &Packet, k: usize, pos: f32, cur: &Entry) -> LaneSplit {
+    let mut out = LaneSplit {
+        left: 0,
+        right: 0,
+        l_tmin: [0.0; LANES],
+        l_tmax: [0.0; LANES],
+        r_tmin: [0.0; LANES],
+        r_tmax: [0.0; LANES],
+    };
+    let mut l_vis = [false; LANES];
+    let mut r_vis = [false; LANES];
+    for i in 0..LANES {
+        let (o, d, inv) = (p.o[k][i], p.dir[k][i], p.inv[k][i]);
+        let (tmin, tmax) = (cur.tmin[i], cur.tmax[i]);
+        let ts = (pos - o) * inv;
+        let on_plane = o == pos;
+        // Non-short-circuit `|` and `&` keep the loop free of branches.
+        let below_first = (o < pos) | (on_plane & (d <= 0.0));
+        let near_only = !on_plane & ((ts <= 0.0) | (ts - ts * MARGIN > tmax));
+        let far_only = !on_plane & !near_only & (ts + ts * MARGIN < tmin);
+        let both_split = !on_plane & !near_only & !far_only;
+        let near_hi = if both_split { ts.min(tmax) } else { tmax };
+        let far_lo = if both_split { ts.max(tmin) } else { tmin };
+        let (near_vis, far_vis) = (!far_only, !near_only);
+        l_vis[i] = if below_first { near_vis } else { far_vis };
+        r_vis[i] = if below_first { far_vis } else { near_vis };
+        out.l_tmin[i] = if below_first { tmin } else { far_lo };
+        out.l_tmax[i] = if below_first { near_hi } else { tmax };
+        out.r_tmin[i] = if below_first { far_lo } else { tmin };
+        out.r_tmax[i] = if below_first { tmax } else { near_hi };
+    }
+    for i in 0..LANES {
+        out.left |= u16::from(l_vis[i]) << i;
+        out.right |= u16::from(r_vis[i]) << i;
+    }
+    out
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn trace_packet_avx512<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
+    trace_packet(src, rays, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn trace_packet_avx2<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
+    trace_packet(src, rays, out)
+}
+
+/// The packet traversal; inlined into one copy per instruction set, so
+/// that its lane loops are vectorised for that set.
+#[inline(always)]
+fn trace_packet<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
     if !coherent(rays) {
         for (r, h) in rays.iter().zip(out.iter_mut()) {
             *h = traverse(src, r);
@@ -329,7 +357,7 @@ fn trace_packet<S: KdSource + ?Sized>(
     let test = |t_src: u32, mask: u16, best: &mut Best| {
         let tri = src.triangle(t_src);
         let id = src.input_id(t_src).0;
-        let mut fallback = kernel(&p, &tri, id, mask, best);
+        let mut fallback = kernel_body(&p, &tri, id, mask, best);
         while fallback != 0 {
             let i = fallback.trailing_zeros() as usize;
             fallback &= fallback - 1;
@@ -356,51 +384,37 @@ fn trace_packet<S: KdSource + ?Sized>(
                         test(tri, cur.mask, &mut best);
                     }
                     let k = axis as usize;
-                    let mut l = Entry {
-                        node: left,
-                        mask: 0,
-                        tmin: [0.0; LANES],
-                        tmax: [0.0; LANES],
-                    };
-                    let mut r = Entry {
-                        node: right,
-                        mask: 0,
-                        tmin: [0.0; LANES],
-                        tmax: [0.0; LANES],
-                    };
-                    for i in 0..LANES {
-                        if cur.mask & (1 << i) == 0 {
-                            continue;
-                        }
-                        let v = split_visit(
-                            p.o[k][i],
-                            p.dir[k][i],
-                            p.inv[k][i],
-                            pos,
-                            cur.tmin[i],
-                            cur.tmax[i],
-                        );
-                        if let Some((a, b)) = v.left {
-                            l.mask |= 1 << i;
-                            (l.tmin[i], l.tmax[i]) = (a, b);
-                        }
-                        if let Some((a, b)) = v.right {
-                            r.mask |= 1 << i;
-                            (r.tmin[i], r.tmax[i]) = (a, b);
-                        }
-                    }
+                    let split = split_lanes(&p, k, pos, &cur);
+                    let (l_mask, r_mask) = (split.left & cur.mask, split.right & cur.mask);
                     // All lanes share the direction sign: rays going up the
                     // axis meet the left child first.
-                    let (first, second) = if p.dir[k][0].is_sign_negative() {
-                        (r, l)
+                    let left_first = !p.dir[k][0].is_sign_negative();
+                    let (first, second) = if left_first {
+                        (
+                            (left, l_mask, &split.l_tmin, &split.l_tmax),
+                            (right, r_mask, &split.r_tmin, &split.r_tmax),
+                        )
                     } else {
-                        (l, r)
+                        (
+                            (right, r_mask, &split.r_tmin, &split.r_tmax),
+                            (left, l_mask, &split.l_tmin, &split.l_tmax),
+                        )
                     };
-                    if second.mask != 0 {
-                        stack.push(second);
+                    if second.1 != 0 {
+                        stack.push(Entry {
+                            node: second.0,
+                            mask: second.1,
+                            tmin: *second.2,
+                            tmax: *second.3,
+                        });
                     }
-                    cur = first;
-                    continue 'outer;
+                    if first.1 != 0 {
+                        cur.node = first.0;
+                        cur.mask = first.1;
+                        cur.tmin = *first.2;
+                        cur.tmax = *first.3;
+                        continue 'outer;
+                    }
                 }
                 SourceNode::Leaf(tris) => tris.for_each(|t| test(t, cur.mask, &mut best)),
             }

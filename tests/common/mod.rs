@@ -92,3 +92,12 @@ pub fn ray_fan(g: f32) -> Vec<Ray> {
     }
     rays
 }
+
+/// `n` cases, or `PROPTEST_CASES` when set (for long stress runs: the
+/// explicit count would otherwise override the variable).
+pub fn cases(n: u32) -> ProptestConfig {
+    let env = std::env::var("PROPTEST_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok());
+    ProptestConfig::with_cases(env.unwrap_or(n))
+}
