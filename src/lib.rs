@@ -31,6 +31,7 @@
 #![warn(clippy::undocumented_unsafe_blocks)]
 
 pub mod build;
+pub mod columns;
 pub mod format;
 pub mod geom;
 pub mod render;

@@ -18,6 +18,7 @@
 //! out of that child. Leaves list their triangles in ascending id, and the
 //! nodes are emitted in pre-order.
 
+pub mod level;
 pub mod naive;
 pub mod sah;
 pub mod sweep;
