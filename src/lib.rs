@@ -36,6 +36,7 @@ pub mod format;
 pub mod geom;
 pub mod render;
 pub mod scene;
+pub mod slim;
 pub mod stats;
 pub mod trace;
 pub mod tree;

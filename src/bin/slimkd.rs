@@ -11,6 +11,7 @@ use slimkd::build::{self, BuildConfig, Builder, Progress};
 use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
+use slimkd::slim::{self, SlimParams, SlimReport};
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
@@ -85,6 +86,61 @@ struct BuildArgs {
     /// Depth limit (default: 8 + 1.3·log2 N).
     #[arg(long)]
     max_depth: Option<u32>,
+    /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
+    /// `small` (0.5, 0.4); max_t2rn 4 (Choi et al. 2013).
+    #[arg(long, value_enum, default_value_t = PresetArg::Std)]
+    preset: PresetArg,
+    /// Occupancy threshold (overrides the preset's; implies hoisting).
+    #[arg(long)]
+    tau_occu: Option<f64>,
+    /// Frequency threshold (overrides the preset's; implies hoisting).
+    #[arg(long)]
+    tau_freq: Option<f64>,
+    /// Most hoisted triangles on a root path (overrides the preset's).
+    #[arg(long)]
+    max_t2rn: Option<u32>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum PresetArg {
+    Std,
+    Fast,
+    Small,
+}
+
+impl BuildArgs {
+    /// The slim parameters, if any hoisting is asked for, and the preset
+    /// recorded in the file.
+    fn slim(&self) -> (Option<SlimParams>, Preset) {
+        let base = match self.preset {
+            PresetArg::Std => None,
+            PresetArg::Fast => Some(SlimParams::FAST),
+            PresetArg::Small => Some(SlimParams::SMALL),
+        };
+        let custom = self.tau_occu.is_some() || self.tau_freq.is_some() || self.max_t2rn.is_some();
+        let mut p = base.unwrap_or(SlimParams::SMALL);
+        if let Some(v) = self.tau_occu {
+            p.tau_occu = v;
+        }
+        if let Some(v) = self.tau_freq {
+            p.tau_freq = v;
+        }
+        if let Some(v) = self.max_t2rn {
+            p.max_t2rn = v;
+        }
+        match (base, custom) {
+            (None, false) => (None, Preset::Std),
+            (_, true) => (Some(p), Preset::Custom),
+            (Some(_), false) => (
+                Some(p),
+                if self.preset == PresetArg::Fast {
+                    Preset::Fast
+                } else {
+                    Preset::Small
+                },
+            ),
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -245,7 +301,12 @@ fn load(path: &Path) -> Res<Loaded> {
 struct Built {
     tree: TreeIr,
     config: BuildConfig,
+    /// Wall seconds of the whole build (standard tree + slim pass).
     seconds: f64,
+    /// Seconds of the standard build alone.
+    std_seconds: f64,
+    slim: Option<(SlimParams, SlimReport)>,
+    preset: Preset,
 }
 
 /// Builds on a worker thread; shows a progress bar once the build has
@@ -284,21 +345,38 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
         worker.join()
     })
     .map_err(|_| "the builder panicked")?;
+    let std_seconds = start.elapsed().as_secs_f64();
+    let (params, preset) = args.slim();
+    let (tree, slim) = match params {
+        Some(p) => {
+            let (t, report) = slim::slim(&tree, scene, &config, &p);
+            (t, Some((p, report)))
+        }
+        None => (tree, None),
+    };
     Ok(Built {
         tree,
         config,
         seconds: start.elapsed().as_secs_f64(),
+        std_seconds,
+        slim,
+        preset,
     })
 }
 
 fn file_config(built: &Built, n_tris: usize) -> FileConfig {
+    let (tau_occu, tau_freq, max_t2rn) = built.slim.as_ref().map_or((0.0, 0.0, 0), |(p, _)| {
+        (p.tau_occu as f32, p.tau_freq as f32, p.max_t2rn)
+    });
     FileConfig {
         k_t: built.config.sah.k_t,
         k_i: built.config.sah.k_i,
         lambda_empty: built.config.sah.lambda_empty,
         depth_limit: built.config.sah.depth_limit(n_tris),
-        preset: Preset::Std,
-        ..FileConfig::default()
+        preset: built.preset,
+        tau_occu,
+        tau_freq,
+        max_t2rn,
     }
 }
 
@@ -327,6 +405,20 @@ fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
         built.seconds,
         loaded.scene.len() as f64 / built.seconds / 1e6
     );
+    if let Some((p, r)) = &built.slim {
+        println!(
+            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted, {} subtrees rebuilt; std build {:.3} s, slim pass {:.3} s ({:.2}×)",
+            built.preset.name(),
+            p.tau_occu,
+            p.tau_freq,
+            p.max_t2rn,
+            r.hoisted,
+            r.rebuilds,
+            built.std_seconds,
+            built.seconds - built.std_seconds,
+            built.seconds / built.std_seconds
+        );
+    }
 }
 
 fn build_json(
@@ -355,6 +447,12 @@ fn build_json(
         "leaf_depth_histogram": stats.leaf_depths,
         "k_t": built.config.sah.k_t,
         "k_i": built.config.sah.k_i,
+        "preset": built.preset.name(),
+        "std_build_s": built.std_seconds,
+        "hoisted": built.slim.as_ref().map_or(0, |(_, r)| r.hoisted),
+        "tau_occu": built.slim.as_ref().map(|(p, _)| p.tau_occu),
+        "tau_freq": built.slim.as_ref().map(|(p, _)| p.tau_freq),
+        "max_t2rn": built.slim.as_ref().map(|(p, _)| p.max_t2rn),
     })
 }
 
@@ -746,6 +844,10 @@ fn main_job() -> Res<()> {
             builder: BuilderArg::Sweep,
             threads: None,
             max_depth: None,
+            preset: PresetArg::Std,
+            tau_occu: None,
+            tau_freq: None,
+            max_t2rn: None,
         },
         eye: None,
         at: None,

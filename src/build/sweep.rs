@@ -133,16 +133,31 @@ pub fn sweep_axis(
 
 pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Progress>) -> TreeIr {
     let (bounds, refs) = root(scene);
+    build_subtree(scene, config, refs, bounds, 0, progress)
+}
+
+/// Builds the subtree of a node at `depth` with cell `cell` and triangle
+/// references `refs` (ascending ids, boxes inside `cell`), under the depth
+/// limit of the whole scene. The result's `bounds` is `cell`. This is how
+/// the slim post-pass rebuilds a subtree without a hoisted triangle.
+pub fn build_subtree(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    refs: Vec<TriRef>,
+    cell: Aabb,
+    depth: u32,
+    progress: Option<&Progress>,
+) -> TreeIr {
     let events = [0, 1, 2].map(|axis| sorted_events(&refs, axis));
     let mut ctx = Ctx {
         scene,
         config,
         depth_limit: config.sah.depth_limit(scene.len()),
-        out: TreeWriter::new(bounds),
+        out: TreeWriter::new(cell),
         place: vec![Placement::Left; scene.len()],
         progress,
     };
-    ctx.node(refs, events, bounds, 0, Progress::TOTAL);
+    ctx.node(refs, events, cell, depth, Progress::TOTAL);
     ctx.out.tree
 }
 

@@ -159,10 +159,24 @@ pub fn parse_vec3(s: &str) -> Option<DVec3> {
     (v.len() == 3 && v.iter().all(|c| c.is_finite())).then(|| DVec3::new(v[0], v[1], v[2]))
 }
 
-/// Finds the view of a scene (matched by the scene file's stem) and id.
+/// Finds the view of a scene and id. The scene is matched by the file's
+/// stem, or else by the longest scene name that the stem starts with,
+/// followed by `.`, `_` or `-` (so `stk_all.small.kd` and `stk_all_fast.kd`
+/// find the views of `stk_all`).
 pub fn find_view<'a>(views: &'a [View], scene_path: &Path, id: &str) -> Option<&'a View> {
     let stem = scene_path.file_stem()?.to_str()?;
-    views.iter().find(|v| v.scene == stem && v.id == id)
+    if let Some(v) = views.iter().find(|v| v.scene == stem && v.id == id) {
+        return Some(v);
+    }
+    views
+        .iter()
+        .filter(|v| {
+            v.id == id
+                && stem.len() > v.scene.len()
+                && stem.starts_with(v.scene.as_str())
+                && matches!(stem.as_bytes()[v.scene.len()], b'.' | b'_' | b'-')
+        })
+        .max_by_key(|v| v.scene.len())
 }
 
 /// How hits are coloured.
@@ -341,6 +355,13 @@ mod tests {
         assert_eq!(v.fov_deg, 45.0);
         assert_eq!(v.at, DVec3::new(0.0, 0.0, 1.0));
         assert!(find_view(&views, Path::new("cat.obj"), "1").is_none());
+        assert_eq!(
+            find_view(&views, Path::new("bunny.small.kd"), "2")
+                .unwrap()
+                .fov_deg,
+            45.0
+        );
+        assert!(find_view(&views, Path::new("bunnyx.kd"), "2").is_none());
         assert!(
             parse_views("a 1 eye=1,2 at=0,0,0 up=0,1,0 fov=60")
                 .unwrap_err()
