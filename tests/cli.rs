@@ -1,0 +1,128 @@
+//! The command line end to end: `build -o`, `info`, `verify`, and `render`
+//! of a `.kd` file in every mode, against the same scene rendered from OBJ.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn slimkd(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_slimkd"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+fn json(out: &Output) -> serde_json::Value {
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).expect("one JSON object")
+}
+
+fn tmp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("slimkd-cli-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn manifest(p: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p).to_str().unwrap().to_string()
+}
+
+#[test]
+fn build_info_verify_render_round_trip() {
+    let dir = tmp_dir("roundtrip");
+    let scene = manifest("scenes/bunny_npm.obj");
+    let views = manifest("scenes/views.txt");
+    for preset in ["std", "small"] {
+        let kd = dir.join(format!("bunny_npm.{preset}.kd"));
+        let kd_s = kd.to_str().unwrap();
+        let b = json(&slimkd(&["build", &scene, "-o", kd_s, "--reorder", "--preset", preset, "--json"]));
+        assert_eq!(b["triangles"], 3674);
+        assert_eq!(b["preset"], preset);
+        for key in ["tree_bytes", "nodes_inner", "nodes_t_inner", "nodes_leaf", "idx32", "idx16"] {
+            assert!(b.get(key).is_some(), "build --json lacks {key}");
+        }
+
+        let info = json(&slimkd(&["info", kd_s, "--json"]));
+        for key in [
+            "tree_bytes",
+            "geometry_bytes",
+            "nodes_inner",
+            "nodes_t_inner",
+            "nodes_leaf",
+            "idx32",
+            "idx16",
+            "max_depth",
+            "open_ms",
+        ] {
+            assert!(info.get(key).is_some(), "info --json lacks {key}");
+        }
+        assert_eq!(info["tree_bytes"], b["tree_bytes"]);
+        assert_eq!(info["preset"], preset);
+        let f = |k: &str| info[k].as_u64().unwrap();
+        assert_eq!(
+            f("tree_bytes"),
+            8 * (f("nodes_inner") + 2 * f("nodes_t_inner") + f("nodes_leaf")) + 4 * f("idx32") + 2 * f("idx16")
+        );
+        let text = slimkd(&["info", kd_s]);
+        assert!(text.status.success());
+        assert!(String::from_utf8_lossy(&text.stdout).contains("table 3(a)"));
+
+        let v = slimkd(&["verify", kd_s]);
+        assert!(v.status.success(), "{}", String::from_utf8_lossy(&v.stderr));
+
+        // The same view from the OBJ (scalar, in memory) and from the file
+        // in every mode gives the same hits and checksum.
+        let reference = json(&slimkd(&[
+            "render", &scene, "--views", &views, "--view", "2", "--size", "40x24", "--json",
+        ]));
+        for mode in ["single", "packet", "brute"] {
+            let r = json(&slimkd(&[
+                "render", kd_s, "--views", &views, "--view", "2", "--size", "40x24", "--mode", mode, "--json",
+            ]));
+            assert_eq!(r["hits"], reference["hits"], "{preset} {mode}");
+            assert_eq!(r["checksum"], reference["checksum"], "{preset} {mode}");
+            assert_eq!(r["mode"], mode);
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn verify_rejects_corrupt_and_truncated_files() {
+    let dir = tmp_dir("corrupt");
+    let kd = dir.join("d.kd");
+    let kd_s = kd.to_str().unwrap();
+    let out = slimkd(&["build", "default", "-o", kd_s]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bytes = std::fs::read(&kd).unwrap();
+
+    // A flipped bit in the geometry: the structure is valid, the checksum
+    // is not.
+    let mut flipped = bytes.clone();
+    let last = flipped.len() - 100;
+    flipped[last] ^= 0x10;
+    let bad = dir.join("flipped.kd");
+    std::fs::write(&bad, &flipped).unwrap();
+    let v = slimkd(&["verify", bad.to_str().unwrap()]);
+    assert_eq!(v.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&v.stderr).contains("checksum"), "{}", String::from_utf8_lossy(&v.stderr));
+
+    let short = dir.join("short.kd");
+    std::fs::write(&short, &bytes[..bytes.len() / 2]).unwrap();
+    let v = slimkd(&["verify", short.to_str().unwrap()]);
+    assert_eq!(v.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&v.stderr).contains("truncated"));
+    let r = slimkd(&["render", short.to_str().unwrap(), "--size", "8x8"]);
+    assert_eq!(r.status.code(), Some(1));
+
+    let junk = dir.join("junk.kd");
+    std::fs::write(&junk, b"not a kd file at all").unwrap();
+    let v = slimkd(&["info", junk.to_str().unwrap()]);
+    assert_eq!(v.status.code(), Some(1));
+
+    // A failed build leaves no output file behind.
+    let missing = dir.join("no/such/dir/x.kd");
+    let out = slimkd(&["build", "default", "-o", missing.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(!missing.exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
