@@ -11,8 +11,17 @@
 //!   environment variable `SLIMKD_SCENES` names a directory holding it; its
 //!   load time is reported separately and is not part of the build time.
 //!
+//! - the breadth-first `level` builder (Wu, Zhao & Liu 2011) on the same
+//!   scenes at 1 and 2 threads, with its per-phase times, its 2-thread /
+//!   1-thread speed-up and its speed-up over `sweep`; its tree is checked
+//!   to equal the sweep tree (untimed).
+//!
 //! It also checks (untimed) that both builders produce the same tree for
 //! the 1K soup, and prints the node, leaf and reference counts of each tree.
+//!
+//! `SLIMKD_LEVEL_THRESHOLD=N` sets the level builder's small-node
+//! threshold; `-- --level-only` skips the naive and sweep timings (the tree
+//! check then builds the sweep tree once, untimed, unless `--no-check`).
 //!
 //! Run it with `cargo bench --bench build`, or with the large scene as
 //! `SLIMKD_SCENES=~/.cache/slimkd-scenes cargo bench --bench build`.
@@ -21,6 +30,7 @@
 mod common;
 
 use glam::Vec3;
+use slimkd::build::level::{self, LevelOptions, LevelReport};
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::geom::double_area;
 use slimkd::scene::TriangleColumns;
@@ -158,15 +168,123 @@ fn print_trees(lines: &[TreeLine]) {
     }
 }
 
+/// One timed level build at `threads` threads: the median seconds, the
+/// report of the median run and the last tree.
+fn time_level(
+    scene: &TriangleColumns,
+    threads: usize,
+    reps: usize,
+    options: &LevelOptions,
+) -> (f64, LevelReport, TreeIr) {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a thread pool");
+    let config = BuildConfig::default();
+    let mut runs = Vec::with_capacity(reps);
+    let mut tree = None;
+    for _ in 0..reps {
+        let start = Instant::now();
+        let (t, report) = pool
+            .install(|| level::build(scene, &config, None, options))
+            .unwrap_or_else(|e| panic!("level build failed: {e}"));
+        runs.push((start.elapsed().as_secs_f64(), report));
+        tree = Some(t);
+    }
+    runs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (secs, report) = runs.swap_remove(runs.len() / 2);
+    (secs, report, tree.expect("reps >= 1"))
+}
+
+/// One line of the level table.
+struct LevelLine {
+    scene: String,
+    triangles: usize,
+    threads: usize,
+    reps: usize,
+    seconds: f64,
+    report: LevelReport,
+    /// 1-thread seconds / these seconds.
+    speedup: Option<f64>,
+    /// sweep seconds / these seconds.
+    vs_sweep: Option<f64>,
+}
+
+fn print_level(rows: &[LevelLine], threshold: usize) {
+    println!(
+        "level builder (small-node threshold {threshold}; median of the reps; phases of the median run, seconds)"
+    );
+    println!(
+        "{:<22} {:>9} {:>3} {:>4} {:>8} {:>7} {:>6} {:>7} {:>6} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>7} {:>8}",
+        "scene",
+        "triangles",
+        "thr",
+        "reps",
+        "median s",
+        "Mtris/s",
+        "2t/1t",
+        "/sweep",
+        "setup",
+        "sah",
+        "clip",
+        "events",
+        "leaves",
+        "small",
+        "asm",
+        "levels",
+        "anon MiB"
+    );
+    for r in rows {
+        let p = &r.report.phases;
+        let opt = |x: Option<f64>| x.map_or_else(|| "-".to_string(), |x| format!("{x:.2}x"));
+        println!(
+            "{:<22} {:>9} {:>3} {:>4} {:>8.4} {:>7.3} {:>6} {:>7} {:>6.3} {:>7.3} {:>6.3} {:>6.3} {:>6.3} {:>6.3} {:>6.3} {:>7} {:>8.1}",
+            r.scene,
+            r.triangles,
+            r.threads,
+            r.reps,
+            r.seconds,
+            r.triangles as f64 / r.seconds / 1e6,
+            opt(r.speedup),
+            opt(r.vs_sweep),
+            p.setup_s,
+            p.sah_s,
+            p.classify_clip_s,
+            p.events_s,
+            p.leaves_s,
+            p.small_s,
+            p.assemble_s,
+            r.report.levels,
+            r.report.peak_rss_anon_bytes as f64 / (1 << 20) as f64
+        );
+    }
+}
+
 fn main() {
     let quick = common::quick();
+    let level_only = std::env::args().any(|a| a == "--level-only");
+    let no_check = std::env::args().any(|a| a == "--no-check");
+    let threshold = std::env::var("SLIMKD_LEVEL_THRESHOLD")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(level::DEFAULT_SMALL_THRESHOLD);
+    let level_options = LevelOptions {
+        small_threshold: threshold,
+        ..LevelOptions::default()
+    };
     let reps = if quick { 1 } else { REPS };
     let mut timings = Vec::new();
     let mut trees = Vec::new();
     let mut loads = Vec::new();
+    let mut level_rows = Vec::new();
 
     // Naive against sweep on random soups.
-    for (n, label) in [(1_000, "random 1K"), (10_000, "random 10K")] {
+    let soups: &[(usize, &str)] = if level_only {
+        &[]
+    } else {
+        &[(1_000, "random 1K"), (10_000, "random 10K")]
+    };
+    for &(n, label) in soups {
         let scene = random_soup(n, 0x5EED_0000 + n as u64);
         let naive = if n >= 10_000 && quick {
             None
@@ -245,27 +363,67 @@ fn main() {
     for (path, scene_reps) in scenes {
         let loaded = common::load(&path);
         let n = loaded.scene.len();
-        let (seconds, tree) = time_build(&loaded.scene, Builder::Sweep, scene_reps);
-        timings.push(Timing {
-            scene: loaded.name.clone(),
-            triangles: n,
-            builder: builder_name(Builder::Sweep),
-            reps: scene_reps,
-            seconds,
-            ratio: None,
-        });
-        trees.push(TreeLine {
-            scene: loaded.name.clone(),
-            builder: builder_name(Builder::Sweep),
-            triangles: n,
-            tree,
-        });
+        let sweep = if level_only {
+            (!no_check).then(|| {
+                (
+                    None,
+                    build::build(&loaded.scene, &BuildConfig::default(), Builder::Sweep, None),
+                )
+            })
+        } else {
+            let (seconds, tree) = time_build(&loaded.scene, Builder::Sweep, scene_reps);
+            timings.push(Timing {
+                scene: loaded.name.clone(),
+                triangles: n,
+                builder: builder_name(Builder::Sweep),
+                reps: scene_reps,
+                seconds,
+                ratio: None,
+            });
+            Some((Some(seconds), tree))
+        };
+        // The level builder at 1 and 2 threads.
+        let mut one_thread = None;
+        for threads in [1, 2] {
+            let (seconds, report, tree) =
+                time_level(&loaded.scene, threads, scene_reps, &level_options);
+            if let Some((_, want)) = &sweep {
+                assert!(
+                    &tree == want,
+                    "level and sweep trees differ on {}",
+                    loaded.name
+                );
+            }
+            let speedup = one_thread.map(|s1: f64| s1 / seconds);
+            one_thread.get_or_insert(seconds);
+            level_rows.push(LevelLine {
+                scene: loaded.name.clone(),
+                triangles: n,
+                threads,
+                reps: scene_reps,
+                seconds,
+                report,
+                speedup,
+                vs_sweep: sweep.as_ref().and_then(|(s, _)| s.map(|s| s / seconds)),
+            });
+        }
+        if let Some((_, tree)) = sweep {
+            println!("check: level and sweep trees are equal on {}", loaded.name);
+            trees.push(TreeLine {
+                scene: loaded.name.clone(),
+                builder: builder_name(Builder::Sweep),
+                triangles: n,
+                tree,
+            });
+        }
         loads.push(loaded);
     }
 
     println!();
     println!("build time (sequential builders, median of the reps; --quick: {quick})");
     print_timings(&timings);
+    println!();
+    print_level(&level_rows, threshold);
     println!();
     println!("trees");
     print_trees(&trees);

@@ -12,7 +12,11 @@ fn slimkd(args: &[&str]) -> Output {
 }
 
 fn json(out: &Output) -> serde_json::Value {
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     serde_json::from_slice(&out.stdout).expect("one JSON object")
 }
 
@@ -23,7 +27,11 @@ fn tmp_dir(name: &str) -> PathBuf {
 }
 
 fn manifest(p: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p).to_str().unwrap().to_string()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join(p)
+        .to_str()
+        .unwrap()
+        .to_string()
 }
 
 #[test]
@@ -34,10 +42,26 @@ fn build_info_verify_render_round_trip() {
     for preset in ["std", "small"] {
         let kd = dir.join(format!("bunny_npm.{preset}.kd"));
         let kd_s = kd.to_str().unwrap();
-        let b = json(&slimkd(&["build", &scene, "-o", kd_s, "--reorder", "--preset", preset, "--json"]));
+        let b = json(&slimkd(&[
+            "build",
+            &scene,
+            "-o",
+            kd_s,
+            "--reorder",
+            "--preset",
+            preset,
+            "--json",
+        ]));
         assert_eq!(b["triangles"], 3674);
         assert_eq!(b["preset"], preset);
-        for key in ["tree_bytes", "nodes_inner", "nodes_t_inner", "nodes_leaf", "idx32", "idx16"] {
+        for key in [
+            "tree_bytes",
+            "nodes_inner",
+            "nodes_t_inner",
+            "nodes_leaf",
+            "idx32",
+            "idx16",
+        ] {
             assert!(b.get(key).is_some(), "build --json lacks {key}");
         }
 
@@ -60,7 +84,9 @@ fn build_info_verify_render_round_trip() {
         let f = |k: &str| info[k].as_u64().unwrap();
         assert_eq!(
             f("tree_bytes"),
-            8 * (f("nodes_inner") + 2 * f("nodes_t_inner") + f("nodes_leaf")) + 4 * f("idx32") + 2 * f("idx16")
+            8 * (f("nodes_inner") + 2 * f("nodes_t_inner") + f("nodes_leaf"))
+                + 4 * f("idx32")
+                + 2 * f("idx16")
         );
         let text = slimkd(&["info", kd_s]);
         assert!(text.status.success());
@@ -76,7 +102,8 @@ fn build_info_verify_render_round_trip() {
         ]));
         for mode in ["single", "packet", "brute"] {
             let r = json(&slimkd(&[
-                "render", kd_s, "--views", &views, "--view", "2", "--size", "40x24", "--mode", mode, "--json",
+                "render", kd_s, "--views", &views, "--view", "2", "--size", "40x24", "--mode",
+                mode, "--json",
             ]));
             assert_eq!(r["hits"], reference["hits"], "{preset} {mode}");
             assert_eq!(r["checksum"], reference["checksum"], "{preset} {mode}");
@@ -92,7 +119,11 @@ fn verify_rejects_corrupt_and_truncated_files() {
     let kd = dir.join("d.kd");
     let kd_s = kd.to_str().unwrap();
     let out = slimkd(&["build", "default", "-o", kd_s]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let bytes = std::fs::read(&kd).unwrap();
 
     // A flipped bit in the geometry: the structure is valid, the checksum
@@ -104,7 +135,11 @@ fn verify_rejects_corrupt_and_truncated_files() {
     std::fs::write(&bad, &flipped).unwrap();
     let v = slimkd(&["verify", bad.to_str().unwrap()]);
     assert_eq!(v.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&v.stderr).contains("checksum"), "{}", String::from_utf8_lossy(&v.stderr));
+    assert!(
+        String::from_utf8_lossy(&v.stderr).contains("checksum"),
+        "{}",
+        String::from_utf8_lossy(&v.stderr)
+    );
 
     let short = dir.join("short.kd");
     std::fs::write(&short, &bytes[..bytes.len() / 2]).unwrap();

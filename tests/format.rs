@@ -172,6 +172,28 @@ fn dir_entries(dir: &Path) -> Vec<String> {
 // Scenes, rays and trees made for these tests.
 // ---------------------------------------------------------------------
 
+/// `n` small triangles: integer vertices in a unit cube placed at an
+/// integer point of `[0, g]³`, so that the SAH tree has many levels.
+fn random_small_scene(rng: &mut Rng, n: usize, g: usize) -> TriangleColumns {
+    let tris: Vec<[Vec3; 3]> = (0..n)
+        .map(|_| {
+            let base = Vec3::new(
+                rng.below(g + 1) as f32,
+                rng.below(g + 1) as f32,
+                rng.below(g + 1) as f32,
+            );
+            std::array::from_fn(|_| {
+                base + Vec3::new(
+                    rng.below(2) as f32,
+                    rng.below(2) as f32,
+                    rng.below(2) as f32,
+                )
+            })
+        })
+        .collect();
+    columns(&tris)
+}
+
 /// `n` triangles with integer vertices in `[0, g]³`.
 fn random_grid_scene(rng: &mut Rng, n: usize, g: usize) -> TriangleColumns {
     let tris: Vec<[Vec3; 3]> = (0..n)
@@ -721,9 +743,11 @@ fn reordering_puts_most_indices_in_idx16() {
 
 /// A 4-byte leaf at the largest count, 2^27 − 1: the node word round-trips
 /// and the reader accepts a file holding it (made in a zero-initialised
-/// buffer, so the idx32 section costs no memory; the leaf repeats triangle
-/// 0); one more index than idx32 holds is rejected; and the writer refuses a
-/// leaf of 2^27 rather than wrap the count field.
+/// buffer, so that the 512 MiB idx32 section costs no memory; the leaf
+/// repeats triangle 0); one more index than idx32 holds is rejected; and
+/// the writer refuses a leaf of 2^27 rather than wrap the count field. (The
+/// writer is not run at 2^27 − 1: its copies of the indices would take
+/// about 3 GB.)
 #[test]
 fn leaf_at_the_maximum_count() {
     let w = node::encode_leaf32(MAX_LEAF32, 5);
@@ -801,10 +825,11 @@ fn leaf_at_the_maximum_count() {
     );
     assert_eq!(file.leaf(w).len(), n);
     assert_eq!(file.figures().idx32, n as u64);
-    assert_eq!(
-        trace::traverse(&file, &ray),
-        trace::brute_force(&scene, &ray)
-    );
+    // Every index of the leaf is readable (tracing a ray through it would
+    // test the triangle 2^27 times: seconds, so it is left out).
+    let mut zeros = 0usize;
+    file.leaf(w).for_each(|t| zeros += usize::from(t == 0));
+    assert_eq!(zeros, n);
     drop(file);
     // One index past the end of idx32.
     assert!(matches!(
@@ -821,8 +846,11 @@ fn leaf_at_the_maximum_count() {
         }],
         leaf_tris: vec![TriId(0); n + 1],
     };
-    let err = format::write_to_vec(&huge, &scene, &WriteOptions::default()).unwrap_err();
-    assert!(matches!(err, FormatError::TooLarge(_)), "{err}");
+    match format::write_to_vec(&huge, &scene, &WriteOptions::default()) {
+        Err(FormatError::TooLarge(_)) => {}
+        Err(e) => panic!("refused with the wrong error: {e}"),
+        Ok(_) => panic!("written"),
+    }
 }
 
 /// Bytes in a `Vec<u64>` (8-byte aligned); `vec![0u64; n]` maps zero pages
@@ -886,8 +914,11 @@ fn depth_limit() {
     let scene = strip_scene(depth + 2);
     let leaves: Vec<Vec<u32>> = (0..=depth + 1).map(|i| vec![i]).collect();
     let tree = strip_tree(&scene, &leaves, true);
-    let err = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap_err();
-    assert!(matches!(err, FormatError::TooLarge(_)), "{err}");
+    match format::write_to_vec(&tree, &scene, &WriteOptions::default()) {
+        Err(FormatError::TooLarge(_)) => {}
+        Err(e) => panic!("refused with the wrong error: {e}"),
+        Ok(_) => panic!("written"),
+    }
 }
 
 /// The writer refuses, with an error rather than a panic or a file the
@@ -1117,9 +1148,9 @@ struct Base {
 /// one with a 4-byte leaf (2048 ids, repeating triangles).
 fn small_bases() -> Vec<Base> {
     let mut rng = Rng(11);
-    let scene = random_grid_scene(&mut rng, 24, 4);
+    let scene = random_small_scene(&mut rng, 24, 6);
     let tree = std_tree(&scene);
-    let scene2 = random_grid_scene(&mut rng, 40, 5);
+    let scene2 = random_small_scene(&mut rng, 40, 8);
     let (tree2, hoisted) = hoist(&std_tree(&scene2), &scene2, 12, true);
     assert!(hoisted >= 3, "{hoisted} type II nodes");
     let scene3 = strip_scene(6);
@@ -1812,8 +1843,12 @@ fn corrupt_targeted_edits() {
                 &header(e, 320, true),
                 |e| matches!(e, FormatError::Section { .. }),
             );
-            if s != Section::Nodes {
-                let prev = section(orig, Section::ALL[s as usize - 1]);
+            // The start of the last non-empty section before this one.
+            if let Some(prev) = Section::ALL[..s as usize]
+                .iter()
+                .map(|&p| section(orig, p))
+                .rfind(|r| !r.is_empty())
+            {
                 add(
                     &format!("{name} overlaps the previous section"),
                     &header(e, prev.start as u64, true),
@@ -1839,7 +1874,7 @@ fn corrupt_targeted_edits() {
         });
         if let Some(s) = Section::ALL
             .into_iter()
-            .find(|&s| section(orig, s).len() % 64 != 0)
+            .find(|&s| !section(orig, s).len().is_multiple_of(64))
         {
             let at = section(orig, s).end;
             let check: Check = match s {
@@ -2423,15 +2458,16 @@ fn golden_file_still_loads() {
     }
 }
 
-const GOLDEN_SIZE: usize = 0;
-const GOLDEN_MAX_DEPTH: u32 = 0;
+// The golden file's size and figures, as written by `regenerate_golden`.
+const GOLDEN_SIZE: usize = 170_368;
+const GOLDEN_MAX_DEPTH: u32 = 16;
 const GOLDEN_FIGURES: format::TreeFigures = format::TreeFigures {
-    inner: 0,
-    t_inner: 0,
-    leaves: 0,
+    inner: 1721,
+    t_inner: 1852,
+    leaves: 3574,
     idx32: 0,
-    idx16: 0,
-    triangles: 0,
-    vertices: 0,
-    words: 0,
+    idx16: 8525,
+    triangles: 3674,
+    vertices: 1839,
+    words: 8999,
 };

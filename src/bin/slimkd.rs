@@ -12,7 +12,7 @@ use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, Writ
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::slim::{self, SlimParams, SlimReport};
-use slimkd::stats::TreeStats;
+use slimkd::stats::{TreeStats, report};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
 use slimkd::tree::TreeIr;
@@ -73,6 +73,36 @@ enum Command {
     },
     /// Check a .kd file completely, checksums included; exit 0 if valid.
     Verify { file: PathBuf },
+    /// Write the paper's tables and figures (Choi et al. 2013, Tables 1–4,
+    /// Figures 5–6) for std, fast and small trees of the given scenes.
+    Report(ReportArgs),
+}
+
+#[derive(clap::Args)]
+struct ReportArgs {
+    /// OBJ files (or `default`).
+    #[arg(required = true)]
+    scenes: Vec<PathBuf>,
+    /// Views file; each scene is matched by its file stem. Without it the
+    /// embedded views are used (and scenes without views get the default
+    /// camera).
+    #[arg(long)]
+    views: Option<PathBuf>,
+    /// Image size WxH of the timed frames.
+    #[arg(long, value_parser = parse_size, default_value = "512x512")]
+    size: (u32, u32),
+    /// Frames per measurement (median).
+    #[arg(long, default_value_t = 3)]
+    reps: usize,
+    /// Threads for the "all threads" columns (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Also run the τ_occu × τ_freq threshold sweep (Figure 5).
+    #[arg(long)]
+    sweep: bool,
+    /// The Markdown report; report.json and the SVG figures go beside it.
+    #[arg(short = 'o', long, default_value = "report.md")]
+    output: PathBuf,
 }
 
 #[derive(clap::Args, Clone)]
@@ -252,6 +282,7 @@ fn main() -> ExitCode {
         Some(Command::Render(args)) => cmd_render(&args),
         Some(Command::Info { file, json }) => cmd_info(&file, json),
         Some(Command::Verify { file }) => cmd_verify(&file),
+        Some(Command::Report(args)) => cmd_report(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -644,6 +675,52 @@ fn cmd_verify(path: &Path) -> Res<()> {
         f.nodes(),
         f.triangles
     );
+    Ok(())
+}
+
+fn cmd_report(args: &ReportArgs) -> Res<()> {
+    let views = match &args.views {
+        Some(file) => {
+            let text =
+                std::fs::read_to_string(file).map_err(|e| format!("{}: {e}", file.display()))?;
+            render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
+        }
+        None => render::parse_views(DEFAULT_VIEWS)?,
+    };
+    let mut scenes = Vec::new();
+    for path in &args.scenes {
+        let loaded = load(path)?;
+        eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
+        scenes.push((
+            loaded.path.display().to_string(),
+            loaded.scene,
+            loaded.seconds,
+        ));
+    }
+    let all_threads = match args.threads {
+        Some(0) => return Err("--threads must be at least 1".into()),
+        Some(n) => n,
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
+    let options = report::ReportOptions {
+        scenes,
+        views,
+        size: args.size,
+        reps: args.reps,
+        sweep: args.sweep,
+        all_threads,
+        sweep_grid: None,
+    };
+    let start = Instant::now();
+    let report = report::run(&options, &mut |line| {
+        eprintln!("[{:7.1} s] {line}", start.elapsed().as_secs_f64())
+    })?;
+    let written = report
+        .write(&args.output)
+        .map_err(|e| format!("{}: {e}", args.output.display()))?;
+    for p in written {
+        println!("wrote {}", p.display());
+    }
     Ok(())
 }
 

@@ -1,2 +1,584 @@
-//! Typed structure-of-arrays columns, in memory or in memory-mapped
-//! scratch files. Work in progress: see issue 4.
+//! Typed structure-of-arrays columns that live in RAM below a byte budget
+//! and in memory-mapped scratch files above it.
+//!
+//! Consumes a [`ScratchConfig`] (budget, scratch directory, optional limit
+//! on scratch bytes). Produces [`Column<T>`]s of `bytemuck::Pod` elements,
+//! zero-initialised, that dereference to `[T]` wherever they live, so the
+//! code that fills and reads them does not know which. The level builder
+//! ([`crate::build::level`]) keeps each level's references and event
+//! columns in them (DESIGN.md, "Memory and scale"; Wu, Zhao & Liu 2011 keep
+//! the same columns in GPU memory).
+//!
+//! **Guarantees.**
+//! - A column is in RAM when the RAM columns alive, itself included, fit
+//!   the budget; otherwise it is a file of its own in the scratch
+//!   directory, mapped read-write.
+//! - Scratch files never outlive the build, whatever way it ends. On Unix a
+//!   file is unlinked as soon as it is mapped, so the kernel frees it when
+//!   the mapping goes: on drop, on error, on panic, on Ctrl-C and on
+//!   `kill -9` alike, with no signal handler. Elsewhere it is removed when
+//!   the column is dropped.
+//! - The space of a file is reserved when it is created
+//!   (`posix_fallocate` on Linux; written with zeros elsewhere), so a full
+//!   disk is a [`ColumnsError::NoSpace`] naming the path, never a `SIGBUS`
+//!   on a later write into the mapping.
+//! - Every error names the path it is about.
+
+use bytemuck::Pod;
+use memmap2::MmapMut;
+use std::fmt;
+use std::fs::{File, OpenOptions};
+use std::io;
+use std::marker::PhantomData;
+use std::ops::{Deref, DerefMut};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Where columns go.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ScratchConfig {
+    /// Bytes of columns kept in RAM at once; columns beyond it are mapped
+    /// files. `u64::MAX` keeps everything in RAM, 0 maps everything.
+    pub mem_budget: u64,
+    /// The directory the scratch files are created in. It must exist; it
+    /// is never created.
+    pub dir: PathBuf,
+    /// At most this many bytes of scratch files alive at once (a disk
+    /// quota); `None` for no limit beyond the disk's.
+    pub scratch_limit: Option<u64>,
+}
+
+impl Default for ScratchConfig {
+    fn default() -> Self {
+        ScratchConfig {
+            mem_budget: u64::MAX,
+            dir: std::env::temp_dir(),
+            scratch_limit: None,
+        }
+    }
+}
+
+/// Why a column could not be made.
+#[derive(Debug)]
+pub enum ColumnsError {
+    /// The scratch directory does not exist or is not a directory.
+    NoDir { path: PathBuf, source: io::Error },
+    /// A scratch file could not be created, sized or mapped (an
+    /// unwritable directory, for example).
+    File {
+        path: PathBuf,
+        op: &'static str,
+        source: io::Error,
+    },
+    /// The disk holding the scratch directory is full.
+    NoSpace { path: PathBuf, bytes: u64 },
+    /// The scratch files would exceed [`ScratchConfig::scratch_limit`].
+    Limit {
+        path: PathBuf,
+        limit: u64,
+        requested: u64,
+    },
+    /// A count does not fit the builder's index width.
+    Capacity { what: &'static str, limit: u64 },
+}
+
+impl fmt::Display for ColumnsError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ColumnsError::NoDir { path, source } => write!(
+                f,
+                "scratch directory {}: {source} (it must be an existing, writable directory)",
+                path.display()
+            ),
+            ColumnsError::File { path, op, source } => {
+                write!(f, "scratch file {}: cannot {op}: {source}", path.display())
+            }
+            ColumnsError::NoSpace { path, bytes } => write!(
+                f,
+                "scratch file {}: no space left for {bytes} bytes (free some disk or choose another scratch directory)",
+                path.display()
+            ),
+            ColumnsError::Limit {
+                path,
+                limit,
+                requested,
+            } => write!(
+                f,
+                "scratch directory {}: the scratch limit of {limit} bytes would be exceeded ({requested} bytes requested)",
+                path.display()
+            ),
+            ColumnsError::Capacity { what, limit } => {
+                write!(f, "too many {what}: at most {limit} are supported")
+            }
+        }
+    }
+}
+
+impl std::error::Error for ColumnsError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            ColumnsError::NoDir { source, .. } | ColumnsError::File { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// Byte counts of one [`Scratch`], for reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ScratchStats {
+    /// The most bytes of RAM columns alive at once.
+    pub peak_ram_bytes: u64,
+    /// The most bytes of scratch files alive at once.
+    pub peak_file_bytes: u64,
+    /// Bytes of all scratch files created (each is written once).
+    pub file_bytes_total: u64,
+    /// Scratch files created.
+    pub files: u64,
+}
+
+/// The allocator of columns: the budget, the directory and the counters.
+/// Columns borrow it, so it outlives them.
+#[derive(Debug)]
+pub struct Scratch {
+    config: ScratchConfig,
+    /// Bytes of RAM columns alive; guards the budget.
+    ram: AtomicU64,
+    /// Bytes of scratch files alive; guards `scratch_limit`.
+    file: AtomicU64,
+    peak_ram: AtomicU64,
+    peak_file: AtomicU64,
+    file_total: AtomicU64,
+    /// Files created so far; also makes file names unique.
+    files: AtomicU64,
+}
+
+impl Scratch {
+    /// Checks that the scratch directory exists when a budget can send
+    /// columns there, so a bad directory fails before any work is done.
+    pub fn new(config: ScratchConfig) -> Result<Scratch, ColumnsError> {
+        if config.mem_budget != u64::MAX {
+            match std::fs::metadata(&config.dir) {
+                Ok(m) if m.is_dir() => {}
+                Ok(_) => {
+                    return Err(ColumnsError::NoDir {
+                        path: config.dir.clone(),
+                        source: io::Error::new(io::ErrorKind::NotADirectory, "not a directory"),
+                    });
+                }
+                Err(source) => {
+                    return Err(ColumnsError::NoDir {
+                        path: config.dir.clone(),
+                        source,
+                    });
+                }
+            }
+        }
+        Ok(Scratch {
+            config,
+            ram: AtomicU64::new(0),
+            file: AtomicU64::new(0),
+            peak_ram: AtomicU64::new(0),
+            peak_file: AtomicU64::new(0),
+            file_total: AtomicU64::new(0),
+            files: AtomicU64::new(0),
+        })
+    }
+
+    pub fn config(&self) -> &ScratchConfig {
+        &self.config
+    }
+
+    pub fn stats(&self) -> ScratchStats {
+        ScratchStats {
+            peak_ram_bytes: self.peak_ram.load(Ordering::Relaxed),
+            peak_file_bytes: self.peak_file.load(Ordering::Relaxed),
+            file_bytes_total: self.file_total.load(Ordering::Relaxed),
+            files: self.files.load(Ordering::Relaxed),
+        }
+    }
+
+    /// A zeroed column of `len` elements; `name` goes into the file name.
+    pub fn column<T: Pod>(&self, name: &str, len: usize) -> Result<Column<'_, T>, ColumnsError> {
+        let bytes = (len as u64).saturating_mul(size_of::<T>() as u64);
+        // Reserve the bytes against the budget first; give them back when
+        // they do not fit, so concurrent allocations never overshoot it.
+        let before = self.ram.fetch_add(bytes, Ordering::Relaxed);
+        if before
+            .checked_add(bytes)
+            .is_some_and(|b| b <= self.config.mem_budget)
+        {
+            self.peak_ram.fetch_max(before + bytes, Ordering::Relaxed);
+            return Ok(Column {
+                storage: Storage::Ram(vec![T::zeroed(); len]),
+                len,
+                bytes,
+                scratch: self,
+            });
+        }
+        self.ram.fetch_sub(bytes, Ordering::Relaxed);
+        let seq = self.files.fetch_add(1, Ordering::Relaxed);
+        let path = self
+            .config
+            .dir
+            .join(format!("slimkd-{}-{seq}-{name}.col", std::process::id()));
+        let before = self.file.fetch_add(bytes, Ordering::Relaxed);
+        if let Some(limit) = self.config.scratch_limit
+            && before + bytes > limit
+        {
+            self.file.fetch_sub(bytes, Ordering::Relaxed);
+            return Err(ColumnsError::Limit {
+                path: self.config.dir.clone(),
+                limit,
+                requested: before + bytes,
+            });
+        }
+        // From here on, the column (or its drop on error) gives the bytes
+        // back.
+        let map = match map_file(&path, bytes) {
+            Ok(m) => m,
+            Err(e) => {
+                self.file.fetch_sub(bytes, Ordering::Relaxed);
+                return Err(e);
+            }
+        };
+        self.peak_file.fetch_max(before + bytes, Ordering::Relaxed);
+        self.file_total.fetch_add(bytes, Ordering::Relaxed);
+        Ok(Column {
+            storage: Storage::File {
+                map,
+                path: (!cfg!(unix)).then_some(path),
+            },
+            len,
+            bytes,
+            scratch: self,
+        })
+    }
+}
+
+/// Creates `path` (it must not exist), reserves `bytes` for it, maps it
+/// and, on Unix, unlinks it. Nothing is left at `path` on error.
+fn map_file(path: &Path, bytes: u64) -> Result<Option<MmapMut>, ColumnsError> {
+    let err = |op, source| ColumnsError::File {
+        path: path.to_path_buf(),
+        op,
+        source,
+    };
+    let file = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .map_err(|e| err("create", e))?;
+    // The file exists from here: remove it on every early return.
+    let result = reserve_and_map(&file, path, bytes);
+    if result.is_err() || cfg!(unix) {
+        // On Unix the mapping keeps the unlinked file's pages alive, and
+        // the kernel frees them when the mapping goes, however the process
+        // ends. A failed removal leaves a file behind, which is worth an
+        // error of its own only when nothing else went wrong.
+        if let Err(e) = std::fs::remove_file(path)
+            && result.is_ok()
+        {
+            return Err(err("remove", e));
+        }
+    }
+    result
+}
+
+fn reserve_and_map(file: &File, path: &Path, bytes: u64) -> Result<Option<MmapMut>, ColumnsError> {
+    if bytes == 0 {
+        // A zero-length mapping is an error on Linux; an empty column needs
+        // no bytes.
+        return Ok(None);
+    }
+    reserve(file, bytes).map_err(|e| {
+        if e.kind() == io::ErrorKind::StorageFull || e.raw_os_error() == Some(28) {
+            ColumnsError::NoSpace {
+                path: path.to_path_buf(),
+                bytes,
+            }
+        } else {
+            ColumnsError::File {
+                path: path.to_path_buf(),
+                op: "reserve space for",
+                source: e,
+            }
+        }
+    })?;
+    // SAFETY: the file was created by this call with `create_new`, under a
+    // name no other column uses, and (on Unix) is unlinked right after, so
+    // nothing else in this process writes or truncates it while it is
+    // mapped. Another process could open it in the instant between
+    // creation and unlinking and truncate it, but the scratch directory is
+    // the user's own; no data of ours outside the mapping depends on it.
+    let map = unsafe { MmapMut::map_mut(file) }.map_err(|e| ColumnsError::File {
+        path: path.to_path_buf(),
+        op: "map",
+        source: e,
+    })?;
+    Ok(Some(map))
+}
+
+/// Sizes the file to `bytes`, allocating its blocks now.
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
+fn reserve(file: &File, bytes: u64) -> io::Result<()> {
+    use std::os::fd::AsRawFd;
+    unsafe extern "C" {
+        // glibc and musl: `int posix_fallocate(int fd, off_t offset, off_t
+        // len)`, with a 64-bit `off_t` on 64-bit Linux. It returns an error
+        // number instead of setting errno.
+        fn posix_fallocate(fd: i32, offset: i64, len: i64) -> i32;
+    }
+    let len = i64::try_from(bytes).map_err(|_| io::Error::from(io::ErrorKind::FileTooLarge))?;
+    // SAFETY: the descriptor belongs to `file`, which is open for writing
+    // and outlives the call; the function reads no memory of ours.
+    let rc = unsafe { posix_fallocate(file.as_raw_fd(), 0, len) };
+    match rc {
+        0 => Ok(()),
+        // Filesystems without fallocate (and glibc's emulation failing)
+        // fall back to writing zeros.
+        95 => write_zeros(file, bytes),
+        e => Err(io::Error::from_raw_os_error(e)),
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_pointer_width = "64")))]
+fn reserve(file: &File, bytes: u64) -> io::Result<()> {
+    write_zeros(file, bytes)
+}
+
+/// Writes `bytes` zeros, so the filesystem allocates (or refuses) them now.
+#[allow(dead_code)]
+fn write_zeros(mut file: &File, bytes: u64) -> io::Result<()> {
+    use std::io::Write;
+    let zeros = vec![0u8; 1 << 20];
+    let mut left = bytes;
+    while left > 0 {
+        let n = left.min(zeros.len() as u64) as usize;
+        file.write_all(&zeros[..n])?;
+        left -= n as u64;
+    }
+    file.flush()
+}
+
+enum Storage<T> {
+    Ram(Vec<T>),
+    /// `None` for an empty column. `path` is kept only where the file must
+    /// be removed on drop (not on Unix, where it is already unlinked).
+    File {
+        map: Option<MmapMut>,
+        path: Option<PathBuf>,
+    },
+}
+
+/// A column of `len` elements of `T`, in RAM or in a mapped scratch file.
+/// Dereferences to `[T]`.
+pub struct Column<'s, T: Pod> {
+    storage: Storage<T>,
+    len: usize,
+    /// What this column counts against the budget or the scratch limit.
+    bytes: u64,
+    scratch: &'s Scratch,
+}
+
+impl<T: Pod> Column<'_, T> {
+    /// Whether the column is a mapped file.
+    pub fn is_mapped(&self) -> bool {
+        matches!(self.storage, Storage::File { .. })
+    }
+}
+
+impl<T: Pod> Deref for Column<'_, T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        match &self.storage {
+            Storage::Ram(v) => v,
+            Storage::File { map: Some(m), .. } => {
+                // A page-aligned mapping of exactly `len * size_of::<T>()`
+                // bytes: the cast checks both and cannot fail.
+                bytemuck::cast_slice(&m[..self.len * size_of::<T>()])
+            }
+            Storage::File { map: None, .. } => &[],
+        }
+    }
+}
+
+impl<T: Pod> DerefMut for Column<'_, T> {
+    fn deref_mut(&mut self) -> &mut [T] {
+        let len = self.len;
+        match &mut self.storage {
+            Storage::Ram(v) => v,
+            Storage::File { map: Some(m), .. } => {
+                bytemuck::cast_slice_mut(&mut m[..len * size_of::<T>()])
+            }
+            Storage::File { map: None, .. } => &mut [],
+        }
+    }
+}
+
+impl<T: Pod> Drop for Column<'_, T> {
+    fn drop(&mut self) {
+        match &mut self.storage {
+            Storage::Ram(_) => {
+                self.scratch.ram.fetch_sub(self.bytes, Ordering::Relaxed);
+            }
+            Storage::File { map, path } => {
+                // Unmap before removing, which some systems require.
+                drop(map.take());
+                if let Some(p) = path.take() {
+                    let _ = std::fs::remove_file(p);
+                }
+                self.scratch.file.fetch_sub(self.bytes, Ordering::Relaxed);
+            }
+        }
+    }
+}
+
+impl<T: Pod> fmt::Debug for Column<'_, T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Column")
+            .field("len", &self.len)
+            .field("mapped", &self.is_mapped())
+            .finish()
+    }
+}
+
+/// A view for writing disjoint elements of one slice from several threads.
+///
+/// The parallel passes of the level builder scatter elements to positions
+/// computed by prefix sums; no two writers share a position, but the
+/// positions of one writer are not one contiguous range, so the slice
+/// cannot be split safely beforehand.
+pub struct ScatterSlice<'a, T> {
+    ptr: *mut T,
+    len: usize,
+    _slice: PhantomData<&'a mut [T]>,
+}
+
+// SAFETY: a ScatterSlice only hands out writes to distinct positions (the
+// caller's obligation on `write`), so sharing it between threads is no
+// more than sharing disjoint `&mut T`s, which `T: Send` allows.
+unsafe impl<T: Send> Sync for ScatterSlice<'_, T> {}
+// SAFETY: as above; it owns nothing.
+unsafe impl<T: Send> Send for ScatterSlice<'_, T> {}
+
+impl<'a, T> ScatterSlice<'a, T> {
+    pub fn new(slice: &'a mut [T]) -> ScatterSlice<'a, T> {
+        ScatterSlice {
+            ptr: slice.as_mut_ptr(),
+            len: slice.len(),
+            _slice: PhantomData,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Writes `value` at `i` (checked against the length).
+    ///
+    /// # Safety
+    ///
+    /// No other thread reads or writes position `i` while the
+    /// `ScatterSlice` is alive.
+    #[inline]
+    pub unsafe fn write(&self, i: usize, value: T) {
+        assert!(i < self.len, "scatter index {i} out of {}", self.len);
+        // SAFETY: `i` is in bounds (checked above) and the caller promises
+        // that no other thread touches position `i`; the borrow in
+        // `_slice` keeps the slice alive and otherwise unused.
+        unsafe { self.ptr.add(i).write(value) }
+    }
+
+    /// A mutable sub-slice `[start, end)`.
+    ///
+    /// # Safety
+    ///
+    /// No other thread reads or writes any position of `[start, end)`
+    /// while the returned slice is alive.
+    #[inline]
+    #[allow(clippy::mut_from_ref)]
+    pub unsafe fn range_mut(&self, start: usize, end: usize) -> &mut [T] {
+        assert!(
+            start <= end && end <= self.len,
+            "scatter range out of bounds"
+        );
+        // SAFETY: the range is in bounds (checked above) and exclusive to
+        // the caller by its promise.
+        unsafe { std::slice::from_raw_parts_mut(self.ptr.add(start), end - start) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("slimkd-col-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    fn entries(d: &Path) -> usize {
+        std::fs::read_dir(d).unwrap().count()
+    }
+
+    #[test]
+    fn ram_then_file_above_the_budget() {
+        let d = dir("budget");
+        let s = Scratch::new(ScratchConfig {
+            mem_budget: 64,
+            dir: d.clone(),
+            scratch_limit: None,
+        })
+        .unwrap();
+        let mut a = s.column::<u32>("a", 16).unwrap();
+        let mut b = s.column::<u64>("b", 1000).unwrap();
+        assert!(!a.is_mapped());
+        assert!(b.is_mapped());
+        a[3] = 7;
+        b[999] = 9;
+        assert_eq!(b.iter().sum::<u64>(), 9);
+        assert_eq!(a.iter().sum::<u32>(), 7);
+        assert_eq!(entries(&d), 0, "scratch files are unlinked once mapped");
+        drop(b);
+        drop(a);
+        assert_eq!(s.stats().file_bytes_total, 8000);
+        assert_eq!(s.stats().files, 1);
+        let empty = s.column::<u64>("e", 0).unwrap();
+        assert!(empty.is_empty());
+        std::fs::remove_dir_all(d).unwrap();
+    }
+
+    #[test]
+    fn missing_dir_is_an_error_naming_it() {
+        let d = std::env::temp_dir().join("slimkd-no-such-dir/deeper");
+        let e = Scratch::new(ScratchConfig {
+            mem_budget: 0,
+            dir: d.clone(),
+            scratch_limit: None,
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains(&*d.to_string_lossy()), "{e}");
+    }
+
+    #[test]
+    fn scratch_limit_is_enforced() {
+        let d = dir("limit");
+        let s = Scratch::new(ScratchConfig {
+            mem_budget: 0,
+            dir: d.clone(),
+            scratch_limit: Some(100),
+        })
+        .unwrap();
+        let _a = s.column::<u8>("a", 60).unwrap();
+        let e = s.column::<u8>("b", 60).unwrap_err();
+        assert!(matches!(e, ColumnsError::Limit { .. }), "{e}");
+        assert_eq!(entries(&d), 0);
+        std::fs::remove_dir_all(d).unwrap();
+    }
+}

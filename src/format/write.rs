@@ -259,6 +259,14 @@ fn put_u64(b: &mut [u8], at: usize, v: u64) {
 }
 
 /// Serialises a tree and its scene into the bytes of a `.kd` file.
+///
+/// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
+/// would reject: a tree that does not fit the format
+/// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
+/// range, a node reached twice, an axis over 2, a non-finite split, a
+/// triangle id out of range) or scene (non-finite bounds or vertices, a
+/// vertex index out of range) is an error, never a panic. The tree need not
+/// pass [`TreeIr::validate`] otherwise: leaves may repeat a triangle.
 pub fn write_to_vec(
     tree: &TreeIr,
     scene: &TriangleColumns,

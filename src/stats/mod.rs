@@ -2,6 +2,9 @@
 //! cost, and the leaf-depth histogram (the figures of Choi et al. 2013,
 //! Table 3 and Figure 6, for the standard tree).
 
+pub mod plot;
+pub mod report;
+
 use crate::build::sah::SahParams;
 use crate::tree::{Node, TreeIr};
 

@@ -1,2 +1,1141 @@
-//! Breadth-first level builder (Wu, Zhao & Liu, HPG 2011, on CPU cores).
-//! Work in progress: see issue 4.
+//! The breadth-first level builder: Wu, Zhao & Liu, "SAH KD-Tree
+//! Construction on GPU" (HPG 2011), on CPU cores with rayon.
+//!
+//! Consumes a scene, the [`BuildConfig`] and [`LevelOptions`]. Produces the
+//! standard tree as a [`TreeIr`] **equal** to [`super::sweep::build`]'s (the
+//! same splits, the same leaves, the same order; see [`super`] for the one
+//! definition every builder follows) and a [`LevelReport`] with per-phase
+//! times and memory figures. The tree does not depend on the number of
+//! threads: every decision is a function of the data, cut into pieces
+//! whose bounds depend on the data alone, and every reduction (the best
+//! split of a node) is over a total order.
+//!
+//! **One level** is the open nodes at one depth, stored as flat columns
+//! ([`crate::columns`]: in RAM below `mem_budget`, in mapped scratch files
+//! above it): each node's references (triangle id and clipped box,
+//! ascending by triangle) and, per axis, its events sorted as in the sweep
+//! builder ([`event`]). One call of [`Builder::level`] turns level `d`
+//! into level `d + 1` (the paper's §4, Figure 2):
+//!
+//! 1. **Small nodes** (fewer than `small_threshold` references) are handed
+//!    to the depth-first builder ([`dfs`]: the sweep builder's algorithm
+//!    on the same flat encoding, without an allocation per node), in
+//!    parallel across nodes (the paper's "small node stage", §4.3, which
+//!    there uses a different algorithm; here it is the same SAH, so the
+//!    tree is unchanged).
+//! 2. **SAH**: every axis's events are cut into pieces ([`pieces`]) and
+//!    swept in parallel; a piece that continues a node starts from counts
+//!    carried over the node's earlier pieces (a segmented prefix count).
+//!    Every plane is priced by [`sah::split_cost`] and the best kept by
+//!    [`Split::keep_best`], whose total order makes the reduction over
+//!    pieces independent of their order.
+//! 3. **Leaves** ([`sah::is_leaf`]) stream out: their triangle lists are
+//!    appended to the leaf list at once.
+//! 4. **Classify and clip**: references go left, right or both
+//!    ([`classify`]); straddlers are clipped to each child ([`clip_straddler`],
+//!    perfect splits). Prefix counts place each child's references.
+//! 5. **Child events**: inherited events keep their order through a stable
+//!    parallel partition, with their reference renumbered; the events of
+//!    clipped references are sorted per child and merged in (sort + merge,
+//!    in place from the back of the child's segment). **Deviation from the
+//!    paper:** Wu et al. bucket-sort the new events with the parent's
+//!    events as buckets; on CPU cores sorting the few new events of a child
+//!    and merging them is simpler and reads the inherited events only once.
+//!
+//! The tree is assembled in pre-order at the end ([`assemble`]), from the
+//! breadth-first records, leaf lists and depth-first subtrees.
+
+mod assemble;
+mod dfs;
+mod event;
+mod pieces;
+
+use self::assemble::{Rec, assemble};
+use self::dfs::Finisher;
+use self::event::{
+    Box6, MAX_REFS, ev_key, ev_kind, ev_ref, key_pos, n_events, push_events, to_aabb, to_box,
+    with_ref,
+};
+use self::pieces::{Piece, carries, pieces};
+use super::sah::{self, PlaneCounts, Split};
+use super::{BuildConfig, Placement, Progress, TriRef, classify, clip_straddler, root};
+use crate::columns::{Column, ColumnsError, ScatterSlice, Scratch, ScratchConfig, ScratchStats};
+use crate::geom::Aabb;
+use crate::scene::TriangleColumns;
+use crate::tree::{TreeIr, TriId};
+use rayon::prelude::*;
+use std::ops::Add;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::time::Instant;
+
+/// Nodes with fewer references than this are finished depth-first by
+/// default (see [`LevelOptions::small_threshold`]).
+pub const DEFAULT_SMALL_THRESHOLD: usize = 1024;
+
+/// Elements per work piece: large enough that a piece's fixed costs vanish,
+/// small enough that the top levels split into many pieces per thread.
+const PIECE: usize = 1 << 14;
+
+/// How the level builder runs. None of it changes the tree.
+#[derive(Clone, Debug)]
+pub struct LevelOptions {
+    /// Nodes with fewer references are finished depth-first by the sweep
+    /// builder. 0 (or 1) keeps every node breadth-first down to the
+    /// leaves; `usize::MAX` builds everything depth-first.
+    pub small_threshold: usize,
+    /// Bytes of level columns kept in RAM; above it they are mapped
+    /// scratch files. `u64::MAX` keeps everything in RAM.
+    pub mem_budget: u64,
+    /// Where scratch files go; it must exist when `mem_budget` is finite.
+    pub scratch_dir: PathBuf,
+    /// At most this many bytes of scratch files at once.
+    pub scratch_limit: Option<u64>,
+    /// Where a progress display can read the current level.
+    pub status: Option<Arc<LevelStatus>>,
+}
+
+impl Default for LevelOptions {
+    fn default() -> Self {
+        LevelOptions {
+            small_threshold: DEFAULT_SMALL_THRESHOLD,
+            mem_budget: u64::MAX,
+            scratch_dir: std::env::temp_dir(),
+            scratch_limit: None,
+            status: None,
+        }
+    }
+}
+
+/// The level being built, for progress displays.
+#[derive(Debug, Default)]
+pub struct LevelStatus {
+    pub level: AtomicU32,
+    /// Open nodes processed breadth-first at this level.
+    pub open_nodes: AtomicU64,
+    /// References at this level.
+    pub refs: AtomicU64,
+}
+
+/// Seconds spent in each phase, summed over the levels.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Phases {
+    /// Root references and the first event sort.
+    pub setup_s: f64,
+    /// The SAH sweeps and the choice of splits.
+    pub sah_s: f64,
+    /// Classification, clipping and writing the child references.
+    pub classify_clip_s: f64,
+    /// Child events: stable partition, sort and merge of new events.
+    pub events_s: f64,
+    /// Leaf output.
+    pub leaves_s: f64,
+    /// Small nodes finished depth-first.
+    pub small_s: f64,
+    /// Pre-order assembly of the tree.
+    pub assemble_s: f64,
+}
+
+impl Phases {
+    pub fn total(&self) -> f64 {
+        self.setup_s
+            + self.sah_s
+            + self.classify_clip_s
+            + self.events_s
+            + self.leaves_s
+            + self.small_s
+            + self.assemble_s
+    }
+}
+
+/// What one build did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LevelReport {
+    pub phases: Phases,
+    /// Levels processed breadth-first.
+    pub levels: u32,
+    /// Nodes decided breadth-first (inner nodes and leaves).
+    pub bfs_nodes: u64,
+    /// Subtrees finished depth-first.
+    pub small_nodes: u64,
+    /// The most references of one level.
+    pub max_level_refs: u64,
+    /// The most nodes processed breadth-first in one level.
+    pub max_open_nodes: u64,
+    /// Straddlers clipped breadth-first.
+    pub clipped: u64,
+    /// The largest `RssAnon` seen (sampled from `/proc/self/status` after
+    /// every phase of every level; 0 where there is no such file).
+    pub peak_rss_anon_bytes: u64,
+    /// The largest `RssFile` seen, sampled likewise (mapped scratch files
+    /// count here, as does the mapped executable).
+    pub peak_rss_file_bytes: u64,
+    /// Bytes of RAM columns and scratch files.
+    pub scratch: ScratchStats,
+}
+
+/// Builds the standard tree breadth-first; see the module docs.
+pub fn build(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    progress: Option<&Progress>,
+    options: &LevelOptions,
+) -> Result<(TreeIr, LevelReport), ColumnsError> {
+    let scratch = Scratch::new(ScratchConfig {
+        mem_budget: options.mem_budget,
+        dir: options.scratch_dir.clone(),
+        scratch_limit: options.scratch_limit,
+    })?;
+    let mut b = Builder {
+        scene,
+        config,
+        progress,
+        options,
+        scratch: &scratch,
+        depth_limit: config.sah.depth_limit(scene.len()),
+        recs: vec![Rec::Open],
+        leaf_tris: Vec::new(),
+        subs: Vec::new(),
+        report: LevelReport::default(),
+    };
+    let mut clock = Instant::now();
+    let (bounds, root_level) = b.root()?;
+    b.report.phases.setup_s = lap(&mut clock);
+    b.sample_rss();
+    let mut level = Some(root_level);
+    let mut depth = 0;
+    while let Some(l) = level {
+        level = b.level(l, depth)?;
+        depth += 1;
+    }
+    clock = Instant::now();
+    let tree = assemble(bounds, &b.recs, &b.leaf_tris, &b.subs);
+    b.report.phases.assemble_s = lap(&mut clock);
+    b.sample_rss();
+    let mut report = b.report;
+    report.scratch = scratch.stats();
+    Ok((tree, report))
+}
+
+fn lap(clock: &mut Instant) -> f64 {
+    let now = Instant::now();
+    let s = now.duration_since(*clock).as_secs_f64();
+    *clock = now;
+    s
+}
+
+/// `RssAnon` and `RssFile` in bytes, from `/proc/self/status` (zeros where
+/// it cannot be read).
+fn rss() -> (u64, u64) {
+    let Ok(text) = std::fs::read_to_string("/proc/self/status") else {
+        return (0, 0);
+    };
+    let field = |name: &str| {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            .map_or(0, |kb| kb * 1024)
+    };
+    (field("RssAnon:"), field("RssFile:"))
+}
+
+/// One node of a level.
+#[derive(Clone, Copy, Debug)]
+struct LNode {
+    cell: Aabb,
+    /// References `refs .. refs + n` of the level's columns.
+    refs: usize,
+    n: usize,
+    /// Events `ev[k] .. ev[k] + nev[k]` of axis `k`'s column.
+    ev: [usize; 3],
+    nev: [usize; 3],
+    /// Its share of [`Progress::TOTAL`].
+    weight: u64,
+    /// Its record.
+    rec: u32,
+}
+
+/// The open nodes of one depth and their columns.
+///
+/// Invariant: the nodes' reference ranges tile the reference columns in
+/// node order, and their event ranges tile each axis's column likewise;
+/// within a node, references ascend by triangle and events ascend as
+/// `u64` ([`event`]).
+struct Level<'s> {
+    nodes: Vec<LNode>,
+    tri: Column<'s, u32>,
+    bounds: Column<'s, Box6>,
+    ev: [Column<'s, u64>; 3],
+}
+
+struct Builder<'a> {
+    scene: &'a TriangleColumns,
+    config: &'a BuildConfig,
+    progress: Option<&'a Progress>,
+    options: &'a LevelOptions,
+    scratch: &'a Scratch,
+    depth_limit: u32,
+    /// One per node, in the order nodes were opened; record 0 is the root.
+    recs: Vec<Rec>,
+    /// The triangle lists of the breadth-first leaves.
+    leaf_tris: Vec<TriId>,
+    /// The subtrees finished depth-first.
+    subs: Vec<TreeIr>,
+    report: LevelReport,
+}
+
+/// Counts of a pass over one node's references, per child side.
+#[derive(Clone, Copy, Debug, Default)]
+struct SideCounts {
+    /// References going to each side (clipped ones included).
+    n: [usize; 2],
+    /// Inherited events per side and axis (references wholly on one side).
+    inherited: [[usize; 3]; 2],
+    /// Events of clipped references per side and axis.
+    new: [[usize; 3]; 2],
+}
+
+impl Add for SideCounts {
+    type Output = SideCounts;
+    fn add(mut self, o: SideCounts) -> SideCounts {
+        for s in 0..2 {
+            self.n[s] += o.n[s];
+            for k in 0..3 {
+                self.inherited[s][k] += o.inherited[s][k];
+                self.new[s][k] += o.new[s][k];
+            }
+        }
+        self
+    }
+}
+
+/// A pair of counts with `+`, for carries.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Pair([usize; 2]);
+
+impl Add for Pair {
+    type Output = Pair;
+    fn add(self, o: Pair) -> Pair {
+        Pair([self.0[0] + o.0[0], self.0[1] + o.0[1]])
+    }
+}
+
+/// Where a reference of a split node goes: bit 0 left, bit 1 right, bit 2
+/// clipped (a straddler; its boxes are in the classify pass's list).
+const TO_LEFT: u8 = 1;
+const TO_RIGHT: u8 = 2;
+const CLIPPED: u8 = 4;
+
+/// What the classify pass found in one piece.
+struct Classified {
+    /// Per node of the piece.
+    counts: Vec<SideCounts>,
+    /// The straddlers in reference order: (reference, left box, right box).
+    clipped: Vec<(u32, Option<Aabb>, Option<Aabb>)>,
+}
+
+impl<'a> Builder<'a> {
+    fn sample_rss(&mut self) {
+        let (anon, file) = rss();
+        self.report.peak_rss_anon_bytes = self.report.peak_rss_anon_bytes.max(anon);
+        self.report.peak_rss_file_bytes = self.report.peak_rss_file_bytes.max(file);
+    }
+
+    fn capacity(n: usize) -> Result<(), ColumnsError> {
+        if n >= MAX_REFS {
+            Err(ColumnsError::Capacity {
+                what: "references in one level",
+                limit: MAX_REFS as u64 - 1,
+            })
+        } else {
+            Ok(())
+        }
+    }
+
+    /// The root level: every triangle with its own bounds, events sorted.
+    fn root(&mut self) -> Result<(Aabb, Level<'a>), ColumnsError> {
+        let (bounds, refs) = root(self.scene);
+        let n = refs.len();
+        Self::capacity(n)?;
+        let mut tri = self.scratch.column::<u32>("tri", n)?;
+        let mut boxes = self.scratch.column::<Box6>("bounds", n)?;
+        tri.par_iter_mut()
+            .zip(boxes.par_iter_mut())
+            .zip(refs.par_iter())
+            .for_each(|((t, b), r)| {
+                *t = r.tri.0;
+                *b = to_box(&r.bounds);
+            });
+        drop(refs);
+        let mut nev = [0; 3];
+        let mut ev = Vec::with_capacity(3);
+        for (axis, nev) in nev.iter_mut().enumerate() {
+            *nev = boxes.par_iter().map(|b| n_events(b, axis)).sum();
+            let mut col = self.scratch.column::<u64>("ev", *nev)?;
+            // Each reference's events go to its own slots: the prefix of
+            // event counts, computed per chunk.
+            let chunk = PIECE;
+            let starts: Vec<usize> = boxes
+                .par_chunks(chunk)
+                .map(|c| c.iter().map(|b| n_events(b, axis)).sum::<usize>())
+                .collect::<Vec<_>>()
+                .into_iter()
+                .scan(0, |acc, c| {
+                    let s = *acc;
+                    *acc += c;
+                    Some(s)
+                })
+                .collect();
+            let w = ScatterSlice::new(&mut col);
+            boxes
+                .par_chunks(chunk)
+                .zip(starts.par_iter())
+                .enumerate()
+                .for_each(|(ci, (c, &s))| {
+                    let mut out = Vec::with_capacity(2 * c.len());
+                    for (i, b) in c.iter().enumerate() {
+                        push_events(b, axis, (ci * chunk + i) as u32, &mut out);
+                    }
+                    // SAFETY: chunk `ci` owns the slots from its prefix
+                    // `s` to the next chunk's prefix, exactly `out.len()`.
+                    let dst = unsafe { w.range_mut(s, s + out.len()) };
+                    dst.copy_from_slice(&out);
+                });
+            drop(w);
+            col.par_sort_unstable();
+            ev.push(col);
+        }
+        let ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
+        let node = LNode {
+            cell: bounds,
+            refs: 0,
+            n,
+            ev: [0; 3],
+            nev,
+            weight: Progress::TOTAL,
+            rec: 0,
+        };
+        Ok((
+            bounds,
+            Level {
+                nodes: vec![node],
+                tri,
+                bounds: boxes,
+                ev,
+            },
+        ))
+    }
+
+    /// Processes level `depth`; returns the next one, or `None` when no
+    /// node is left open.
+    fn level(&mut self, l: Level<'a>, depth: u32) -> Result<Option<Level<'a>>, ColumnsError> {
+        let mut clock = Instant::now();
+        let threshold = self.options.small_threshold;
+        let (small, big): (Vec<usize>, Vec<usize>) =
+            (0..l.nodes.len()).partition(|&j| l.nodes[j].n < threshold);
+        if let Some(s) = &self.options.status {
+            s.level.store(depth, Ordering::Relaxed);
+            s.open_nodes.store(big.len() as u64, Ordering::Relaxed);
+            s.refs.store(l.tri.len() as u64, Ordering::Relaxed);
+        }
+        self.report.max_level_refs = self.report.max_level_refs.max(l.tri.len() as u64);
+        self.report.max_open_nodes = self.report.max_open_nodes.max(big.len() as u64);
+        if !big.is_empty() {
+            self.report.levels += 1;
+        }
+
+        // 1. Small nodes, depth-first.
+        if !small.is_empty() {
+            self.finish_small(&l, &small, depth);
+            self.report.phases.small_s += lap(&mut clock);
+            self.sample_rss();
+        }
+        if big.is_empty() {
+            return Ok(None);
+        }
+
+        // 2. SAH.
+        let best = self.best_splits(&l, &big);
+        self.report.phases.sah_s += lap(&mut clock);
+
+        // 3. Leaves out; splits kept.
+        let mut splits: Vec<(usize, Split)> = Vec::new();
+        for (bi, &j) in big.iter().enumerate() {
+            let nd = &l.nodes[j];
+            self.report.bfs_nodes += 1;
+            if sah::is_leaf(
+                &self.config.sah,
+                best[bi].as_ref(),
+                nd.n,
+                depth,
+                self.depth_limit,
+            ) {
+                let start = self.leaf_tris.len();
+                self.leaf_tris
+                    .extend(l.tri[nd.refs..nd.refs + nd.n].iter().map(|&t| TriId(t)));
+                self.recs[nd.rec as usize] = Rec::Leaf {
+                    start,
+                    count: nd.n as u32,
+                };
+                Progress::add(self.progress, nd.weight);
+            } else {
+                splits.push((
+                    j,
+                    best[bi].expect("a split exists when the node is not a leaf"),
+                ));
+            }
+        }
+        self.report.phases.leaves_s += lap(&mut clock);
+        self.sample_rss();
+        if splits.is_empty() {
+            return Ok(None);
+        }
+
+        // 4. Classify and clip.
+        let rsegs: Vec<(usize, usize)> = splits
+            .iter()
+            .map(|&(j, _)| (l.nodes[j].refs, l.nodes[j].n))
+            .collect();
+        let rpieces = pieces(&rsegs, PIECE, |_| true);
+        let mut place = self.scratch.column::<u8>("place", l.tri.len())?;
+        let classified = self.classify_pass(&l, &splits, &rsegs, &rpieces, &mut place);
+        self.report.clipped += classified
+            .iter()
+            .map(|c| c.clipped.len() as u64)
+            .sum::<u64>();
+
+        // The children: per split node, left then right.
+        let mut totals = vec![SideCounts::default(); splits.len()];
+        for (p, c) in rpieces.iter().zip(&classified) {
+            for (k, si) in p.nodes.clone().enumerate() {
+                totals[si] = totals[si] + c.counts[k];
+            }
+        }
+        let part_counts: Vec<SideCounts> = rpieces
+            .iter()
+            .zip(&classified)
+            .map(|(p, c)| {
+                if p.part.is_some() {
+                    c.counts[0]
+                } else {
+                    SideCounts::default()
+                }
+            })
+            .collect();
+        let rcarry = carries(&rpieces, &part_counts);
+        let mut next_nodes = Vec::with_capacity(2 * splits.len());
+        let (mut refs_at, mut ev_at) = (0usize, [0usize; 3]);
+        for (si, &(j, split)) in splits.iter().enumerate() {
+            let nd = &l.nodes[j];
+            let t = &totals[si];
+            let (lc, rc) = nd.cell.split(split.axis as usize, split.pos);
+            let (wl, wr) = Progress::share(nd.weight, t.n[0], t.n[1]);
+            let left = self.recs.len() as u32;
+            self.recs[nd.rec as usize] = Rec::Inner {
+                axis: split.axis,
+                pos: split.pos,
+                left,
+                right: left + 1,
+            };
+            for (side, (cell, weight)) in [(lc, wl), (rc, wr)].into_iter().enumerate() {
+                let nev = [0, 1, 2].map(|k| t.inherited[side][k] + t.new[side][k]);
+                next_nodes.push(LNode {
+                    cell,
+                    refs: refs_at,
+                    n: t.n[side],
+                    ev: ev_at,
+                    nev,
+                    weight,
+                    rec: self.recs.len() as u32,
+                });
+                self.recs.push(Rec::Open);
+                refs_at += t.n[side];
+                for k in 0..3 {
+                    ev_at[k] += nev[k];
+                }
+            }
+        }
+        Self::capacity(refs_at)?;
+        let mut tri = self.scratch.column::<u32>("tri", refs_at)?;
+        let mut boxes = self.scratch.column::<Box6>("bounds", refs_at)?;
+        let mut new_idx = self.scratch.column::<u32>("new-idx", l.tri.len())?;
+        let copies = write_children(
+            &l,
+            &place,
+            &rsegs,
+            &rpieces,
+            &classified,
+            &rcarry,
+            &next_nodes,
+            &mut tri,
+            &mut boxes,
+            &mut new_idx,
+        );
+        drop(classified);
+        self.report.phases.classify_clip_s += lap(&mut clock);
+        self.sample_rss();
+
+        // 5. Child events.
+        let mut ev = Vec::with_capacity(3);
+        for k in 0..3 {
+            ev.push(self.scratch.column::<u64>("ev", ev_at[k])?);
+        }
+        let mut ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
+        partition_events(&l, &splits, &place, &new_idx, &next_nodes, &mut ev);
+        drop(place);
+        drop(new_idx);
+        merge_new_events(copies, &boxes, &next_nodes, &mut ev);
+        self.report.phases.events_s += lap(&mut clock);
+        self.sample_rss();
+        drop(l);
+        Ok(Some(Level {
+            nodes: next_nodes,
+            tri,
+            bounds: boxes,
+            ev,
+        }))
+    }
+
+    /// Finishes the small nodes depth-first, in parallel across nodes.
+    fn finish_small(&mut self, l: &Level<'a>, small: &[usize], depth: u32) {
+        let (scene, params, progress) = (self.scene, &self.config.sah, self.progress);
+        let depth_limit = self.depth_limit;
+        let subs: Vec<TreeIr> = small
+            .par_iter()
+            .map_init(
+                || Finisher::new(scene, params, depth_limit, progress),
+                |fin, &j| {
+                    let nd = &l.nodes[j];
+                    let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
+                    fin.build(
+                        &l.tri[nd.refs..nd.refs + nd.n],
+                        &l.bounds[nd.refs..nd.refs + nd.n],
+                        ev,
+                        nd.refs as u32,
+                        nd.cell,
+                        depth,
+                        nd.weight,
+                    )
+                },
+            )
+            .collect();
+        self.report.small_nodes += subs.len() as u64;
+        for (&j, sub) in small.iter().zip(subs) {
+            self.recs[l.nodes[j].rec as usize] = Rec::Sub(self.subs.len() as u32);
+            self.subs.push(sub);
+        }
+    }
+
+    /// The best split of each of the `big` nodes (`None` for an empty node
+    /// or a flat cell, as in the sweep builder).
+    fn best_splits(&self, l: &Level<'a>, big: &[usize]) -> Vec<Option<Split>> {
+        let sah = &self.config.sah;
+        let sa: Vec<f64> = big
+            .iter()
+            .map(|&j| l.nodes[j].cell.surface_area())
+            .collect();
+        let valid: Vec<usize> = (0..big.len())
+            .filter(|&bi| l.nodes[big[bi]].n > 0 && sa[bi] > 0.0)
+            .collect();
+        let mut tasks: Vec<(usize, Piece, Pair)> = Vec::new();
+        for (axis, ev) in l.ev.iter().enumerate() {
+            let segs: Vec<(usize, usize)> = valid
+                .iter()
+                .map(|&bi| {
+                    let nd = &l.nodes[big[bi]];
+                    (nd.ev[axis], nd.nev[axis])
+                })
+                .collect();
+            let ev: &[u64] = ev;
+            // A run of equal positions is priced as one plane, so it must
+            // not be cut.
+            let ps = pieces(&segs, PIECE, |i| ev_key(ev[i]) != ev_key(ev[i - 1]));
+            // Counts of (starts + planars, ends + planars) in each part.
+            let counts: Vec<Pair> = ps
+                .par_iter()
+                .map(|p| match &p.part {
+                    Some(r) => {
+                        let mut c = [0usize; 3];
+                        for &e in &ev[r.clone()] {
+                            c[ev_kind(e)] += 1;
+                        }
+                        Pair([c[2] + c[1], c[0] + c[1]])
+                    }
+                    None => Pair::default(),
+                })
+                .collect();
+            let carry = carries(&ps, &counts);
+            // Piece node indices refer to `valid`.
+            tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
+        }
+        let found: Vec<Vec<(usize, Split)>> = tasks
+            .par_iter()
+            .map(|(axis, p, carry)| {
+                let mut out = Vec::new();
+                for vi in p.nodes.clone() {
+                    let bi = valid[vi];
+                    let nd = &l.nodes[big[bi]];
+                    let seg = (nd.ev[*axis], nd.nev[*axis]);
+                    let (n_l, n_r) = if p.continues(seg) {
+                        (carry.0[0], nd.n - carry.0[1])
+                    } else {
+                        (0, nd.n)
+                    };
+                    let mut best = None;
+                    sweep_events(
+                        sah,
+                        &nd.cell,
+                        sa[bi],
+                        *axis,
+                        &l.ev[*axis][p.range(seg)],
+                        n_l,
+                        n_r,
+                        &mut best,
+                    );
+                    if let Some(s) = best {
+                        out.push((bi, s));
+                    }
+                }
+                out
+            })
+            .collect();
+        let mut best = vec![None; big.len()];
+        for (bi, s) in found.into_iter().flatten() {
+            s.keep_best(&mut best[bi]);
+        }
+        best
+    }
+
+    /// Classifies the references of the split nodes, clips the straddlers
+    /// and writes each reference's placement into `place`.
+    fn classify_pass(
+        &self,
+        l: &Level<'a>,
+        splits: &[(usize, Split)],
+        rsegs: &[(usize, usize)],
+        rpieces: &[Piece],
+        place: &mut [u8],
+    ) -> Vec<Classified> {
+        let scene = self.scene;
+        let place = ScatterSlice::new(place);
+        rpieces
+            .par_iter()
+            .map(|p| {
+                let mut counts = Vec::with_capacity(p.nodes.len());
+                let mut clipped = Vec::new();
+                for si in p.nodes.clone() {
+                    let (j, split) = splits[si];
+                    let (lc, rc) = l.nodes[j].cell.split(split.axis as usize, split.pos);
+                    let mut c = SideCounts::default();
+                    for i in p.range(rsegs[si]) {
+                        let b = &l.bounds[i];
+                        let bx = to_aabb(b);
+                        let code = match classify(&bx, &split) {
+                            Placement::Left => {
+                                c.n[0] += 1;
+                                for k in 0..3 {
+                                    c.inherited[0][k] += n_events(b, k);
+                                }
+                                TO_LEFT
+                            }
+                            Placement::Right => {
+                                c.n[1] += 1;
+                                for k in 0..3 {
+                                    c.inherited[1][k] += n_events(b, k);
+                                }
+                                TO_RIGHT
+                            }
+                            Placement::Both => {
+                                let r = TriRef {
+                                    tri: TriId(l.tri[i]),
+                                    bounds: bx,
+                                };
+                                let (lb, rb) = clip_straddler(scene, &r, &lc, &rc);
+                                let mut code = CLIPPED;
+                                for (side, cb) in [lb, rb].iter().enumerate() {
+                                    if let Some(cb) = cb {
+                                        code |= 1 << side;
+                                        c.n[side] += 1;
+                                        let cb = to_box(cb);
+                                        for k in 0..3 {
+                                            c.new[side][k] += n_events(&cb, k);
+                                        }
+                                    }
+                                }
+                                clipped.push((i as u32, lb, rb));
+                                code
+                            }
+                        };
+                        // SAFETY: the pieces cover disjoint reference
+                        // ranges, so position `i` is this piece's alone.
+                        unsafe { place.write(i, code) };
+                    }
+                    counts.push(c);
+                }
+                Classified { counts, clipped }
+            })
+            .collect()
+    }
+}
+
+/// Sweeps one node's sorted events (all of them, or one piece starting with
+/// `n_l` references left and `n_r` right of its first plane) and keeps the
+/// best plane: the sweep of [`super::sweep::sweep_axis`], with carried
+/// counts.
+///
+/// Every plane that could win is priced by [`sah::split_cost`]. A plane is
+/// skipped only when a lower bound of its cost ([`Pricer`]) exceeds the
+/// best cost found so far: then its exact cost does too, it would lose the
+/// comparison of [`Split::cmp_order`] on cost alone, and the result is the
+/// same as pricing it. (An optimisation the paper does not have; it halves
+/// the sweep on large scenes, where most planes are far from the best.)
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn sweep_events(
+    params: &sah::SahParams,
+    cell: &Aabb,
+    sa: f64,
+    axis: usize,
+    events: &[u64],
+    mut n_l: usize,
+    mut n_r: usize,
+    best: &mut Option<Split>,
+) {
+    let pricer = Pricer::new(params, cell, sa, axis);
+    let len = events.len();
+    let mut i = 0;
+    while i < len {
+        let e = events[i];
+        let key = ev_key(e);
+        let k = ev_kind(e);
+        let (mut ends, mut planar) = (usize::from(k == 0), usize::from(k == 1));
+        let mut j = i + 1;
+        while j < len && ev_key(events[j]) == key {
+            let k = ev_kind(events[j]);
+            ends += usize::from(k == 0);
+            planar += usize::from(k == 1);
+            j += 1;
+        }
+        let starts = (j - i) - ends - planar;
+        i = j;
+        n_r -= planar + ends;
+        let pos = key_pos(key);
+        let skip = match best {
+            Some(b) => pricer.lower_bound(pos, n_l, n_r, planar) > b.cost,
+            None => false,
+        };
+        if !skip {
+            let counts = PlaneCounts {
+                left: n_l,
+                right: n_r,
+                planar,
+            };
+            sah::split_cost(params, cell, sa, axis, pos, counts).keep_best(best);
+        }
+        n_l += starts + planar;
+    }
+}
+
+/// A lower bound of [`sah::split_cost`] for one node and axis, cheaper
+/// than the cost itself: the surface areas as `2(A + d·B)` for the other
+/// two extents' product `A` and sum `B`, divided by one multiplication.
+///
+/// Both this and `split_cost` sum non-negative `f64` terms, so each is
+/// within a relative 2⁻⁴⁸ of the true value; the bound is shrunk by a
+/// relative 10⁻¹⁰, far more than both errors together. With a negative or
+/// non-finite constant the bound is not valid, and it is `-∞` (nothing is
+/// skipped).
+struct Pricer {
+    valid: bool,
+    k_t: f64,
+    k_i: f64,
+    lambda_empty: f64,
+    /// `2A / SA(V)` and `2B / SA(V)`.
+    a2: f64,
+    b2: f64,
+    lo: f64,
+    hi: f64,
+    lo32: f32,
+    hi32: f32,
+}
+
+impl Pricer {
+    #[inline]
+    fn new(params: &sah::SahParams, cell: &Aabb, sa: f64, axis: usize) -> Pricer {
+        let d = [0, 1, 2].map(|k| f64::from(cell.max[k]) - f64::from(cell.min[k]));
+        let (u, v) = (d[(axis + 1) % 3], d[(axis + 2) % 3]);
+        let inv = 1.0 / sa;
+        let valid = params.k_t >= 0.0
+            && params.k_i >= 0.0
+            && params.lambda_empty >= 0.0
+            && params.k_t.is_finite()
+            && params.k_i.is_finite()
+            && params.lambda_empty.is_finite()
+            && inv.is_finite();
+        Pricer {
+            valid,
+            k_t: params.k_t,
+            k_i: params.k_i,
+            lambda_empty: params.lambda_empty,
+            a2: 2.0 * u * v * inv,
+            b2: 2.0 * (u + v) * inv,
+            lo: f64::from(cell.min[axis]),
+            hi: f64::from(cell.max[axis]),
+            lo32: cell.min[axis],
+            hi32: cell.max[axis],
+        }
+    }
+
+    #[inline]
+    fn lower_bound(&self, pos: f32, n_l: usize, n_r: usize, n_p: usize) -> f64 {
+        if !self.valid {
+            return f64::NEG_INFINITY;
+        }
+        let x = f64::from(pos);
+        let p_l = self.a2 + (x - self.lo) * self.b2;
+        let p_r = self.a2 + (self.hi - x) * self.b2;
+        let on_face = pos == self.lo32 || pos == self.hi32;
+        let cost = |nl: usize, nr: usize| {
+            let lambda = if (nl == 0 || nr == 0) && !on_face {
+                self.lambda_empty
+            } else {
+                1.0
+            };
+            self.k_t + self.k_i * lambda * (p_l * nl as f64 + p_r * nr as f64)
+        };
+        let c = cost(n_l + n_p, n_r).min(cost(n_l, n_r + n_p));
+        c * (1.0 - 1e-10)
+    }
+}
+
+/// Writes the child references (kept boxes and clipped boxes) into the
+/// next level's columns and each one-sided reference's new index into
+/// `new_idx`. Returns the clipped copies as `(child node << 32) | new
+/// reference`, whose events are not inherited.
+#[allow(clippy::too_many_arguments)]
+fn write_children(
+    l: &Level<'_>,
+    place: &[u8],
+    rsegs: &[(usize, usize)],
+    rpieces: &[Piece],
+    classified: &[Classified],
+    rcarry: &[SideCounts],
+    next: &[LNode],
+    tri: &mut [u32],
+    boxes: &mut [Box6],
+    new_idx: &mut [u32],
+) -> Vec<u64> {
+    let tri = ScatterSlice::new(tri);
+    let boxes = ScatterSlice::new(boxes);
+    let new_idx = ScatterSlice::new(new_idx);
+    let copies: Vec<Vec<u64>> = rpieces
+        .par_iter()
+        .zip(classified.par_iter())
+        .zip(rcarry.par_iter())
+        .map(|((p, c), carry)| {
+            let mut copies = Vec::new();
+            let mut clipped = c.clipped.iter();
+            for si in p.nodes.clone() {
+                let seg = rsegs[si];
+                let (cl, cr) = (2 * si, 2 * si + 1);
+                let carry = if p.continues(seg) {
+                    *carry
+                } else {
+                    SideCounts::default()
+                };
+                let mut at = [next[cl].refs + carry.n[0], next[cr].refs + carry.n[1]];
+                for i in p.range(seg) {
+                    let code = place[i];
+                    if code & CLIPPED == 0 {
+                        let side = usize::from(code == TO_RIGHT);
+                        let d = at[side];
+                        at[side] += 1;
+                        // SAFETY: `d` is this reference's rank among the
+                        // node's references going to `side`, offset by the
+                        // child's start: distinct for every reference of
+                        // every piece. `i` lies in this piece's range.
+                        unsafe {
+                            tri.write(d, l.tri[i]);
+                            boxes.write(d, l.bounds[i]);
+                            new_idx.write(i, d as u32);
+                        }
+                    } else {
+                        let &(ci, lb, rb) = clipped.next().expect("one entry per straddler");
+                        debug_assert_eq!(ci as usize, i);
+                        for (side, cb) in [lb, rb].into_iter().enumerate() {
+                            if let Some(cb) = cb {
+                                let d = at[side];
+                                at[side] += 1;
+                                // SAFETY: as above.
+                                unsafe {
+                                    tri.write(d, l.tri[i]);
+                                    boxes.write(d, to_box(&cb));
+                                }
+                                let child = [cl, cr][side];
+                                copies.push(((child as u64) << 32) | d as u64);
+                            }
+                        }
+                    }
+                }
+            }
+            copies
+        })
+        .collect();
+    copies.concat()
+}
+
+/// The stable partition of the inherited events: each event of a
+/// one-sided reference goes, renumbered, to its child's segment, in the
+/// order it had; the clipped references' events are dropped (they are
+/// made anew in [`merge_new_events`]). A child's inherited events fill the
+/// front of its segment.
+fn partition_events(
+    l: &Level<'_>,
+    splits: &[(usize, Split)],
+    place: &[u8],
+    new_idx: &[u32],
+    next: &[LNode],
+    ev: &mut [Column<'_, u64>; 3],
+) {
+    let [e0, e1, e2] = ev;
+    let dst = [
+        ScatterSlice::new(&mut e0[..]),
+        ScatterSlice::new(&mut e1[..]),
+        ScatterSlice::new(&mut e2[..]),
+    ];
+    let mut tasks: Vec<(usize, Piece, Pair)> = Vec::new();
+    let mut segs_by_axis = Vec::with_capacity(3);
+    for axis in 0..3 {
+        let segs: Vec<(usize, usize)> = splits
+            .iter()
+            .map(|&(j, _)| (l.nodes[j].ev[axis], l.nodes[j].nev[axis]))
+            .collect();
+        let src: &[u64] = &l.ev[axis];
+        let ps = pieces(&segs, PIECE, |_| true);
+        let counts: Vec<Pair> = ps
+            .par_iter()
+            .map(|p| match &p.part {
+                Some(r) => {
+                    let mut c = [0usize; 2];
+                    for &e in &src[r.clone()] {
+                        match place[ev_ref(e) as usize] {
+                            TO_LEFT => c[0] += 1,
+                            TO_RIGHT => c[1] += 1,
+                            _ => {}
+                        }
+                    }
+                    Pair(c)
+                }
+                None => Pair::default(),
+            })
+            .collect();
+        let carry = carries(&ps, &counts);
+        tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
+        segs_by_axis.push(segs);
+    }
+    tasks.par_iter().for_each(|(axis, p, carry)| {
+        let axis = *axis;
+        let src: &[u64] = &l.ev[axis];
+        let dst = &dst[axis];
+        for si in p.nodes.clone() {
+            let seg = segs_by_axis[axis][si];
+            let carry = if p.continues(seg) {
+                *carry
+            } else {
+                Pair::default()
+            };
+            let mut at = [
+                next[2 * si].ev[axis] + carry.0[0],
+                next[2 * si + 1].ev[axis] + carry.0[1],
+            ];
+            for &e in &src[p.range(seg)] {
+                let r = ev_ref(e) as usize;
+                let code = place[r];
+                if code & CLIPPED == 0 {
+                    let side = usize::from(code == TO_RIGHT);
+                    // SAFETY: `at[side]` is the event's rank among the
+                    // node's events going to `side` (carried over the
+                    // node's earlier pieces), offset by the child's
+                    // segment start: distinct for every event.
+                    unsafe { dst.write(at[side], with_ref(e, new_idx[r])) };
+                    at[side] += 1;
+                }
+            }
+        }
+    });
+}
+
+/// Sorts the events of each child's clipped references and merges them
+/// into the child's segments, behind the inherited events.
+fn merge_new_events(
+    mut copies: Vec<u64>,
+    boxes: &[Box6],
+    next: &[LNode],
+    ev: &mut [Column<'_, u64>; 3],
+) {
+    copies.par_sort_unstable();
+    // Runs of copies of the same child.
+    let mut runs = Vec::new();
+    let mut s = 0;
+    for i in 1..=copies.len() {
+        if i == copies.len() || copies[i] >> 32 != copies[s] >> 32 {
+            runs.push(s..i);
+            s = i;
+        }
+    }
+    let [e0, e1, e2] = ev;
+    let dst = [
+        ScatterSlice::new(&mut e0[..]),
+        ScatterSlice::new(&mut e1[..]),
+        ScatterSlice::new(&mut e2[..]),
+    ];
+    runs.par_iter().for_each_init(Vec::new, |tmp, run| {
+        let child = &next[(copies[run.start] >> 32) as usize];
+        for (axis, dst) in dst.iter().enumerate() {
+            tmp.clear();
+            for &c in &copies[run.clone()] {
+                let r = c as u32;
+                push_events(&boxes[r as usize], axis, r, tmp);
+            }
+            tmp.sort_unstable();
+            // SAFETY: child segments are disjoint, and each child is one
+            // run.
+            let seg = unsafe { dst.range_mut(child.ev[axis], child.ev[axis] + child.nev[axis]) };
+            merge_back(seg, tmp);
+        }
+    });
+}
+
+/// `seg` holds sorted events followed by `new.len()` free slots; merges the
+/// sorted `new` in, from the back, so no element is overwritten before it
+/// is read.
+fn merge_back(seg: &mut [u64], new: &[u64]) {
+    let (mut i, mut j) = (seg.len() - new.len(), new.len());
+    let mut w = seg.len();
+    while j > 0 {
+        if i > 0 && seg[i - 1] > new[j - 1] {
+            seg[w - 1] = seg[i - 1];
+            i -= 1;
+        } else {
+            seg[w - 1] = new[j - 1];
+            j -= 1;
+        }
+        w -= 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn merge_back_merges() {
+        let mut seg = vec![1, 4, 6, 9, 0, 0, 0];
+        merge_back(&mut seg, &[0, 5, 10]);
+        assert_eq!(seg, vec![0, 1, 4, 5, 6, 9, 10]);
+        let mut seg = vec![0, 0];
+        merge_back(&mut seg, &[2, 3]);
+        assert_eq!(seg, vec![2, 3]);
+    }
+}

@@ -1,0 +1,291 @@
+//! Depth-first finishing of small nodes: the sweep builder's algorithm
+//! (Wald & Havran 2006, §4; [`crate::build::sweep`]) on the level
+//! builder's flat encoding, without a heap allocation per node.
+//!
+//! Consumes one small node of a level: its references (ascending by
+//! triangle), its sorted events per axis ([`super::event`]), its cell,
+//! depth and progress weight. Produces the node's subtree as a
+//! [`TreeIr`] of its own (indices from 0, `bounds` = the cell), equal to
+//! what [`crate::build::sweep::Subtrees`] builds for the same node: the
+//! same sweep ([`super::sweep_events`], pricing through
+//! [`crate::build::sah`]), the same [`classify`] and [`clip_straddler`],
+//! children inheriting their events by stable partition with the clipped
+//! references' events sorted and merged in.
+//!
+//! A [`Finisher`] is a worker's scratch: references and events live on
+//! stacks that grow to the deepest path's needs once and are reused for
+//! every node it finishes. A node's children are pushed above it, built
+//! one after the other, and popped.
+
+use super::event::{Box6, ev_ref, n_events, push_events, to_aabb, to_box, with_ref};
+use super::{CLIPPED, SideCounts, TO_LEFT, TO_RIGHT, merge_back, sweep_events};
+use crate::build::sah::{self, SahParams, Split};
+use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
+use crate::geom::Aabb;
+use crate::scene::TriangleColumns;
+use crate::tree::{Node, NodeId, TreeIr, TriId};
+
+/// A worker's scratch for finishing small nodes.
+pub struct Finisher<'a> {
+    scene: &'a TriangleColumns,
+    params: &'a SahParams,
+    depth_limit: u32,
+    progress: Option<&'a Progress>,
+    /// Reference stacks: each open node's references are a range.
+    tri: Vec<u32>,
+    boxes: Vec<Box6>,
+    /// Event stacks, one per axis; an event's reference is its index
+    /// relative to the first reference of its node.
+    ev: [Vec<u64>; 3],
+    /// Per reference of the node being split: its placement code.
+    place: Vec<u8>,
+    /// Per one-sided reference of the node being split: its index in its
+    /// child.
+    new_idx: Vec<u32>,
+    /// The straddlers of the node being split, in order: their boxes in
+    /// the children.
+    clipped: Vec<(Option<Aabb>, Option<Aabb>)>,
+    /// The clipped copies of the node being split: (side, index in child).
+    copies: Vec<(u8, u32)>,
+    tmp: Vec<u64>,
+    nodes: Vec<Node>,
+    leaf_tris: Vec<TriId>,
+}
+
+impl<'a> Finisher<'a> {
+    pub fn new(
+        scene: &'a TriangleColumns,
+        params: &'a SahParams,
+        depth_limit: u32,
+        progress: Option<&'a Progress>,
+    ) -> Finisher<'a> {
+        Finisher {
+            scene,
+            params,
+            depth_limit,
+            progress,
+            tri: Vec::new(),
+            boxes: Vec::new(),
+            ev: Default::default(),
+            place: Vec::new(),
+            new_idx: Vec::new(),
+            clipped: Vec::new(),
+            copies: Vec::new(),
+            tmp: Vec::new(),
+            nodes: Vec::new(),
+            leaf_tris: Vec::new(),
+        }
+    }
+
+    /// The subtree of one node: references `tri`/`boxes`, events `ev` per
+    /// axis whose references count from `ref_base`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn build(
+        &mut self,
+        tri: &[u32],
+        boxes: &[Box6],
+        ev: [&[u64]; 3],
+        ref_base: u32,
+        cell: Aabb,
+        depth: u32,
+        weight: u64,
+    ) -> TreeIr {
+        self.tri.clear();
+        self.tri.extend_from_slice(tri);
+        self.boxes.clear();
+        self.boxes.extend_from_slice(boxes);
+        for (stack, src) in self.ev.iter_mut().zip(ev) {
+            stack.clear();
+            stack.extend(src.iter().map(|&e| with_ref(e, ev_ref(e) - ref_base)));
+        }
+        let nev = [0, 1, 2].map(|k| self.ev[k].len());
+        self.node(0, tri.len(), [0; 3], nev, cell, depth, weight);
+        TreeIr {
+            bounds: cell,
+            nodes: std::mem::take(&mut self.nodes),
+            leaf_tris: std::mem::take(&mut self.leaf_tris),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn node(
+        &mut self,
+        r0: usize,
+        n: usize,
+        e0: [usize; 3],
+        ne: [usize; 3],
+        cell: Aabb,
+        depth: u32,
+        weight: u64,
+    ) {
+        let sa = cell.surface_area();
+        let mut best = None;
+        if n > 0 && sa > 0.0 {
+            for (axis, ev) in self.ev.iter().enumerate() {
+                let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
+                sweep_events(self.params, &cell, sa, axis, ev, 0, n, &mut best);
+            }
+        }
+        if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
+            let start = self.leaf_tris.len() as u32;
+            self.leaf_tris
+                .extend(self.tri[r0..r0 + n].iter().map(|&t| TriId(t)));
+            self.nodes.push(Node::Leaf {
+                start,
+                count: n as u32,
+            });
+            Progress::add(self.progress, weight);
+            return;
+        }
+        let split: Split = best.expect("a split exists when the node is not a leaf");
+        let (lc, rc) = cell.split(split.axis as usize, split.pos);
+        let c = self.classify(r0, n, &split, &lc, &rc);
+
+        // Child references: left at [c0[0], c0[1]), right at [c0[1], end).
+        let l0 = self.tri.len();
+        let c0 = [l0, l0 + c.n[0]];
+        let end = c0[1] + c.n[1];
+        self.tri.resize(end, 0);
+        self.boxes.resize(end, [0.0; 6]);
+        self.new_idx.clear();
+        self.new_idx.resize(n, 0);
+        self.copies.clear();
+        let mut at = c0;
+        let mut straddler = 0;
+        for i in 0..n {
+            let code = self.place[i];
+            if code & CLIPPED == 0 {
+                let side = usize::from(code == TO_RIGHT);
+                let d = at[side];
+                at[side] += 1;
+                self.tri[d] = self.tri[r0 + i];
+                self.boxes[d] = self.boxes[r0 + i];
+                self.new_idx[i] = (d - c0[side]) as u32;
+            } else {
+                let (lb, rb) = self.clipped[straddler];
+                straddler += 1;
+                for (side, cb) in [lb, rb].into_iter().enumerate() {
+                    if let Some(cb) = cb {
+                        let d = at[side];
+                        at[side] += 1;
+                        self.tri[d] = self.tri[r0 + i];
+                        self.boxes[d] = to_box(&cb);
+                        self.copies.push((side as u8, (d - c0[side]) as u32));
+                    }
+                }
+            }
+        }
+
+        // Child events: inherited by stable partition, new ones sorted and
+        // merged in from the back.
+        let mut ce0 = [[0usize; 3]; 2];
+        let mut cne = [[0usize; 3]; 2];
+        for axis in 0..3 {
+            let stack = &mut self.ev[axis];
+            let base = stack.len();
+            let nl = c.inherited[0][axis] + c.new[0][axis];
+            let nr = c.inherited[1][axis] + c.new[1][axis];
+            ce0[0][axis] = base;
+            ce0[1][axis] = base + nl;
+            cne[0][axis] = nl;
+            cne[1][axis] = nr;
+            stack.resize(base + nl + nr, 0);
+            let (src, dst) = stack.split_at_mut(base);
+            let mut at = [0, nl];
+            for &e in &src[e0[axis]..e0[axis] + ne[axis]] {
+                let r = ev_ref(e) as usize;
+                let code = self.place[r];
+                if code & CLIPPED == 0 {
+                    let side = usize::from(code == TO_RIGHT);
+                    dst[at[side]] = with_ref(e, self.new_idx[r]);
+                    at[side] += 1;
+                }
+            }
+            for side in 0..2 {
+                if c.new[side][axis] == 0 {
+                    continue;
+                }
+                self.tmp.clear();
+                for &(s, r) in &self.copies {
+                    if s as usize == side {
+                        let b = &self.boxes[c0[side] + r as usize];
+                        push_events(b, axis, r, &mut self.tmp);
+                    }
+                }
+                self.tmp.sort_unstable();
+                let from = if side == 0 { 0 } else { nl };
+                merge_back(&mut dst[from..from + cne[side][axis]], &self.tmp);
+            }
+        }
+
+        let (wl, wr) = Progress::share(weight, c.n[0], c.n[1]);
+        let me = self.nodes.len();
+        self.nodes.push(Node::Inner {
+            axis: split.axis,
+            pos: split.pos,
+            right: NodeId(u32::MAX),
+            t_ref: None,
+        });
+        self.node(c0[0], c.n[0], ce0[0], cne[0], lc, depth + 1, wl);
+        let next = NodeId(self.nodes.len() as u32);
+        if let Node::Inner { right, .. } = &mut self.nodes[me] {
+            *right = next;
+        }
+        self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1, wr);
+        self.tri.truncate(l0);
+        self.boxes.truncate(l0);
+        for axis in 0..3 {
+            self.ev[axis].truncate(ce0[0][axis]);
+        }
+    }
+
+    /// Fills `place` and `clipped` for the node's references; returns the
+    /// counts per side.
+    fn classify(&mut self, r0: usize, n: usize, split: &Split, lc: &Aabb, rc: &Aabb) -> SideCounts {
+        let mut c = SideCounts::default();
+        self.place.clear();
+        self.clipped.clear();
+        for i in r0..r0 + n {
+            let b = &self.boxes[i];
+            let bx = to_aabb(b);
+            let code = match classify(&bx, split) {
+                Placement::Left => {
+                    c.n[0] += 1;
+                    for k in 0..3 {
+                        c.inherited[0][k] += n_events(b, k);
+                    }
+                    TO_LEFT
+                }
+                Placement::Right => {
+                    c.n[1] += 1;
+                    for k in 0..3 {
+                        c.inherited[1][k] += n_events(b, k);
+                    }
+                    TO_RIGHT
+                }
+                Placement::Both => {
+                    let r = TriRef {
+                        tri: TriId(self.tri[i]),
+                        bounds: bx,
+                    };
+                    let (lb, rb) = clip_straddler(self.scene, &r, lc, rc);
+                    let mut code = CLIPPED;
+                    for (side, cb) in [lb, rb].iter().enumerate() {
+                        if let Some(cb) = cb {
+                            code |= 1 << side;
+                            c.n[side] += 1;
+                            let cb = to_box(cb);
+                            for k in 0..3 {
+                                c.new[side][k] += n_events(&cb, k);
+                            }
+                        }
+                    }
+                    self.clipped.push((lb, rb));
+                    code
+                }
+            };
+            self.place.push(code);
+        }
+        c
+    }
+}

@@ -1,0 +1,319 @@
+//! SVG charts for the report: a labelled scatter plot (Figure 5, size
+//! reduction against frame-rate loss) and stacked line panels (Figure 6,
+//! leaf-depth histograms).
+//!
+//! Drawn with `plotters` into a `String` through its SVG backend, so no
+//! font library is needed: text is written as SVG `<text>` elements and
+//! laid out with plotters' estimate of the glyph widths. Non-finite values
+//! are left out of every chart.
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use std::fmt;
+
+/// A chart that could not be drawn.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PlotError(pub String);
+
+impl fmt::Display for PlotError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "cannot draw the chart: {}", self.0)
+    }
+}
+
+impl std::error::Error for PlotError {}
+
+fn plot_err(e: impl fmt::Display) -> PlotError {
+    PlotError(e.to_string())
+}
+
+/// One point of a scatter plot with the text written next to it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelledPoint {
+    pub x: f64,
+    pub y: f64,
+    pub label: String,
+}
+
+/// A named set of points drawn in one colour.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScatterSeries {
+    pub name: String,
+    pub points: Vec<LabelledPoint>,
+}
+
+/// A named polyline.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LineSeries {
+    pub name: String,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// One chart of a stack of line charts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinePanel {
+    pub title: String,
+    pub series: Vec<LineSeries>,
+}
+
+/// Series colours, distinguishable in print and for colour-blind readers
+/// (the Okabe–Ito palette).
+const COLOURS: [RGBColor; 7] = [
+    RGBColor(0, 114, 178),
+    RGBColor(213, 94, 0),
+    RGBColor(0, 158, 115),
+    RGBColor(204, 121, 167),
+    RGBColor(230, 159, 0),
+    RGBColor(86, 180, 233),
+    RGBColor(0, 0, 0),
+];
+
+fn colour(i: usize) -> RGBColor {
+    COLOURS[i % COLOURS.len()]
+}
+
+/// The range covering `values` with a margin of `pad` of its width on each
+/// side; a degenerate or empty range is widened to a unit interval.
+fn padded_range(values: impl Iterator<Item = f64>, pad: f64) -> std::ops::Range<f64> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !lo.is_finite() {
+        return 0.0..1.0;
+    }
+    if hi - lo <= f64::EPSILON * lo.abs().max(1.0) {
+        return lo - 0.5..hi + 0.5;
+    }
+    let m = (hi - lo) * pad;
+    lo - m..hi + m
+}
+
+/// Decimals for tick labels over a range of this width.
+fn tick_decimals(r: &std::ops::Range<f64>) -> usize {
+    match r.end - r.start {
+        w if w >= 10.0 => 0,
+        w if w >= 1.0 => 1,
+        _ => 2,
+    }
+}
+
+/// A scatter plot: each series in its own colour with a legend, each point
+/// with its label. Both ranges include zero, and the zero lines are drawn
+/// (in Figure 5 the std tree sits at the origin).
+pub fn scatter_svg(
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[ScatterSeries],
+    size: (u32, u32),
+) -> Result<String, PlotError> {
+    let finite = |p: &&LabelledPoint| p.x.is_finite() && p.y.is_finite();
+    let xs = padded_range(
+        series
+            .iter()
+            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.x))
+            .chain([0.0]),
+        0.12,
+    );
+    let ys = padded_range(
+        series
+            .iter()
+            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.y))
+            .chain([0.0]),
+        0.12,
+    );
+    let (xd, yd) = (tick_decimals(&xs), tick_decimals(&ys));
+    let (x0, x1, y0, y1) = (xs.start, xs.end, ys.start, ys.end);
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 18))
+            .margin(16)
+            .x_label_area_size(44)
+            .y_label_area_size(56)
+            .build_cartesian_2d(xs, ys)
+            .map_err(plot_err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .x_label_formatter(&|x| format!("{x:.xd$}"))
+            .y_label_formatter(&|y| format!("{y:.yd$}"))
+            .light_line_style(WHITE.mix(0.0))
+            .draw()
+            .map_err(plot_err)?;
+        let zero = BLACK.mix(0.5).stroke_width(1);
+        chart
+            .draw_series([
+                PathElement::new(vec![(0.0, y0), (0.0, y1)], zero),
+                PathElement::new(vec![(x0, 0.0), (x1, 0.0)], zero),
+            ])
+            .map_err(plot_err)?;
+        for (i, s) in series.iter().enumerate() {
+            let c = colour(i);
+            chart
+                .draw_series(s.points.iter().filter(finite).map(|p| {
+                    EmptyElement::at((p.x, p.y))
+                        + Circle::new((0, 0), 4, c.filled())
+                        + Text::new(p.label.clone(), (6, -12), ("sans-serif", 11).into_font())
+                }))
+                .map_err(plot_err)?
+                .label(s.name.as_str())
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, c.filled()));
+        }
+        if !series.is_empty() {
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .position(SeriesLabelPosition::UpperLeft)
+                .draw()
+                .map_err(plot_err)?;
+        }
+        root.present().map_err(plot_err)?;
+    }
+    Ok(svg)
+}
+
+/// Draws one line panel into `area`.
+fn line_panel(
+    area: &DrawingArea<SVGBackend<'_>, Shift>,
+    panel: &LinePanel,
+    x_desc: &str,
+    y_desc: &str,
+) -> Result<(), PlotError> {
+    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+    let xs = padded_range(
+        panel
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.0)),
+        0.02,
+    );
+    // Counts start at zero.
+    let y_hi = padded_range(
+        panel
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.1)),
+        0.05,
+    )
+    .end
+    .max(1.0);
+    let xd = tick_decimals(&xs);
+    let yd = tick_decimals(&(0.0..y_hi));
+    let mut chart = ChartBuilder::on(area)
+        .caption(panel.title.as_str(), ("sans-serif", 16))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(64)
+        .build_cartesian_2d(xs, 0.0..y_hi)
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_label_formatter(&|x| format!("{x:.xd$}"))
+        .y_label_formatter(&|y| format!("{y:.yd$}"))
+        .light_line_style(WHITE.mix(0.0))
+        .draw()
+        .map_err(plot_err)?;
+    for (i, s) in panel.series.iter().enumerate() {
+        let c = colour(i);
+        let pts: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
+        chart
+            .draw_series(plotters::series::LineSeries::new(
+                pts.iter().copied(),
+                c.stroke_width(2),
+            ))
+            .map_err(plot_err)?
+            .label(s.name.as_str())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 2, c.filled())))
+            .map_err(plot_err)?;
+    }
+    if !panel.series.is_empty() {
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()
+            .map_err(plot_err)?;
+    }
+    Ok(())
+}
+
+/// Line charts stacked vertically, one per panel, `panel_size` each.
+pub fn line_panels_svg(
+    panels: &[LinePanel],
+    x_desc: &str,
+    y_desc: &str,
+    panel_size: (u32, u32),
+) -> Result<String, PlotError> {
+    let n = panels.len().max(1);
+    let size = (panel_size.0, panel_size.1.saturating_mul(n as u32));
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        let areas = root.split_evenly((n, 1));
+        for (panel, area) in panels.iter().zip(&areas) {
+            line_panel(area, panel, x_desc, y_desc)?;
+        }
+        root.present().map_err(plot_err)?;
+    }
+    Ok(svg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scatter_draws_points_labels_and_legend() {
+        let s = ScatterSeries {
+            name: "scene a".into(),
+            points: vec![
+                LabelledPoint {
+                    x: 10.0,
+                    y: 1.0,
+                    label: "0.5/0.4".into(),
+                },
+                LabelledPoint {
+                    x: f64::NAN,
+                    y: 1.0,
+                    label: "left out".into(),
+                },
+            ],
+        };
+        let svg = scatter_svg("t", "x", "y", &[s], (400, 300)).unwrap();
+        assert!(svg.starts_with("<svg"));
+        assert!(svg.contains("0.5/0.4") && svg.contains("scene a"));
+        assert!(!svg.contains("left out"));
+    }
+
+    #[test]
+    fn empty_charts_still_draw() {
+        assert!(
+            scatter_svg("t", "x", "y", &[], (200, 200))
+                .unwrap()
+                .starts_with("<svg")
+        );
+        let svg = line_panels_svg(&[], "x", "y", (200, 100)).unwrap();
+        assert!(svg.starts_with("<svg"));
+    }
+
+    #[test]
+    fn padded_range_handles_degenerate_input() {
+        assert_eq!(padded_range([3.0, 3.0].into_iter(), 0.1), 2.5..3.5);
+        assert_eq!(padded_range(std::iter::empty(), 0.1), 0.0..1.0);
+        let r = padded_range([0.0, 10.0, f64::INFINITY].into_iter(), 0.1);
+        assert_eq!(r, -1.0..11.0);
+    }
+}

@@ -1,0 +1,356 @@
+//! The level builder (Wu, Zhao & Liu 2011, breadth-first) builds the same
+//! tree as the sweep and naive builders: on random grid-snapped scenes, on
+//! the degenerate shapes, with every small-node threshold (0 and 1 keep
+//! everything breadth-first, `usize::MAX` hands everything to the sweep
+//! builder), with the memory budget forced to 0 so that every level column
+//! is a mapped scratch file, and with 1 and 2 threads. Scratch failures are
+//! clear errors that leave nothing behind.
+
+mod common;
+
+use common::*;
+use glam::Vec3;
+use proptest::prelude::*;
+use slimkd::build::level::{self, LevelOptions, LevelReport};
+use slimkd::build::sah::SahParams;
+use slimkd::build::{self as b, BuildConfig, Builder};
+use slimkd::columns::ColumnsError;
+use slimkd::format::{WriteOptions, write_to_vec};
+use slimkd::scene::TriangleColumns;
+use slimkd::tree::TreeIr;
+use std::path::{Path, PathBuf};
+
+/// A fresh, empty scratch directory of this test process.
+fn scratch_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("slimkd-level-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn is_empty_dir(d: &Path) -> bool {
+    std::fs::read_dir(d).unwrap().next().is_none()
+}
+
+fn opts(threshold: usize, budget: u64, dir: &Path) -> LevelOptions {
+    LevelOptions {
+        small_threshold: threshold,
+        mem_budget: budget,
+        scratch_dir: dir.to_path_buf(),
+        ..LevelOptions::default()
+    }
+}
+
+fn level_build(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    options: &LevelOptions,
+) -> (TreeIr, LevelReport) {
+    level::build(scene, config, None, options).expect("the level build succeeds")
+}
+
+/// Asserts level == sweep == naive (and a valid tree) with the given
+/// options; checks that the scratch directory is left empty.
+fn check_with(scene: &TriangleColumns, config: &BuildConfig, options: &LevelOptions) -> TreeIr {
+    let want = build_checked(scene, config);
+    let (got, report) = level_build(scene, config, options);
+    assert_eq!(got, want, "level and sweep trees differ ({options:?})");
+    if options.mem_budget == 0 && !scene.is_empty() {
+        assert!(report.scratch.files > 0, "the mapped path ran");
+    }
+    assert!(
+        is_empty_dir(&options.scratch_dir),
+        "scratch files left behind"
+    );
+    want
+}
+
+/// Thresholds that cover the breadth-first path to the leaves (0, 1), a
+/// mix (2, 5, 16) and the depth-first path alone.
+const THRESHOLDS: [usize; 6] = [0, 1, 2, 5, 16, usize::MAX];
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    #[test]
+    fn level_equals_sweep_and_naive(
+        tris in grid_scene(40),
+        t in 0..THRESHOLDS.len(),
+        tiny_budget in any::<bool>(),
+    ) {
+        let scene = columns(&tris);
+        let dir = scratch_dir("prop");
+        let budget = if tiny_budget { 0 } else { u64::MAX };
+        check_with(&scene, &BuildConfig::default(), &opts(THRESHOLDS[t], budget, &dir));
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn level_equals_sweep_with_depth_limit_and_constants(
+        tris in grid_scene(30),
+        depth in 0u32..5,
+        k_t in 1.0f64..40.0,
+        k_i in 1.0f64..40.0,
+        t in 0..THRESHOLDS.len(),
+    ) {
+        let scene = columns(&tris);
+        let config = BuildConfig {
+            sah: SahParams { max_depth: Some(depth), k_t, k_i, ..SahParams::default() },
+        };
+        let dir = scratch_dir("prop-depth");
+        check_with(&scene, &config, &opts(THRESHOLDS[t], u64::MAX, &dir));
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn one_thread_and_two_threads_write_the_same_file(tris in grid_scene(60), t in 0..3usize) {
+        let scene = columns(&tris);
+        let dir = scratch_dir("threads");
+        let o = opts([0, 4, 64][t], 0, &dir);
+        let run = |n: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+            pool.install(|| level_build(&scene, &BuildConfig::default(), &o).0)
+        };
+        let (one, two) = (run(1), run(2));
+        prop_assert_eq!(&one, &two);
+        let w = WriteOptions::default();
+        prop_assert!(write_to_vec(&one, &scene, &w).unwrap() == write_to_vec(&two, &scene, &w).unwrap());
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}
+
+/// Non-grid scenes: clipping produces rounded boxes.
+fn float_triangle() -> impl Strategy<Value = [Vec3; 3]> {
+    let v =
+        (-10.0f32..10.0, -10.0f32..10.0, -10.0f32..10.0).prop_map(|(x, y, z)| Vec3::new(x, y, z));
+    [v.clone(), v.clone(), v]
+}
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    #[test]
+    fn level_equals_sweep_on_float_scenes(
+        tris in prop::collection::vec(float_triangle(), 1..80),
+        t in 0..THRESHOLDS.len(),
+    ) {
+        let scene = columns(&tris);
+        let dir = scratch_dir("float");
+        check_with(&scene, &BuildConfig::default(), &opts(THRESHOLDS[t], 0, &dir));
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}
+
+fn v(x: f32, y: f32, z: f32) -> Vec3 {
+    Vec3::new(x, y, z)
+}
+
+/// The 12 triangles of an axis-aligned box.
+fn box_mesh(lo: Vec3, hi: Vec3) -> Vec<[Vec3; 3]> {
+    let c = |i: u32| {
+        v(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    };
+    let quads = [
+        [0, 1, 3, 2],
+        [4, 6, 7, 5],
+        [0, 4, 5, 1],
+        [2, 3, 7, 6],
+        [0, 2, 6, 4],
+        [1, 5, 7, 3],
+    ];
+    quads
+        .iter()
+        .flat_map(|q| [[c(q[0]), c(q[1]), c(q[2])], [c(q[0]), c(q[2]), c(q[3])]])
+        .collect()
+}
+
+/// The named degenerate shapes of `tests/degenerate.rs`.
+fn degenerate_scenes() -> Vec<(&'static str, Vec<[Vec3; 3]>)> {
+    let mut out = vec![("empty", vec![])];
+    out.push((
+        "one triangle",
+        vec![[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]],
+    ));
+    let mut sheet = Vec::new();
+    for i in 0..8 {
+        for j in 0..8 {
+            let (x, y) = (i as f32, j as f32);
+            sheet.push([v(x, y, 2.0), v(x + 1.0, y, 2.0), v(x, y + 1.0, 2.0)]);
+            sheet.push([
+                v(x + 1.0, y, 2.0),
+                v(x + 1.0, y + 1.0, 2.0),
+                v(x, y + 1.0, 2.0),
+            ]);
+        }
+    }
+    out.push(("all coplanar", sheet));
+    let mut lattice = Vec::new();
+    for i in 0..3 {
+        for j in 0..3 {
+            for k in 0..3 {
+                let lo = v(i as f32 * 2.0, j as f32 * 2.0, k as f32 * 2.0);
+                lattice.extend(box_mesh(lo, lo + Vec3::ONE));
+            }
+        }
+    }
+    out.push(("axis-aligned in split planes", lattice));
+    out.push((
+        "zero-area and point",
+        vec![
+            [v(0.0, 0.0, 0.0), v(1.0, 1.0, 1.0), v(2.0, 2.0, 2.0)],
+            [v(1.0, 1.0, 1.0); 3],
+            [v(3.0, 0.0, 0.0), v(3.0, 0.0, 0.0), v(3.0, 2.0, 0.0)],
+            [v(0.0, 0.0, 1.0), v(3.0, 0.0, 1.0), v(0.0, 3.0, 1.0)],
+        ],
+    ));
+    let t = [v(0.0, 0.0, 1.0), v(2.0, 0.0, 1.0), v(0.0, 2.0, 1.0)];
+    let mut dups = vec![[v(5.0, 5.0, 5.0), v(6.0, 5.0, 5.0), v(5.0, 6.0, 5.0)]];
+    dups.extend(std::iter::repeat_n(t, 10));
+    out.push(("coincident duplicates", dups));
+    let mut needle = vec![[v(0.0, 0.0, 0.0), v(100.0, 0.001, 0.0), v(100.0, 0.0, 0.002)]];
+    for i in 0..20 {
+        let x = i as f32 * 5.0;
+        needle.push([v(x, -1.0, -1.0), v(x, 1.0, -1.0), v(x, 0.0, 1.0)]);
+    }
+    out.push(("needle", needle));
+    let mut huge = vec![[
+        v(-100.0, -100.0, 0.5),
+        v(300.0, -100.0, 0.5),
+        v(-100.0, 300.0, 0.5),
+    ]];
+    for i in 0..6 {
+        for j in 0..6 {
+            let (x, y) = (i as f32 * 10.0, j as f32 * 10.0);
+            huge.push([v(x, y, 0.0), v(x + 1.0, y, 1.0), v(x, y + 1.0, 1.0)]);
+        }
+    }
+    out.push(("huge triangle spanning the scene", huge));
+    let mut boxes = box_mesh(v(0.0, 0.0, 0.0), v(10.0, 10.0, 10.0));
+    boxes.extend(box_mesh(v(4.0, 4.0, 4.0), v(6.0, 6.0, 6.0)));
+    out.push(("box inside a box", boxes));
+    let mut deep = Vec::new();
+    let mut s = 1.0f32;
+    for _ in 0..60 {
+        deep.push([v(0.0, 0.0, 0.0), v(s, 0.0, 0.0), v(0.0, s, s)]);
+        s *= 0.5;
+    }
+    out.push(("deep corner cluster", deep));
+    out
+}
+
+#[test]
+fn degenerate_scenes_build_the_same_tree() {
+    let dir = scratch_dir("degenerate");
+    for (name, tris) in degenerate_scenes() {
+        let scene = columns(&tris);
+        for &t in &THRESHOLDS {
+            for budget in [0, u64::MAX] {
+                let want = build_checked(&scene, &BuildConfig::default());
+                let (got, _) = level_build(&scene, &BuildConfig::default(), &opts(t, budget, &dir));
+                assert_eq!(got, want, "{name}: threshold {t}, budget {budget}");
+                assert!(is_empty_dir(&dir), "{name}: scratch files left behind");
+            }
+        }
+    }
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn missing_scratch_dir_is_a_clear_error() {
+    let dir = std::env::temp_dir().join(format!("slimkd-level-missing-{}", std::process::id()));
+    let scene = columns(&[[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]);
+    let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &dir)).unwrap_err();
+    assert!(matches!(err, ColumnsError::NoDir { .. }), "{err:?}");
+    let msg = err.to_string();
+    assert!(msg.contains(&*dir.to_string_lossy()), "{msg}");
+    assert!(!dir.exists(), "the missing directory is not created");
+}
+
+#[test]
+fn unwritable_scratch_dir_is_a_clear_error() {
+    let scene = columns(&[[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]);
+    // A regular file where a directory should be: refused even for root,
+    // whom permission bits do not stop.
+    let parent = scratch_dir("unwritable");
+    let file = parent.join("not-a-dir");
+    std::fs::write(&file, b"x").unwrap();
+    let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &file)).unwrap_err();
+    assert!(err.to_string().contains(&*file.to_string_lossy()), "{err}");
+    // A directory without write permission (effective unless running as
+    // root): the error names the file it could not create.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let ro = parent.join("read-only");
+        std::fs::create_dir(&ro).unwrap();
+        std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o555)).unwrap();
+        match level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &ro)) {
+            Err(e) => {
+                assert!(matches!(e, ColumnsError::File { .. }), "{e:?}");
+                assert!(e.to_string().contains(&*ro.to_string_lossy()), "{e}");
+            }
+            Ok(_) => {} // root writes anyway
+        }
+        assert!(is_empty_dir(&ro), "nothing is left behind");
+        std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
+    std::fs::remove_dir_all(parent).unwrap();
+}
+
+#[test]
+fn scratch_limit_mid_build_is_an_error_and_leaves_nothing() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    let dir = scratch_dir("limit");
+    let o = LevelOptions {
+        scratch_limit: Some(64 << 10),
+        ..opts(0, 0, &dir)
+    };
+    let err = level::build(&scene, &BuildConfig::default(), None, &o).unwrap_err();
+    assert!(matches!(err, ColumnsError::Limit { .. }), "{err:?}");
+    assert!(err.to_string().contains(&*dir.to_string_lossy()), "{err}");
+    assert!(is_empty_dir(&dir), "nothing is left behind");
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn nexuiz_dieselpower_builds_the_same_tree() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    let config = BuildConfig::default();
+    let want = b::build(&scene, &config, Builder::Sweep, None);
+    want.validate(&scene).unwrap();
+    let dir = scratch_dir("nexuiz");
+    for (t, budget) in [
+        (level::DEFAULT_SMALL_THRESHOLD, u64::MAX),
+        (0, u64::MAX),
+        (64, 1 << 20),
+    ] {
+        let (got, report) = level_build(&scene, &config, &opts(t, budget, &dir));
+        assert!(got == want, "threshold {t}, budget {budget}: trees differ");
+        if budget != u64::MAX {
+            assert!(report.scratch.files > 0);
+        }
+        assert!(is_empty_dir(&dir));
+    }
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn progress_reaches_the_total() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    for t in [0, 16, usize::MAX] {
+        let progress = b::Progress::default();
+        let o = LevelOptions {
+            small_threshold: t,
+            ..LevelOptions::default()
+        };
+        level::build(&scene, &BuildConfig::default(), Some(&progress), &o).unwrap();
+        assert_eq!(progress.fraction(), 1.0, "threshold {t}");
+    }
+}

@@ -1,0 +1,986 @@
+//! The slim kd-tree (Choi, Chang & Ihm 2013; `slimkd::slim`).
+//!
+//! - The fast post-pass builds exactly the tree of a plainly literal
+//!   implementation of the oracle and of Algorithm 1 written here, on random
+//!   grid-snapped scenes, on the shipped bunny and on a scene of big
+//!   triangles over many small ones.
+//! - Slim trees give exactly the hits of the standard tree and of brute
+//!   force, scalar and in 4×4 packets (every instruction set of this CPU),
+//!   in memory and from `.kd` files (reordered or not).
+//! - `max_t2rn` bounds the hoisted triangles on every root path (0 leaves
+//!   the standard tree as it is).
+//! - Hand-checked tiny scenes: a huge triangle over a grid of small ones is
+//!   hoisted into the root, and small disjoint triangles are never hoisted.
+//! - The report counts the type II nodes of the result.
+
+mod common;
+
+use common::*;
+use glam::Vec3;
+use proptest::prelude::*;
+use proptest::strategy::ValueTree;
+use proptest::test_runner::TestRunner;
+use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::format::{self, KdFile, WriteOptions};
+use slimkd::geom::{Aabb, Ray};
+use slimkd::scene::TriangleColumns;
+use slimkd::slim::{self, SlimParams, SlimReport, above, occupancy_weight, rebuild};
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::{self, ClosestHit, Hit, KdSource, TreeTracer};
+use slimkd::tree::{Node, NodeId, TreeIr, TriId};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+// ---------------------------------------------------------------------
+// The literal oracle and Algorithm 1.
+// ---------------------------------------------------------------------
+
+/// A node of the literal algorithm's tree: children are explicit indices,
+/// so that a subtree is replaced by pointing a node at new children.
+#[derive(Clone, Debug)]
+enum LNode {
+    Inner {
+        axis: u8,
+        pos: f32,
+        left: usize,
+        right: usize,
+        t_ref: Option<TriId>,
+    },
+    Leaf(Vec<TriId>),
+}
+
+/// The literal algorithm's mutable tree (nodes that are replaced stay in
+/// the vector, unreachable).
+#[derive(Default)]
+struct LTree {
+    nodes: Vec<LNode>,
+}
+
+impl LTree {
+    /// Appends the nodes of a pre-order tree (the left child of node `i` is
+    /// node `i + 1`); returns the index of its root.
+    fn append(&mut self, ir: &TreeIr) -> usize {
+        let base = self.nodes.len();
+        for (i, node) in ir.nodes.iter().enumerate() {
+            self.nodes.push(match *node {
+                Node::Inner {
+                    axis,
+                    pos,
+                    right,
+                    t_ref,
+                } => LNode::Inner {
+                    axis,
+                    pos,
+                    left: base + i + 1,
+                    right: base + right.0 as usize,
+                    t_ref,
+                },
+                Node::Leaf { start, count } => LNode::Leaf(ir.leaf(start, count).to_vec()),
+            });
+        }
+        base
+    }
+
+    /// Every leaf of the subtree under `n`, with its cell.
+    fn leaves(&self, n: usize, cell: Aabb, out: &mut Vec<(Aabb, Vec<TriId>)>) {
+        match &self.nodes[n] {
+            LNode::Leaf(tris) => out.push((cell, tris.clone())),
+            LNode::Inner {
+                axis,
+                pos,
+                left,
+                right,
+                ..
+            } => {
+                let (left_cell, right_cell) = cell.split(*axis as usize, *pos);
+                self.leaves(*left, left_cell, out);
+                self.leaves(*right, right_cell, out);
+            }
+        }
+    }
+
+    /// Every triangle of the subtree under `n` (in leaves and hoisted),
+    /// with repetitions.
+    fn triangles(&self, n: usize, out: &mut Vec<TriId>) {
+        match &self.nodes[n] {
+            LNode::Leaf(tris) => out.extend_from_slice(tris),
+            LNode::Inner {
+                left, right, t_ref, ..
+            } => {
+                out.extend(*t_ref);
+                self.triangles(*left, out);
+                self.triangles(*right, out);
+            }
+        }
+    }
+
+    /// Writes the subtree under `n` in canonical pre-order.
+    fn emit(&self, n: usize, out: &mut TreeIr) {
+        match &self.nodes[n] {
+            LNode::Leaf(tris) => {
+                let start = out.leaf_tris.len() as u32;
+                out.leaf_tris.extend_from_slice(tris);
+                out.nodes.push(Node::Leaf {
+                    start,
+                    count: tris.len() as u32,
+                });
+            }
+            LNode::Inner {
+                axis,
+                pos,
+                left,
+                right,
+                t_ref,
+            } => {
+                let me = out.nodes.len();
+                out.nodes.push(Node::Inner {
+                    axis: *axis,
+                    pos: *pos,
+                    right: NodeId(u32::MAX),
+                    t_ref: *t_ref,
+                });
+                self.emit(*left, out);
+                let right_id = NodeId(out.nodes.len() as u32);
+                if let Node::Inner { right, .. } = &mut out.nodes[me] {
+                    *right = right_id;
+                }
+                self.emit(*right, out);
+            }
+        }
+    }
+}
+
+/// The oracle, literally: scan every leaf of the subtree under `n` (with
+/// cell `cell`); a triangle's occupancy is the summed weight of the leaves
+/// holding it, its frequency the number of those leaves. Candidates are
+/// the triangles with `f_occu > τ_occu`, by occupancy (largest first, ties
+/// to the smaller id); the first with `f_freq > τ_freq` is picked.
+fn literal_pick(tree: &LTree, n: usize, cell: Aabb, sa_root: f64, p: &SlimParams) -> Option<TriId> {
+    let mut leaves = Vec::new();
+    tree.leaves(n, cell, &mut leaves);
+    let n_leaves = leaves.len() as u64;
+    let mut total: u128 = 0;
+    let mut count: BTreeMap<TriId, u64> = BTreeMap::new();
+    let mut occupancy: BTreeMap<TriId, u128> = BTreeMap::new();
+    for (leaf_cell, tris) in &leaves {
+        let weight = u128::from(occupancy_weight(leaf_cell, sa_root));
+        total += weight;
+        for &t in tris {
+            *count.entry(t).or_default() += 1;
+            *occupancy.entry(t).or_default() += weight;
+        }
+    }
+    let mut candidates: Vec<(u128, TriId)> = occupancy
+        .iter()
+        .filter(|&(_, &occ)| above(occ as f64, total as f64, p.tau_occu))
+        .map(|(&t, &occ)| (occ, t))
+        .collect();
+    candidates.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+    candidates
+        .into_iter()
+        .map(|(_, t)| t)
+        .find(|t| above(count[t] as f64, n_leaves as f64, p.tau_freq))
+}
+
+/// Algorithm 1, literally, with an explicit stack of (node, cell, depth,
+/// hoisted triangles on the path from the root to the node, exclusive).
+/// Returns the tree and what was done, counted as `SlimReport` counts it.
+fn literal_slim(
+    std_tree: &TreeIr,
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    p: &SlimParams,
+) -> (TreeIr, SlimReport) {
+    let mut report = SlimReport::default();
+    let mut tree = LTree::default();
+    let root = tree.append(std_tree);
+    let sa_root = std_tree.bounds.surface_area();
+    let mut stack = Vec::new();
+    if p.max_t2rn > 0 {
+        stack.push((root, std_tree.bounds, 0u32, 0u32));
+    }
+    while let Some((i, cell, depth, hoisted_above)) = stack.pop() {
+        if matches!(tree.nodes[i], LNode::Leaf(_)) {
+            continue;
+        }
+        let mut hoisted = hoisted_above;
+        if let Some(t) = literal_pick(&tree, i, cell, sa_root, p) {
+            let mut tris = Vec::new();
+            tree.triangles(i, &mut tris);
+            tris.retain(|&u| u != t);
+            tris.sort();
+            tris.dedup();
+            report.rebuilds += 1;
+            report.rebuilt_refs += tris.len();
+            let fresh = rebuild(scene, config, &tris, &cell, depth);
+            if matches!(fresh.nodes[0], Node::Inner { .. }) {
+                // The fresh root becomes node `i`, holding `t`.
+                let base = tree.append(&fresh);
+                let LNode::Inner {
+                    axis,
+                    pos,
+                    left,
+                    right,
+                    ..
+                } = tree.nodes[base]
+                else {
+                    unreachable!("checked above");
+                };
+                tree.nodes[i] = LNode::Inner {
+                    axis,
+                    pos,
+                    left,
+                    right,
+                    t_ref: Some(t),
+                };
+                hoisted += 1;
+                report.hoisted += 1;
+            } else {
+                // The rebuilt subtree would be a single leaf: the hoist is
+                // cancelled and `i` keeps its subtree.
+                report.cancelled += 1;
+            }
+        }
+        if hoisted < p.max_t2rn {
+            let LNode::Inner {
+                axis,
+                pos,
+                left,
+                right,
+                ..
+            } = tree.nodes[i]
+            else {
+                unreachable!("leaves were skipped");
+            };
+            let (left_cell, right_cell) = cell.split(axis as usize, pos);
+            for (child, child_cell) in [(right, right_cell), (left, left_cell)] {
+                if matches!(tree.nodes[child], LNode::Inner { .. }) {
+                    stack.push((child, child_cell, depth + 1, hoisted));
+                }
+            }
+        }
+    }
+    let mut out = TreeIr {
+        bounds: std_tree.bounds,
+        nodes: Vec::new(),
+        leaf_tris: Vec::new(),
+    };
+    tree.emit(root, &mut out);
+    (out, report)
+}
+
+// ---------------------------------------------------------------------
+// Helpers: scenes, parameters, tree figures, hit checks.
+// ---------------------------------------------------------------------
+
+fn config() -> BuildConfig {
+    BuildConfig::default()
+}
+
+fn std_tree(scene: &TriangleColumns) -> TreeIr {
+    build::build(scene, &config(), Builder::Sweep, None)
+}
+
+/// Runs the fast post-pass and checks what every result must satisfy: the
+/// tree is valid and equals the literal algorithm's, so does the report,
+/// which counts the type II nodes, and no root path holds more than
+/// `max_t2rn` of them.
+fn slim_checked(std: &TreeIr, scene: &TriangleColumns, p: &SlimParams) -> (TreeIr, SlimReport) {
+    let (tree, report) = slim::slim(std, scene, &config(), p);
+    if let Err(e) = tree.validate(scene) {
+        panic!("invalid slim tree ({p:?}): {e}\n{tree:?}");
+    }
+    let (literal, literal_report) = literal_slim(std, scene, &config(), p);
+    assert_eq!(tree, literal, "fast and literal slim trees differ ({p:?})");
+    assert_eq!(report, literal_report, "{p:?}");
+    assert_eq!(report.hoisted, tree.n_t_inner(), "{p:?}");
+    assert_eq!(report.rebuilds, report.hoisted + report.cancelled, "{p:?}");
+    assert!(max_t2_on_path(&tree) <= p.max_t2rn, "{p:?}");
+    if p.max_t2rn == 0 {
+        assert_eq!(&tree, std);
+    }
+    (tree, report)
+}
+
+/// The most type II nodes on any root-to-leaf path.
+fn max_t2_on_path(tree: &TreeIr) -> u32 {
+    let mut most = 0;
+    let mut stack = vec![(0usize, 0u32)];
+    while let Some((i, above)) = stack.pop() {
+        match tree.nodes[i] {
+            Node::Inner { right, t_ref, .. } => {
+                let here = above + u32::from(t_ref.is_some());
+                stack.push((i + 1, here));
+                stack.push((right.0 as usize, here));
+            }
+            Node::Leaf { .. } => most = most.max(above),
+        }
+    }
+    most
+}
+
+/// A triangle with integer vertices within one unit of a grid point of
+/// `[0, g)³`.
+fn small_triangle(g: i32) -> impl Strategy<Value = [Vec3; 3]> {
+    let unit = || (0..=1i32, 0..=1i32, 0..=1i32);
+    ((0..g, 0..g, 0..g), [unit(), unit(), unit()]).prop_map(|((x, y, z), offsets)| {
+        offsets.map(|(a, b, c)| Vec3::new((x + a) as f32, (y + b) as f32, (z + c) as f32))
+    })
+}
+
+/// A grid size and a scene in `[0, g]³`: either grid triangles anywhere, or
+/// many small triangles and a few big ones, shuffled.
+fn scene_strategy() -> impl Strategy<Value = (i32, Vec<[Vec3; 3]>)> {
+    let anywhere =
+        (1i32..=6).prop_flat_map(|g| (Just(g), prop::collection::vec(grid_triangle(g), 0..=40)));
+    let mixed = (2i32..=8).prop_flat_map(|g| {
+        (
+            Just(g),
+            prop::collection::vec(small_triangle(g), 0..=50),
+            prop::collection::vec(grid_triangle(g), 0..=5),
+        )
+            .prop_flat_map(|(g, mut tris, big)| {
+                tris.extend(big);
+                (Just(g), Just(tris).prop_shuffle())
+            })
+    });
+    prop_oneof![1 => anywhere, 2 => mixed]
+}
+
+/// Random thresholds in `0.05..0.95` and `max_t2rn` in `0..5`.
+fn params_strategy() -> impl Strategy<Value = SlimParams> {
+    (0.05f64..0.95, 0.05f64..0.95, 0u32..5).prop_map(|(tau_occu, tau_freq, max_t2rn)| SlimParams {
+        tau_occu,
+        tau_freq,
+        max_t2rn,
+    })
+}
+
+/// 16 rays from one half-integer origin towards a 4×4 grid of targets (a
+/// coherent packet), or 16 independent rays, as in `tests/packet.rs`.
+fn packet(g: i32) -> impl Strategy<Value = [Ray; 16]> {
+    let coord = move || (-2..=2 * g + 2).prop_map(|k| k as f32 * 0.5);
+    let point = move || (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
+    let coherent = (point(), point(), 1..4i32, 0..3usize).prop_map(|(o, t, step, axis)| {
+        std::array::from_fn(|i| {
+            let mut target = t;
+            let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+            target[a] += (i % 4) as f32 * 0.5 * step as f32;
+            target[b] += (i / 4) as f32 * 0.5 * step as f32;
+            let d = target - o;
+            Ray::new(o, if d == Vec3::ZERO { Vec3::X } else { d })
+        })
+    });
+    let loose = prop::collection::vec(grid_ray(g), 16).prop_map(|v| std::array::from_fn(|i| v[i]));
+    prop_oneof![3 => coherent, 1 => loose]
+}
+
+/// Asserts that `src` answers every ray with `want` (brute force's hit),
+/// scalar and in packets at every instruction set of this CPU.
+fn check_hits(src: &impl KdSource, packets: &[[Ray; 16]], want: &[[Hit; 16]], what: &str) {
+    for (rays, want) in packets.iter().zip(want) {
+        for (r, w) in rays.iter().zip(want) {
+            assert_eq!(trace::traverse(src, r), *w, "{what}: scalar, ray {r:?}");
+        }
+        for level in SimdLevel::available() {
+            let mut got = [Hit::MISS; 16];
+            PacketTracer::with_level(src, level).closest_hit_4x4(rays, &mut got);
+            assert_eq!(&got, want, "{what}: packet {level:?}, rays {rays:?}");
+        }
+    }
+}
+
+/// Asserts that `tree` gives brute force's hits in memory and from its
+/// `.kd` file, reordered or not.
+fn check_tree_hits(
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    packets: &[[Ray; 16]],
+    want: &[[Hit; 16]],
+    what: &str,
+) {
+    check_hits(&TreeTracer { tree, scene }, packets, want, what);
+    for reorder in [false, true] {
+        let options = WriteOptions {
+            reorder,
+            ..Default::default()
+        };
+        let bytes = format::write_to_vec(tree, scene, &options).unwrap();
+        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+        file.verify().unwrap();
+        assert_eq!(file.figures().t_inner, tree.n_t_inner() as u64, "{what}");
+        check_hits(
+            &file,
+            packets,
+            want,
+            &format!("{what}, file (reorder {reorder})"),
+        );
+    }
+}
+
+fn brute_force_hits(scene: &TriangleColumns, packets: &[[Ray; 16]]) -> Vec<[Hit; 16]> {
+    packets
+        .iter()
+        .map(|rays| rays.map(|r| trace::brute_force(scene, &r)))
+        .collect()
+}
+
+fn load_bunny() -> TriangleColumns {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+    slimkd::scene::load_obj(&path).unwrap().0
+}
+
+/// A 16×16 grid of small slanted triangles (2 apart) under four big
+/// triangles that each span most of the grid, at different heights and
+/// tilts.
+fn big_over_small() -> Vec<[Vec3; 3]> {
+    let mut tris = Vec::new();
+    for i in 0..16 {
+        for j in 0..16 {
+            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
+            tris.push([
+                Vec3::new(x, y, 0.0),
+                Vec3::new(x + 1.0, y, 1.0),
+                Vec3::new(x, y + 1.0, 1.0),
+            ]);
+        }
+    }
+    tris.insert(
+        37,
+        [
+            Vec3::new(-1.0, -1.0, 0.5),
+            Vec3::new(64.0, -1.0, 0.5),
+            Vec3::new(-1.0, 64.0, 0.5),
+        ],
+    );
+    tris.insert(
+        100,
+        [
+            Vec3::new(31.0, 31.0, 0.25),
+            Vec3::new(-2.0, 31.0, 0.75),
+            Vec3::new(31.0, -2.0, 0.75),
+        ],
+    );
+    tris.push([
+        Vec3::new(0.0, 0.0, 0.0),
+        Vec3::new(31.0, 0.0, 1.0),
+        Vec3::new(0.0, 31.0, 1.0),
+    ]);
+    tris.push([
+        Vec3::new(0.0, 15.5, -0.5),
+        Vec3::new(31.0, 15.5, -0.5),
+        Vec3::new(15.5, 15.5, 1.5),
+    ]);
+    tris
+}
+
+/// Coherent 4×4 packets from points around `bounds` towards 4×4 grids of
+/// targets spread over it.
+fn packet_fan(bounds: &Aabb) -> Vec<[Ray; 16]> {
+    let (lo, ext) = (bounds.min, bounds.extent());
+    let at = |f: Vec3| lo + ext * f;
+    let mut packets = Vec::new();
+    for ox in [-0.3, 0.5, 1.3] {
+        for oy in [-0.3, 0.5, 1.3] {
+            for oz in [-0.3, 0.5, 1.3] {
+                let origin = at(Vec3::new(ox, oy, oz));
+                if (ox, oy, oz) == (0.5, 0.5, 0.5) {
+                    continue;
+                }
+                for corner in [0.1, 0.35, 0.6] {
+                    for axis in 0..3 {
+                        let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+                        packets.push(std::array::from_fn(|i| {
+                            let mut f = Vec3::splat(corner);
+                            f[a] += (i % 4) as f32 * 0.1;
+                            f[b] += (i / 4) as f32 * 0.1;
+                            Ray::new(origin, at(f) - origin)
+                        }));
+                    }
+                }
+            }
+        }
+    }
+    packets
+}
+
+// ---------------------------------------------------------------------
+// 1. The fast post-pass equals the literal algorithm.
+// ---------------------------------------------------------------------
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    /// On random scenes, with `fast`, `small` and random parameters, the
+    /// fast post-pass builds exactly the literal algorithm's tree (checked
+    /// in `slim_checked`, with the report, `max_t2rn` and validity).
+    #[test]
+    fn fast_equals_literal_on_random_scenes(
+        (_g, tris) in scene_strategy(),
+        random in params_strategy(),
+    ) {
+        let scene = columns(&tris);
+        let std = std_tree(&scene);
+        for p in [SlimParams::FAST, SlimParams::SMALL, random] {
+            slim_checked(&std, &scene, &p);
+        }
+    }
+}
+
+#[test]
+fn fast_equals_literal_on_shipped_bunny() {
+    let scene = load_bunny();
+    let std = std_tree(&scene);
+    for p in [SlimParams::FAST, SlimParams::SMALL] {
+        slim_checked(&std, &scene, &p);
+    }
+}
+
+#[test]
+fn fast_equals_literal_with_big_triangles_over_small_ones() {
+    let scene = columns(&big_over_small());
+    let std = std_tree(&scene);
+    for p in [SlimParams::FAST, SlimParams::SMALL] {
+        let (tree, report) = slim_checked(&std, &scene, &p);
+        assert!(report.hoisted >= 1, "{p:?}: {report:?}");
+        assert!(tree.leaf_tris.len() < std.leaf_tris.len(), "{p:?}");
+    }
+}
+
+/// The random scenes are not trivial: with `small`, many of them hoist.
+#[test]
+fn random_scenes_hoist_often() {
+    let mut runner = TestRunner::deterministic();
+    let strategy = scene_strategy();
+    let (mut scenes, mut hoisting, mut cancelling) = (0, 0, 0);
+    for _ in 0..100 {
+        let (_, tris) = strategy.new_tree(&mut runner).unwrap().current();
+        let scene = columns(&tris);
+        let (_, report) = slim::slim(&std_tree(&scene), &scene, &config(), &SlimParams::SMALL);
+        scenes += 1;
+        hoisting += usize::from(report.hoisted > 0);
+        cancelling += usize::from(report.cancelled > 0);
+    }
+    assert!(
+        hoisting * 3 >= scenes,
+        "{hoisting} of {scenes} scenes hoist"
+    );
+    assert!(cancelling > 0, "no scene cancels a hoist");
+}
+
+// ---------------------------------------------------------------------
+// 2. Slim trees give exactly the hits of the std tree and brute force.
+// ---------------------------------------------------------------------
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    #[test]
+    fn slim_hits_equal_std_and_brute_force(
+        (tris, random, packets) in scene_strategy().prop_flat_map(|(g, tris)| (
+            Just(tris),
+            params_strategy(),
+            prop::collection::vec(packet(g), 1..4),
+        ))
+    ) {
+        let scene = columns(&tris);
+        let std = std_tree(&scene);
+        let want = brute_force_hits(&scene, &packets);
+        check_hits(&TreeTracer { tree: &std, scene: &scene }, &packets, &want, "std");
+        for p in [SlimParams::FAST, SlimParams::SMALL, random] {
+            let (tree, _) = slim::slim(&std, &scene, &config(), &p);
+            prop_assert_eq!(tree.validate(&scene), Ok(()), "{:?}", p);
+            check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
+        }
+    }
+}
+
+#[test]
+fn slim_hits_on_shipped_bunny() {
+    let scene = load_bunny();
+    let std = std_tree(&scene);
+    let packets = packet_fan(&std.bounds);
+    let want = brute_force_hits(&scene, &packets);
+    let n_hits: usize = want.iter().flatten().filter(|h| h.is_hit()).count();
+    assert!(n_hits > 1000, "only {n_hits} rays hit the bunny");
+    check_hits(
+        &TreeTracer {
+            tree: &std,
+            scene: &scene,
+        },
+        &packets,
+        &want,
+        "std",
+    );
+    let aggressive = SlimParams {
+        tau_occu: 0.2,
+        tau_freq: 0.1,
+        max_t2rn: 4,
+    };
+    for p in [SlimParams::FAST, SlimParams::SMALL, aggressive] {
+        let (tree, _) = slim::slim(&std, &scene, &config(), &p);
+        tree.validate(&scene).unwrap();
+        check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
+    }
+}
+
+#[test]
+fn slim_hits_with_big_triangles_over_small_ones() {
+    let scene = columns(&big_over_small());
+    let std = std_tree(&scene);
+    let packets = packet_fan(&std.bounds);
+    let want = brute_force_hits(&scene, &packets);
+    for p in [SlimParams::FAST, SlimParams::SMALL] {
+        let (tree, report) = slim::slim(&std, &scene, &config(), &p);
+        assert!(report.hoisted > 0);
+        tree.validate(&scene).unwrap();
+        check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
+    }
+}
+
+// ---------------------------------------------------------------------
+// 3. max_t2rn is respected on every root path.
+// ---------------------------------------------------------------------
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    /// With low thresholds (so that much is hoisted), every `max_t2rn` from
+    /// 0 to 4 bounds the type II nodes on every root path; 0 leaves the
+    /// standard tree as it is.
+    #[test]
+    fn max_t2rn_bounds_every_root_path(
+        (_g, tris) in scene_strategy(),
+        tau_occu in 0.05f64..0.5,
+        tau_freq in 0.05f64..0.5,
+    ) {
+        let scene = columns(&tris);
+        let std = std_tree(&scene);
+        for max_t2rn in 0..5 {
+            let p = SlimParams { tau_occu, tau_freq, max_t2rn };
+            let (tree, report) = slim::slim(&std, &scene, &config(), &p);
+            prop_assert!(max_t2_on_path(&tree) <= max_t2rn, "{:?}", p);
+            prop_assert_eq!(report.hoisted, tree.n_t_inner());
+            if max_t2rn == 0 {
+                prop_assert_eq!(&tree, &std);
+                prop_assert_eq!(report, SlimReport::default());
+            }
+        }
+    }
+}
+
+#[test]
+fn max_t2rn_on_big_triangles_over_small_ones() {
+    // With `small` thresholds, hoisting is limited only by `max_t2rn` here:
+    // the deepest path holds exactly `max_t2rn` type II nodes for 1 and 2.
+    let scene = columns(&big_over_small());
+    let std = std_tree(&scene);
+    for max_t2rn in 0..=4 {
+        let p = SlimParams {
+            max_t2rn,
+            ..SlimParams::SMALL
+        };
+        let (tree, report) = slim_checked(&std, &scene, &p);
+        let most = max_t2_on_path(&tree);
+        assert!(most <= max_t2rn);
+        if max_t2rn <= 2 {
+            assert_eq!(most, max_t2rn, "{report:?}");
+        }
+    }
+}
+
+// ---------------------------------------------------------------------
+// 4. Hand-checked tiny scenes.
+// ---------------------------------------------------------------------
+
+/// An `n`×`n` grid of small slanted triangles (ids `1 + n·i + j` at
+/// `x = 2i`, `y = 2j`, each with the box `[x, x+1]×[y, y+1]×[0, 1]`),
+/// after a huge flat triangle (id 0) at `z = 1/2` with legs from
+/// `(-1, -1)` to `(big, -1)` and `(-1, big)`, if `big` is given.
+fn grid_under_huge(n: i32, big: Option<f32>) -> Vec<[Vec3; 3]> {
+    let mut tris = Vec::new();
+    if let Some(b) = big {
+        tris.push([
+            Vec3::new(-1.0, -1.0, 0.5),
+            Vec3::new(b, -1.0, 0.5),
+            Vec3::new(-1.0, b, 0.5),
+        ]);
+    }
+    for i in 0..n {
+        for j in 0..n {
+            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
+            tris.push([
+                Vec3::new(x, y, 0.0),
+                Vec3::new(x + 1.0, y, 1.0),
+                Vec3::new(x, y + 1.0, 1.0),
+            ]);
+        }
+    }
+    tris
+}
+
+/// A box from two corners given as `[x, y, z]`.
+fn cell(min: [f32; 3], max: [f32; 3]) -> Aabb {
+    Aabb::new(Vec3::from(min), Vec3::from(max))
+}
+
+/// The leaves in pre-order: cell and triangle ids.
+fn leaves_of(tree: &TreeIr) -> Vec<(Aabb, Vec<u32>)> {
+    let mut out = Vec::new();
+    tree.walk(|_, node, cell, _| {
+        if let Node::Leaf { start, count } = *node {
+            out.push((*cell, tree.leaf(start, count).iter().map(|t| t.0).collect()));
+        }
+    });
+    out
+}
+
+/// The type II nodes in pre-order: cell and hoisted triangle.
+fn t_inner_of(tree: &TreeIr) -> Vec<(Aabb, u32)> {
+    let mut out = Vec::new();
+    tree.walk(|_, node, cell, _| {
+        if let Node::Inner { t_ref: Some(t), .. } = *node {
+            out.push((*cell, t.0));
+        }
+    });
+    out
+}
+
+/// How many leaves list triangle `t`.
+fn leaves_holding(tree: &TreeIr, t: u32) -> usize {
+    leaves_of(tree)
+        .iter()
+        .filter(|(_, tris)| tris.contains(&t))
+        .count()
+}
+
+/// A surface area that is a whole number (all the cells here have integer
+/// corners), as an integer.
+fn area(c: &Aabb) -> u32 {
+    let sa = c.surface_area();
+    assert_eq!(sa.fract(), 0.0);
+    sa as u32
+}
+
+/// One huge triangle over a 2×2 grid, worked out by hand.
+///
+/// The standard tree (asserted below, the premise of the computation) has
+/// six leaves; the huge triangle 0 lies in all but the last, whose cell
+/// only touches it at the point `(1, 4, 1/2)`. All cells span `z` in
+/// `[0, 1]`, so a cell `dx × dy × 1` has `SA = 2(dx·dy + dx + dy)`:
+///
+/// | leaf cell (x × y) | triangles | SA |
+/// |---|---|---:|
+/// | `[-1, 1] × [-1, 1]` | 0, 1 | 16 |
+/// | `[-1, 1] × [1, 6]` | 0, 2 | 34 |
+/// | `[1, 3] × [-1, 1]` | 0, 3 | 16 |
+/// | `[1, 3] × [1, 4]` | 0, 4 | 22 |
+/// | `[3, 6] × [-1, 4]` | 0 | 46 |
+/// | `[1, 6] × [4, 6]` | – | 34 |
+///
+/// At the root, triangle 0 has `f_occu = 134/168 ≈ 0.80` and
+/// `f_freq = 5/6`; every other triangle has `f_occu ≤ 34/168`.
+///
+/// - `small` (0.5, 0.4) picks triangle 0 at the root. The other four are
+///   rebuilt in the root cell; the SAH puts each into a leaf of its own
+///   (plus two empty leaves), so the leaf references drop from 9 to 4: by
+///   the 5 leaves triangle 0 was in. Below, a two-leaf node holds one small
+///   triangle per leaf in two cells of equal area: `f_freq = 1/2 > 0.4` but
+///   `f_occu = 1/2`, not above 0.5, so nothing more is hoisted.
+/// - `fast` (0.9, 0.7) picks nothing at the root (0.80 ≤ 0.9), nor at the
+///   right child (`[1, 6] × [-1, 6]`: 84/118 ≈ 0.71). It picks triangle 0
+///   at the left child (`[-1, 1] × [-1, 6]`, both leaves hold it:
+///   `f_occu = f_freq = 1`) and at the right child's left child
+///   (`[1, 6] × [-1, 4]`, all three leaves hold it). The rebuilt subtrees
+///   hold each small triangle once, with `f_freq ≤ 1/2`: two hoists, and
+///   again 4 references.
+#[test]
+fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
+    let scene = columns(&grid_under_huge(2, Some(6.0)));
+    let std = std_tree(&scene);
+    let expected_leaves = vec![
+        (cell([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]), vec![0, 1]),
+        (cell([-1.0, 1.0, 0.0], [1.0, 6.0, 1.0]), vec![0, 2]),
+        (cell([1.0, -1.0, 0.0], [3.0, 1.0, 1.0]), vec![0, 3]),
+        (cell([1.0, 1.0, 0.0], [3.0, 4.0, 1.0]), vec![0, 4]),
+        (cell([3.0, -1.0, 0.0], [6.0, 4.0, 1.0]), vec![0]),
+        (cell([1.0, 4.0, 0.0], [6.0, 6.0, 1.0]), vec![]),
+    ];
+    assert_eq!(leaves_of(&std), expected_leaves, "the premise");
+    let areas: Vec<u32> = expected_leaves.iter().map(|(c, _)| area(c)).collect();
+    assert_eq!(areas, [16, 34, 16, 22, 46, 34]);
+    assert_eq!(std.leaf_tris.len(), 9);
+
+    // `small`: triangle 0 goes into the root; the rest is the SAH tree of
+    // triangles 1–4 in the root cell, with nothing more hoisted.
+    for max_t2rn in [1, 4] {
+        let p = SlimParams {
+            max_t2rn,
+            ..SlimParams::SMALL
+        };
+        let (tree, report) = slim_checked(&std, &scene, &p);
+        let expected_report = SlimReport {
+            hoisted: 1,
+            cancelled: 0,
+            rebuilds: 1,
+            rebuilt_refs: 4,
+        };
+        assert_eq!(report, expected_report);
+        let mut expected = rebuild(
+            &scene,
+            &config(),
+            &[TriId(1), TriId(2), TriId(3), TriId(4)],
+            &std.bounds,
+            0,
+        );
+        let Node::Inner { t_ref, .. } = &mut expected.nodes[0] else {
+            panic!("the rebuilt tree is a leaf");
+        };
+        *t_ref = Some(TriId(0));
+        assert_eq!(tree, expected);
+        assert_eq!(t_inner_of(&tree), [(std.bounds, 0)]);
+        let leaves = leaves_of(&tree);
+        let nonempty: Vec<&Vec<u32>> = leaves
+            .iter()
+            .map(|(_, t)| t)
+            .filter(|t| !t.is_empty())
+            .collect();
+        assert_eq!(nonempty, [&vec![1], &vec![2], &vec![3], &vec![4]]);
+        assert_eq!(tree.leaf_tris.len(), 9 - 5);
+        // The two-leaf nodes: equal areas, so `f_occu` is exactly 1/2.
+        assert_eq!(area(&leaves[0].0), area(&leaves[1].0));
+        assert_eq!(area(&leaves[2].0), area(&leaves[3].0));
+    }
+
+    // `fast`: two hoists, below the root.
+    let (tree, report) = slim_checked(&std, &scene, &SlimParams::FAST);
+    assert_eq!(report.hoisted, 2, "{report:?}");
+    assert_eq!(report.cancelled, 0);
+    assert_eq!(
+        t_inner_of(&tree),
+        [
+            (cell([-1.0, -1.0, 0.0], [1.0, 6.0, 1.0]), 0),
+            (cell([1.0, -1.0, 0.0], [6.0, 4.0, 1.0]), 0),
+        ]
+    );
+    assert_eq!(tree.leaf_tris.len(), 4);
+    assert_eq!(leaves_holding(&tree, 0), 0);
+
+    // Both give the standard tree's hits.
+    let packets = packet_fan(&std.bounds);
+    let want = brute_force_hits(&scene, &packets);
+    for p in [SlimParams::SMALL, SlimParams::FAST] {
+        let (tree, _) = slim::slim(&std, &scene, &config(), &p);
+        check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
+    }
+}
+
+/// One huge triangle over a 4×4 grid: with `small` it is hoisted into the
+/// root, and the leaf references drop by exactly the number of leaves of
+/// the standard tree that held it (each small triangle lies in one leaf
+/// before and after).
+#[test]
+fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
+    let scene = columns(&grid_under_huge(4, Some(10.0)));
+    let std = std_tree(&scene);
+    let holding = leaves_holding(&std, 0);
+    assert!(holding >= 10, "{holding}");
+    for t in 1..=16 {
+        assert_eq!(leaves_holding(&std, t), 1, "triangle {t}");
+    }
+    let (tree, report) = slim_checked(&std, &scene, &SlimParams::SMALL);
+    assert!(matches!(
+        tree.nodes[0],
+        Node::Inner {
+            t_ref: Some(TriId(0)),
+            ..
+        }
+    ));
+    assert_eq!(report.hoisted, 1, "{report:?}");
+    for t in 0..=16 {
+        assert_eq!(
+            leaves_holding(&tree, t),
+            usize::from(t != 0),
+            "triangle {t}"
+        );
+    }
+    assert_eq!(tree.leaf_tris.len(), std.leaf_tris.len() - holding);
+}
+
+/// Small disjoint triangles: each lies in one leaf of the standard tree and
+/// every inner node has at least two leaves, so no triangle has
+/// `f_freq > 1/2` anywhere: with `fast` (τ_freq 0.7) or τ_freq = 0.5 (and a
+/// low τ_occu) nothing is even picked.
+///
+/// With `small` (τ_freq 0.4), in the 2×2 grid the two-leaf nodes
+/// `[0, 1] × [0, 3]` (leaves of SA 6 and 10) and `[2, 3] × [0, 3]` pick the
+/// triangle of the larger leaf (`f_freq = 1/2`, `f_occu = 10/16`), but the
+/// one remaining triangle would be rebuilt into a single leaf (the best
+/// split, at its box's face `y = 1`, costs `15 + 20·0.8·6/14 ≈ 21.9`, more
+/// than the leaf's 20), so both hoists are cancelled and the tree stays.
+#[test]
+fn small_disjoint_triangles_are_not_hoisted() {
+    for n in 2..=4 {
+        let scene = columns(&grid_under_huge(n, None));
+        let std = std_tree(&scene);
+        for t in 0..(n * n) as u32 {
+            assert_eq!(leaves_holding(&std, t), 1, "triangle {t}");
+        }
+        let half = SlimParams {
+            tau_occu: 0.05,
+            tau_freq: 0.5,
+            max_t2rn: 4,
+        };
+        for p in [SlimParams::FAST, half] {
+            let (tree, report) = slim_checked(&std, &scene, &p);
+            assert_eq!(tree, std, "{p:?}");
+            assert_eq!(report, SlimReport::default(), "{p:?}");
+        }
+        let (tree, report) = slim_checked(&std, &scene, &SlimParams::SMALL);
+        assert_eq!(tree, std);
+        assert_eq!(report.hoisted, 0);
+        if n == 2 {
+            assert_eq!(
+                leaves_of(&std)
+                    .iter()
+                    .map(|(c, _)| area(c))
+                    .collect::<Vec<_>>(),
+                [6, 10, 14, 6, 10]
+            );
+            let expected = SlimReport {
+                hoisted: 0,
+                cancelled: 2,
+                rebuilds: 2,
+                rebuilt_refs: 2,
+            };
+            assert_eq!(report, expected);
+        }
+    }
+}
+
+// ---------------------------------------------------------------------
+// 5. The report.
+// ---------------------------------------------------------------------
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    /// `hoisted` is the number of type II nodes of the result, every
+    /// rebuild either hoists or is cancelled, and the `.kd` file counts the
+    /// same type II nodes.
+    #[test]
+    fn report_counts_the_type_ii_nodes(
+        (_g, tris) in scene_strategy(),
+        p in params_strategy(),
+    ) {
+        let scene = columns(&tris);
+        let std = std_tree(&scene);
+        let (tree, report) = slim::slim(&std, &scene, &config(), &p);
+        prop_assert_eq!(report.hoisted, tree.n_t_inner());
+        prop_assert_eq!(report.rebuilds, report.hoisted + report.cancelled);
+        prop_assert!(report.rebuilt_refs <= report.rebuilds * scene.len());
+        let bytes = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap();
+        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+        prop_assert_eq!(file.figures().t_inner, report.hoisted as u64);
+    }
+}
