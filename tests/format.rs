@@ -541,7 +541,7 @@ fn strip_rays(scene: &TriangleColumns, rng: &mut Rng, n: usize) -> Vec<Ray> {
 }
 
 // ---------------------------------------------------------------------
-// 1. Round trips.
+// Round trips, type II nodes included.
 // ---------------------------------------------------------------------
 
 fn packet_strategy(g: i32) -> impl Strategy<Value = [Ray; 16]> {
@@ -639,7 +639,7 @@ fn round_trip_bunny_through_mmap() {
 }
 
 // ---------------------------------------------------------------------
-// 3. Leaf modes, count limits and the depth limit.
+// Leaf modes, count limits and the depth limit.
 // ---------------------------------------------------------------------
 
 /// One leaf of 2047 ids sharing their upper 16 bits is a 2-byte leaf; one
@@ -998,7 +998,7 @@ fn writer_refuses_malformed_trees() {
 }
 
 // ---------------------------------------------------------------------
-// 4. Corrupt files.
+// Corrupt files.
 // ---------------------------------------------------------------------
 
 /// What reading a byte string gave.
@@ -2274,7 +2274,7 @@ fn corrupt_targeted_edits() {
 }
 
 // ---------------------------------------------------------------------
-// 5. Atomic writes.
+// Atomic writes.
 // ---------------------------------------------------------------------
 
 /// `write_file` into a missing directory fails and creates nothing; over an
@@ -2352,7 +2352,7 @@ fn atomic_writes() {
 }
 
 // ---------------------------------------------------------------------
-// 6. The golden file.
+// The golden file.
 // ---------------------------------------------------------------------
 
 /// How the golden file was made: the bunny, the SAH tree of the sweep

@@ -3,8 +3,9 @@
 //! deserialisation).
 //!
 //! Consumes a [`TreeIr`](crate::tree::TreeIr) and its
-//! [`TriangleColumns`](crate::scene::TriangleColumns) ([`write`]); produces
-//! a [`KdFile`] over any byte source ([`read`]). [`KdFile::from_bytes`]
+//! [`TriangleColumns`](crate::scene::TriangleColumns) ([`write_to_vec`],
+//! [`write_file`]); produces a [`KdFile`] over any byte source
+//! ([`KdFile::from_bytes`], [`KdFile::open`]). [`KdFile::from_bytes`]
 //! validates every count, offset, node and index before any traversal, so
 //! that no byte string makes traversal panic, read out of bounds or loop.
 //!
