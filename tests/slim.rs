@@ -273,10 +273,12 @@ fn literal_slim(
 // Helpers: scenes, parameters, tree figures, hit checks.
 // ---------------------------------------------------------------------
 
+/// The default SAH settings, for every build here.
 fn config() -> BuildConfig {
     BuildConfig::default()
 }
 
+/// The standard tree (sweep builder).
 fn std_tree(scene: &TriangleColumns) -> TreeIr {
     build::build(scene, &config(), Builder::Sweep, None)
 }
@@ -418,6 +420,7 @@ fn check_tree_hits(
     }
 }
 
+/// Brute force's hit for every ray of every packet.
 fn brute_force_hits(scene: &TriangleColumns, packets: &[[Ray; 16]]) -> Vec<[Hit; 16]> {
     packets
         .iter()
@@ -425,12 +428,13 @@ fn brute_force_hits(scene: &TriangleColumns, packets: &[[Ray; 16]]) -> Vec<[Hit;
         .collect()
 }
 
+/// The shipped Stanford bunny (3,674 triangles).
 fn load_bunny() -> TriangleColumns {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
     slimkd::scene::load_obj(&path).unwrap().0
 }
 
-/// A 16×16 grid of small slanted triangles (2 apart) under four big
+/// A 16×16 grid of small slanted triangles (2 apart) crossed by four big
 /// triangles that each span most of the grid, at different heights and
 /// tilts.
 fn big_over_small() -> Vec<[Vec3; 3]> {
@@ -587,14 +591,18 @@ fn random_scenes_hoist_often() {
 proptest! {
     #![proptest_config(cases(256))]
 
+    /// On random scenes, 16 independent grid rays and 1–3 more packets
+    /// (mostly coherent), with `fast`, `small` and random parameters.
     #[test]
     fn slim_hits_equal_std_and_brute_force(
-        (tris, random, packets) in scene_strategy().prop_flat_map(|(g, tris)| (
+        (tris, random, mut packets, grid_rays) in scene_strategy().prop_flat_map(|(g, tris)| (
             Just(tris),
             params_strategy(),
             prop::collection::vec(packet(g), 1..4),
+            prop::collection::vec(grid_ray(g), 16),
         ))
     ) {
+        packets.push(std::array::from_fn(|i| grid_rays[i]));
         let scene = columns(&tris);
         let std = std_tree(&scene);
         let want = brute_force_hits(&scene, &packets);
