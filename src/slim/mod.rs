@@ -15,8 +15,8 @@
 //! `f_occu > τ_occu`, in non-increasing occupancy order (ties: smaller id
 //! first), the first with `f_freq > τ_freq`; or none.
 //!
-//! **Algorithm 1.** From the root of the standard tree, with an explicit
-//! stack: if a triangle `t` is picked at inner node `I`, the subtree is
+//! **Algorithm 1** (run in parallel passes, see [`slim`]). From the root of
+//! the standard tree, with an explicit stack: if a triangle `t` is picked at inner node `I`, the subtree is
 //! rebuilt from its triangles minus `t` ([`rebuild`], the sweep builder
 //! inside `I`'s cell at `I`'s depth) and `t` is stored at `I`; the new
 //! subtree's children are skipped once the hoisted triangles on the path
@@ -389,13 +389,82 @@ fn subtree_tris(work: &Work, root: u32, except: TriId) -> Vec<TriId> {
     out
 }
 
+/// A subtree to process: its root, cell, depth, and the hoisted triangles
+/// on the path above it.
+#[derive(Clone, Copy)]
+struct Todo {
+    node: u32,
+    cell: Aabb,
+    depth: u32,
+    t2rn: u32,
+}
+
+/// A node where the oracle picked a triangle.
+struct Pick {
+    at: Todo,
+    tri: TriId,
+}
+
+/// Walks a subtree top-down and returns the highest nodes where a triangle
+/// is picked (their subtrees are not walked further in this pass).
+fn find_picks(work: &Work, sub: Todo, sa_root: f64, params: &SlimParams) -> Vec<Pick> {
+    let mut picks = Vec::new();
+    if sub.t2rn >= params.max_t2rn || !matches!(work.nodes[sub.node as usize], WNode::Inner { .. }) {
+        return picks;
+    }
+    let analysis = analyze(work, sub.node, sub.cell, sa_root, params);
+    let mut stack = vec![sub];
+    while let Some(at) = stack.pop() {
+        let WNode::Inner {
+            axis, pos, left, right, ..
+        } = work.nodes[at.node as usize]
+        else {
+            continue;
+        };
+        if let Some(&tri) = analysis.picks.get(&at.node) {
+            picks.push(Pick { at, tri });
+            continue;
+        }
+        let (lc, rc) = at.cell.split(axis as usize, pos);
+        for (node, cell) in [(right, rc), (left, lc)] {
+            stack.push(Todo {
+                node,
+                cell,
+                depth: at.depth + 1,
+                t2rn: at.t2rn,
+            });
+        }
+    }
+    picks
+}
+
+/// The children of an inner node as subtrees to process.
+fn children(work: &Work, at: &Todo, t2rn: u32) -> [Todo; 2] {
+    let WNode::Inner {
+        axis, pos, left, right, ..
+    } = work.nodes[at.node as usize]
+    else {
+        unreachable!("only inner nodes are picked");
+    };
+    let (lc, rc) = at.cell.split(axis as usize, pos);
+    [(left, lc), (right, rc)].map(|(node, cell)| Todo {
+        node,
+        cell,
+        depth: at.depth + 1,
+        t2rn,
+    })
+}
+
 /// Applies Algorithm 1 to a standard tree.
-pub fn slim(
-    tree: &TreeIr,
-    scene: &TriangleColumns,
-    config: &BuildConfig,
-    params: &SlimParams,
-) -> (TreeIr, SlimReport) {
+///
+/// The algorithm runs in passes: each pass finds, in every pending subtree,
+/// the highest nodes where a triangle is picked, rebuilds those (disjoint)
+/// subtrees in parallel on the current rayon pool, and queues their
+/// children. A node's pick depends only on its own subtree, so this order
+/// gives the same tree as the sequential stack of the paper (the tests
+/// assert it against a literal implementation), for any thread count.
+pub fn slim(tree: &TreeIr, scene: &TriangleColumns, config: &BuildConfig, params: &SlimParams) -> (TreeIr, SlimReport) {
+    use rayon::prelude::*;
     let mut work = Work {
         nodes: Vec::new(),
         tris: Vec::new(),
@@ -403,55 +472,49 @@ pub fn slim(
     let root = work.append(tree);
     let sa_root = tree.bounds.surface_area();
     let mut report = SlimReport::default();
-    // Subtrees still to process: (root, cell, depth, hoisted triangles on
-    // the path above, inclusive of the parent).
-    let mut todo = vec![(root, tree.bounds, 0u32, 0u32)];
-    while let Some((sub, cell, depth, t2rn)) = todo.pop() {
-        if t2rn >= params.max_t2rn || !matches!(work.nodes[sub as usize], WNode::Inner { .. }) {
-            continue;
-        }
-        let analysis = analyze(&work, sub, cell, sa_root, params);
-        let mut stack = vec![(sub, cell, depth)];
-        while let Some((n, cell, depth)) = stack.pop() {
-            let WNode::Inner {
-                axis,
-                pos,
-                left,
-                right,
-                ..
-            } = work.nodes[n as usize]
-            else {
-                continue;
-            };
-            if let Some(&t) = analysis.picks.get(&n) {
-                let tris = subtree_tris(&work, n, t);
-                report.rebuilds += 1;
-                report.rebuilt_refs += tris.len();
-                let fresh = rebuild(scene, config, &tris, &cell, depth);
-                if let Node::Inner {
-                    axis, pos, right, ..
-                } = fresh.nodes[0]
-                {
-                    let base = work.append(&fresh);
-                    let (l, r) = (base + 1, base + right.0);
-                    work.nodes[n as usize] = WNode::Inner {
-                        axis,
-                        pos,
-                        left: l,
-                        right: r,
-                        t_ref: Some(t),
-                    };
-                    report.hoisted += 1;
-                    let (lc, rc) = cell.split(axis as usize, pos);
-                    todo.push((r, rc, depth + 1, t2rn + 1));
-                    todo.push((l, lc, depth + 1, t2rn + 1));
-                    continue;
-                }
+    let mut todo = vec![Todo {
+        node: root,
+        cell: tree.bounds,
+        depth: 0,
+        t2rn: 0,
+    }];
+    while !todo.is_empty() {
+        let picks: Vec<Pick> = todo
+            .par_iter()
+            .flat_map_iter(|&sub| find_picks(&work, sub, sa_root, params))
+            .collect();
+        let rebuilt: Vec<(Vec<TriId>, TreeIr)> = picks
+            .par_iter()
+            .map(|p| {
+                let tris = subtree_tris(&work, p.at.node, p.tri);
+                let fresh = rebuild(scene, config, &tris, &p.at.cell, p.at.depth);
+                (tris, fresh)
+            })
+            .collect();
+        todo.clear();
+        for (p, (tris, fresh)) in picks.iter().zip(rebuilt) {
+            report.rebuilds += 1;
+            report.rebuilt_refs += tris.len();
+            if let Node::Inner {
+                axis, pos, right, ..
+            } = fresh.nodes[0]
+            {
+                let base = work.append(&fresh);
+                work.nodes[p.at.node as usize] = WNode::Inner {
+                    axis,
+                    pos,
+                    left: base + 1,
+                    right: base + right.0,
+                    t_ref: Some(p.tri),
+                };
+                report.hoisted += 1;
+                todo.extend(children(&work, &p.at, p.at.t2rn + 1));
+            } else {
+                // Cancelled: the original subtree stays, and its children
+                // are processed as if nothing was picked here.
                 report.cancelled += 1;
+                todo.extend(children(&work, &p.at, p.at.t2rn));
             }
-            let (lc, rc) = cell.split(axis as usize, pos);
-            stack.push((right, rc, depth + 1));
-            stack.push((left, lc, depth + 1));
         }
     }
     (work.to_ir(root, tree.bounds), report)

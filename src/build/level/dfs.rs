@@ -1,6 +1,8 @@
 //! Depth-first finishing of small nodes: the sweep builder's algorithm
 //! (Wald & Havran 2006, §4; [`crate::build::sweep`]) on the level
-//! builder's flat encoding, without a heap allocation per node.
+//! builder's flat encoding, without a heap allocation per node. It
+//! follows the sweep builder rather than the paper's small-node stage
+//! (Wu et al. §4.3), so that the tree stays the same.
 //!
 //! Consumes one small node of a level: its references (ascending by
 //! triangle), its sorted events per axis ([`super::event`]), its cell,
@@ -18,7 +20,7 @@
 //! one after the other, and popped.
 
 use super::event::{Box6, ev_ref, n_events, push_events, to_aabb, to_box, with_ref};
-use super::{CLIPPED, SideCounts, TO_LEFT, TO_RIGHT, merge_back, sweep_events};
+use super::{CLIPPED, SideCounts, TO_LEFT, TO_RIGHT, sweep_events};
 use crate::build::sah::{self, SahParams, Split};
 use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
 use crate::geom::Aabb;
@@ -47,7 +49,8 @@ pub struct Finisher<'a> {
     clipped: Vec<(Option<Aabb>, Option<Aabb>)>,
     /// The clipped copies of the node being split: (side, index in child).
     copies: Vec<(u8, u32)>,
-    tmp: Vec<u64>,
+    /// The sorted events of each side's clipped copies on one axis.
+    new_ev: [Vec<u64>; 2],
     nodes: Vec<Node>,
     leaf_tris: Vec<TriId>,
 }
@@ -71,7 +74,7 @@ impl<'a> Finisher<'a> {
             new_idx: Vec::new(),
             clipped: Vec::new(),
             copies: Vec::new(),
-            tmp: Vec::new(),
+            new_ev: Default::default(),
             nodes: Vec::new(),
             leaf_tris: Vec::new(),
         }
@@ -176,11 +179,25 @@ impl<'a> Finisher<'a> {
             }
         }
 
-        // Child events: inherited by stable partition, new ones sorted and
-        // merged in from the back.
+        // Child events: inherited by stable partition, with each side's
+        // sorted new events merged in on the way (one pass, where the level
+        // passes partition first and merge after).
         let mut ce0 = [[0usize; 3]; 2];
         let mut cne = [[0usize; 3]; 2];
         for axis in 0..3 {
+            for side in 0..2 {
+                let new = &mut self.new_ev[side];
+                new.clear();
+                if c.new[side][axis] > 0 {
+                    for &(s, r) in &self.copies {
+                        if s as usize == side {
+                            let b = &self.boxes[c0[side] + r as usize];
+                            push_events(b, axis, r, new);
+                        }
+                    }
+                    new.sort_unstable();
+                }
+            }
             let stack = &mut self.ev[axis];
             let base = stack.len();
             let nl = c.inherited[0][axis] + c.new[0][axis];
@@ -192,29 +209,27 @@ impl<'a> Finisher<'a> {
             stack.resize(base + nl + nr, 0);
             let (src, dst) = stack.split_at_mut(base);
             let mut at = [0, nl];
+            let mut next = [0usize; 2];
             for &e in &src[e0[axis]..e0[axis] + ne[axis]] {
                 let r = ev_ref(e) as usize;
                 let code = self.place[r];
                 if code & CLIPPED == 0 {
                     let side = usize::from(code == TO_RIGHT);
-                    dst[at[side]] = with_ref(e, self.new_idx[r]);
+                    let e = with_ref(e, self.new_idx[r]);
+                    let new = &self.new_ev[side];
+                    while next[side] < new.len() && new[next[side]] < e {
+                        dst[at[side]] = new[next[side]];
+                        at[side] += 1;
+                        next[side] += 1;
+                    }
+                    dst[at[side]] = e;
                     at[side] += 1;
                 }
             }
             for side in 0..2 {
-                if c.new[side][axis] == 0 {
-                    continue;
-                }
-                self.tmp.clear();
-                for &(s, r) in &self.copies {
-                    if s as usize == side {
-                        let b = &self.boxes[c0[side] + r as usize];
-                        push_events(b, axis, r, &mut self.tmp);
-                    }
-                }
-                self.tmp.sort_unstable();
-                let from = if side == 0 { 0 } else { nl };
-                merge_back(&mut dst[from..from + cne[side][axis]], &self.tmp);
+                let rest = &self.new_ev[side][next[side]..];
+                dst[at[side]..at[side] + rest.len()].copy_from_slice(rest);
+                debug_assert_eq!(at[side] + rest.len(), if side == 0 { nl } else { nl + nr });
             }
         }
 
@@ -234,8 +249,8 @@ impl<'a> Finisher<'a> {
         self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1, wr);
         self.tri.truncate(l0);
         self.boxes.truncate(l0);
-        for axis in 0..3 {
-            self.ev[axis].truncate(ce0[0][axis]);
+        for (stack, &base) in self.ev.iter_mut().zip(&ce0[0]) {
+            stack.truncate(base);
         }
     }
 

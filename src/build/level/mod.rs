@@ -561,8 +561,8 @@ impl<'a> Builder<'a> {
 
         // 5. Child events.
         let mut ev = Vec::with_capacity(3);
-        for k in 0..3 {
-            ev.push(self.scratch.column::<u64>("ev", ev_at[k])?);
+        for &len in &ev_at {
+            ev.push(self.scratch.column::<u64>("ev", len)?);
         }
         let mut ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
         partition_events(&l, &splits, &place, &new_idx, &next_nodes, &mut ev);
