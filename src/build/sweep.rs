@@ -149,16 +149,30 @@ pub fn build_subtree(
     progress: Option<&Progress>,
 ) -> TreeIr {
     let events = [0, 1, 2].map(|axis| sorted_events(&refs, axis));
+    // The placement scratch is indexed by triangle id. It is kept per
+    // thread and never cleared: a node writes the entry of each of its
+    // triangles before reading any, so stale entries are never read. (The
+    // slim pass rebuilds many small subtrees; a fresh scene-sized array per
+    // rebuild cost more than the rebuild.)
+    let mut place = PLACE.with(|p| std::mem::take(&mut *p.borrow_mut()));
+    if place.len() < scene.len() {
+        place.resize(scene.len(), Placement::Left);
+    }
     let mut ctx = Ctx {
         scene,
         config,
         depth_limit: config.sah.depth_limit(scene.len()),
         out: TreeWriter::new(cell),
-        place: vec![Placement::Left; scene.len()],
+        place,
         progress,
     };
     ctx.node(refs, events, cell, depth, Progress::TOTAL);
+    PLACE.with(|p| *p.borrow_mut() = std::mem::take(&mut ctx.place));
     ctx.out.tree
+}
+
+thread_local! {
+    static PLACE: std::cell::RefCell<Vec<Placement>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 struct Ctx<'a> {
