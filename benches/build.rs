@@ -20,7 +20,9 @@
 //! the 1K soup, and prints the node, leaf and reference counts of each tree.
 //!
 //! `SLIMKD_LEVEL_THRESHOLD=N` sets the level builder's small-node
-//! threshold; `-- --level-only` skips the naive and sweep timings (the tree
+//! threshold; `SLIMKD_MEM_BUDGET=SIZE` (bytes, or with a K, M or G suffix)
+//! its column budget, with scratch files in `SLIMKD_SCRATCH` (default: the
+//! temporary directory); `-- --level-only` skips the naive and sweep timings (the tree
 //! check then builds the sweep tree once, untimed, unless `--no-check`).
 //!
 //! Run it with `cargo bench --bench build`, or with the large scene as
@@ -196,6 +198,18 @@ fn time_level(
     (secs, report, tree.expect("reps >= 1"))
 }
 
+/// A size in bytes: digits with an optional K, M or G (binary) suffix.
+fn parse_size(s: &str) -> Option<u64> {
+    let s = s.trim();
+    let (digits, shift) = match s.char_indices().last()? {
+        (i, 'K' | 'k') => (&s[..i], 10),
+        (i, 'M' | 'm') => (&s[..i], 20),
+        (i, 'G' | 'g') => (&s[..i], 30),
+        _ => (s, 0),
+    };
+    digits.parse::<u64>().ok()?.checked_mul(1 << shift)
+}
+
 /// One line of the level table.
 struct LevelLine {
     scene: String,
@@ -215,7 +229,7 @@ fn print_level(rows: &[LevelLine], threshold: usize) {
         "level builder (small-node threshold {threshold}; median of the reps; phases of the median run, seconds)"
     );
     println!(
-        "{:<22} {:>9} {:>3} {:>4} {:>8} {:>7} {:>6} {:>7} {:>6} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>7} {:>8}",
+        "{:<22} {:>9} {:>3} {:>4} {:>8} {:>7} {:>6} {:>7} {:>6} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>7} {:>8} {:>8} {:>8} {:>11}",
         "scene",
         "triangles",
         "thr",
@@ -232,13 +246,16 @@ fn print_level(rows: &[LevelLine], threshold: usize) {
         "small",
         "asm",
         "levels",
-        "anon MiB"
+        "anon MiB",
+        "(start)",
+        "file MiB",
+        "scratch MiB"
     );
     for r in rows {
         let p = &r.report.phases;
         let opt = |x: Option<f64>| x.map_or_else(|| "-".to_string(), |x| format!("{x:.2}x"));
         println!(
-            "{:<22} {:>9} {:>3} {:>4} {:>8.4} {:>7.3} {:>6} {:>7} {:>6.3} {:>7.3} {:>6.3} {:>6.3} {:>6.3} {:>6.3} {:>6.3} {:>7} {:>8.1}",
+            "{:<22} {:>9} {:>3} {:>4} {:>8.4} {:>7.3} {:>6} {:>7} {:>6.3} {:>7.3} {:>6.3} {:>6.3} {:>6.3} {:>6.3} {:>6.3} {:>7} {:>8.1} {:>8.1} {:>8.1} {:>11.1}",
             r.scene,
             r.triangles,
             r.threads,
@@ -255,7 +272,10 @@ fn print_level(rows: &[LevelLine], threshold: usize) {
             p.small_s,
             p.assemble_s,
             r.report.levels,
-            r.report.peak_rss_anon_bytes as f64 / (1 << 20) as f64
+            r.report.peak_rss_anon_bytes as f64 / (1 << 20) as f64,
+            r.report.start_rss_anon_bytes as f64 / (1 << 20) as f64,
+            r.report.peak_rss_file_bytes as f64 / (1 << 20) as f64,
+            r.report.scratch.file_bytes_total as f64 / (1 << 20) as f64
         );
     }
 }
@@ -268,10 +288,21 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(level::DEFAULT_SMALL_THRESHOLD);
+    let mem_budget = std::env::var("SLIMKD_MEM_BUDGET")
+        .ok()
+        .map(|v| parse_size(&v).unwrap_or_else(|| panic!("SLIMKD_MEM_BUDGET: bad size {v:?}")))
+        .unwrap_or(u64::MAX);
     let level_options = LevelOptions {
         small_threshold: threshold,
+        mem_budget,
+        scratch_dir: std::env::var_os("SLIMKD_SCRATCH")
+            .map(Into::into)
+            .unwrap_or_else(std::env::temp_dir),
         ..LevelOptions::default()
     };
+    if mem_budget != u64::MAX {
+        println!("note: level builder column budget {mem_budget} bytes");
+    }
     let reps = if quick { 1 } else { REPS };
     let mut timings = Vec::new();
     let mut trees = Vec::new();

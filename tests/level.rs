@@ -352,3 +352,22 @@ fn progress_reaches_the_total() {
         assert_eq!(progress.fraction(), 1.0, "threshold {t}");
     }
 }
+
+/// A full disk is a clear error naming the scratch file, and leaves nothing
+/// behind. It needs a small filesystem, so it runs only when
+/// `SLIMKD_FULL_DISK_DIR` names a directory on one (for example, as root:
+/// `mount -t tmpfs -o size=256k tmpfs /tmp/tinyfs`).
+#[test]
+fn full_disk_is_a_clear_error() {
+    let Some(dir) = std::env::var_os("SLIMKD_FULL_DISK_DIR") else {
+        eprintln!("skipped: SLIMKD_FULL_DISK_DIR is not set");
+        return;
+    };
+    let dir = PathBuf::from(dir);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &dir)).unwrap_err();
+    assert!(matches!(err, ColumnsError::NoSpace { .. }), "{err:?}");
+    assert!(err.to_string().contains(&*dir.to_string_lossy()), "{err}");
+    assert!(is_empty_dir(&dir), "nothing is left behind");
+}

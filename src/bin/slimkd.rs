@@ -7,7 +7,7 @@
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
-use slimkd::build::{self, BuildConfig, Builder, Progress};
+use slimkd::build::{self, BuildConfig, Builder, Progress, level};
 use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
@@ -18,6 +18,7 @@ use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// The embedded default scene: nexuiz_dieselpower (see scenes/README.md).
@@ -107,9 +108,17 @@ struct ReportArgs {
 
 #[derive(clap::Args, Clone)]
 struct BuildArgs {
-    /// Which builder to run (both produce the same tree).
-    #[arg(long, value_enum, default_value_t = BuilderArg::Sweep)]
+    /// Which builder to run (all produce the same tree).
+    #[arg(long, value_enum, default_value_t = BuilderArg::Level)]
     builder: BuilderArg,
+    /// Level builder: bytes of per-level columns kept in RAM (e.g. 1G,
+    /// 512M); above it they go to mapped scratch files. Default: no limit.
+    #[arg(long, value_parser = parse_bytes)]
+    mem_budget: Option<u64>,
+    /// Level builder: directory for scratch files (default: the system
+    /// temporary directory).
+    #[arg(long)]
+    scratch: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -175,8 +184,33 @@ impl BuildArgs {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum BuilderArg {
+    /// Breadth-first, parallel (Wu, Zhao & Liu 2011).
+    Level,
+    /// Sequential O(N log N) sweep (Wald & Havran 2006).
     Sweep,
+    /// The O(N²)-per-node reference.
     Naive,
+}
+
+/// Parses a byte count: a number with an optional K, M, G or T suffix
+/// (powers of 1024).
+fn parse_bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let (num, shift) = match t.chars().last().map(|c| c.to_ascii_uppercase()) {
+        Some('K') => (&t[..t.len() - 1], 10),
+        Some('M') => (&t[..t.len() - 1], 20),
+        Some('G') => (&t[..t.len() - 1], 30),
+        Some('T') => (&t[..t.len() - 1], 40),
+        _ => (t, 0),
+    };
+    let n: f64 = num
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a size like 512M or 2G, got `{s}`"))?;
+    if !(n >= 0.0 && n.is_finite()) {
+        return Err(format!("size `{s}` out of range"));
+    }
+    Ok((n * (1u64 << shift) as f64) as u64)
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -338,6 +372,8 @@ struct Built {
     std_seconds: f64,
     slim: Option<(SlimParams, SlimReport)>,
     preset: Preset,
+    level: Option<level::LevelReport>,
+    builder: &'static str,
 }
 
 /// Builds on a worker thread; shows a progress bar once the build has
@@ -345,14 +381,42 @@ struct Built {
 fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Built> {
     let mut config = BuildConfig::default();
     config.sah.max_depth = args.max_depth;
-    let builder = match args.builder {
-        BuilderArg::Sweep => Builder::Sweep,
-        BuilderArg::Naive => Builder::Naive,
-    };
     let progress = Progress::default();
+    let status = Arc::new(level::LevelStatus::default());
+    let mut options = level::LevelOptions {
+        status: Some(status.clone()),
+        ..level::LevelOptions::default()
+    };
+    if let Some(b) = args.mem_budget {
+        options.mem_budget = b;
+    }
+    if let Some(d) = &args.scratch {
+        options.scratch_dir = d.clone();
+    }
     let start = Instant::now();
-    let tree = std::thread::scope(|s| {
-        let worker = s.spawn(|| build::build(scene, &config, builder, Some(&progress)));
+    let pool_threads = rayon::current_num_threads();
+    let built = std::thread::scope(|s| {
+        let worker = s.spawn(|| -> Res<(TreeIr, Option<level::LevelReport>)> {
+            // Run on a pool of the caller's size (the spawned thread is
+            // outside the caller's pool).
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(pool_threads)
+                .build()?;
+            pool.install(|| match args.builder {
+                BuilderArg::Level => {
+                    let (tree, report) = level::build(scene, &config, Some(&progress), &options)?;
+                    Ok((tree, Some(report)))
+                }
+                BuilderArg::Sweep => Ok((
+                    build::build(scene, &config, Builder::Sweep, Some(&progress)),
+                    None,
+                )),
+                BuilderArg::Naive => Ok((
+                    build::build(scene, &config, Builder::Naive, Some(&progress)),
+                    None,
+                )),
+            })
+        });
         let mut bar: Option<ProgressBar> = None;
         while !worker.is_finished() {
             std::thread::sleep(Duration::from_millis(50));
@@ -360,7 +424,7 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
                 let b = ProgressBar::new(1000);
                 b.set_style(
                     ProgressStyle::with_template(
-                        "building {bar:40} {percent:>3}% {elapsed_precise}",
+                        "building {bar:40} {percent:>3}% {elapsed_precise} {msg}",
                     )
                     .expect("the template is valid"),
                 );
@@ -368,6 +432,15 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
             }
             if let Some(b) = &bar {
                 b.set_position((progress.fraction() * 1000.0) as u64);
+                if matches!(args.builder, BuilderArg::Level) {
+                    use std::sync::atomic::Ordering::Relaxed;
+                    b.set_message(format!(
+                        "level {}, {} open nodes, {} refs",
+                        status.level.load(Relaxed),
+                        status.open_nodes.load(Relaxed),
+                        status.refs.load(Relaxed)
+                    ));
+                }
             }
         }
         if let Some(b) = bar {
@@ -376,6 +449,7 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
         worker.join()
     })
     .map_err(|_| "the builder panicked")?;
+    let (tree, level_report) = built?;
     let std_seconds = start.elapsed().as_secs_f64();
     let (params, preset) = args.slim();
     let (tree, slim) = match params {
@@ -392,6 +466,12 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
         std_seconds,
         slim,
         preset,
+        level: level_report,
+        builder: match args.builder {
+            BuilderArg::Level => "level",
+            BuilderArg::Sweep => "sweep",
+            BuilderArg::Naive => "naive",
+        },
     })
 }
 
@@ -432,10 +512,31 @@ fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
         stats.max_depth, stats.mean_leaf_depth, stats.sah_cost
     );
     println!(
-        "build      {:.3} s ({:.2} Mtris/s)",
-        built.seconds,
-        loaded.scene.len() as f64 / built.seconds / 1e6
+        "build      {:.3} s with the {} builder on {} threads ({:.2} Mtris/s)",
+        built.std_seconds,
+        built.builder,
+        rayon::current_num_threads(),
+        loaded.scene.len() as f64 / built.std_seconds / 1e6
     );
+    if let Some(r) = &built.level {
+        let p = &r.phases;
+        println!(
+            "           phases: SAH {:.3} s, classify+clip {:.3} s, events {:.3} s, leaves {:.3} s, small nodes {:.3} s, setup+assembly {:.3} s",
+            p.sah_s,
+            p.classify_clip_s,
+            p.events_s,
+            p.leaves_s,
+            p.small_s,
+            p.setup_s + p.assemble_s
+        );
+        println!(
+            "           peak RssAnon {:.1} MiB (start {:.1} MiB), peak RssFile {:.1} MiB, scratch written {:.1} MiB",
+            r.peak_rss_anon_bytes as f64 / (1 << 20) as f64,
+            r.start_rss_anon_bytes as f64 / (1 << 20) as f64,
+            r.peak_rss_file_bytes as f64 / (1 << 20) as f64,
+            r.scratch.file_bytes_total as f64 / (1 << 20) as f64
+        );
+    }
     if let Some((p, r)) = &built.slim {
         println!(
             "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted, {} subtrees rebuilt; std build {:.3} s, slim pass {:.3} s ({:.2}×)",
@@ -479,12 +580,40 @@ fn build_json(
         "k_t": built.config.sah.k_t,
         "k_i": built.config.sah.k_i,
         "preset": built.preset.name(),
+        "builder": built.builder,
         "std_build_s": built.std_seconds,
+        "level": built.level.as_ref().map(|r| json!({
+            "sah_s": r.phases.sah_s,
+            "classify_clip_s": r.phases.classify_clip_s,
+            "events_s": r.phases.events_s,
+            "leaves_s": r.phases.leaves_s,
+            "small_nodes_s": r.phases.small_s,
+            "setup_s": r.phases.setup_s,
+            "assemble_s": r.phases.assemble_s,
+            "levels": r.levels,
+            "small_nodes": r.small_nodes,
+            "start_rss_anon_bytes": r.start_rss_anon_bytes,
+            "peak_rss_file_bytes": r.peak_rss_file_bytes,
+            "scratch_bytes_written": r.scratch.file_bytes_total,
+        })),
+        "peak_rss_anon_bytes": built.level.as_ref().map_or_else(rss_anon_bytes, |r| r.peak_rss_anon_bytes),
         "hoisted": built.slim.as_ref().map_or(0, |(_, r)| r.hoisted),
         "tau_occu": built.slim.as_ref().map(|(p, _)| p.tau_occu),
         "tau_freq": built.slim.as_ref().map(|(p, _)| p.tau_freq),
         "max_t2rn": built.slim.as_ref().map(|(p, _)| p.max_t2rn),
     })
+}
+
+/// The current `RssAnon` of this process (0 where /proc is missing).
+fn rss_anon_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("RssAnon:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
 }
 
 fn merge(into: &mut serde_json::Value, extra: serde_json::Value) {
@@ -780,7 +909,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 enum Source {
     Built {
         loaded: Loaded,
-        built: Built,
+        built: Box<Built>,
         stats: TreeStats,
     },
     File {
@@ -806,7 +935,11 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
             let loaded = load(&args.scene)?;
             let built = build_tree(&loaded.scene, &args.build, args.json)?;
             let stats = TreeStats::of(&built.tree, &built.config.sah);
-            Source::Built { loaded, built, stats }
+            Source::Built {
+                loaded,
+                built: Box::new(built),
+                stats,
+            }
         };
         let (scene_path, columns, bounds) = match &source {
             Source::Built { loaded, built, .. } => (loaded.path.clone(), &loaded.scene, built.tree.bounds),
@@ -918,7 +1051,9 @@ fn main_job() -> Res<()> {
     let args = RenderArgs {
         scene: PathBuf::from(DEFAULT_ARG),
         build: BuildArgs {
-            builder: BuilderArg::Sweep,
+            builder: BuilderArg::Level,
+            mem_budget: None,
+            scratch: None,
             threads: None,
             max_depth: None,
             preset: PresetArg::Std,

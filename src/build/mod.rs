@@ -6,6 +6,9 @@
 //!   triangles directly, O(N²) per node.
 //! - [`sweep`]: Wald & Havran (2006), O(N log N): events sorted once, one
 //!   sweep per axis, children inherit their event order.
+//! - [`level`]: breadth-first, level by level, parallel over events (Wu,
+//!   Zhao & Liu 2011), over columns that may live in mapped scratch files;
+//!   small nodes are finished depth-first in parallel. The default.
 //!
 //! **The tree both build, defined once.** The root cell is the scene's
 //! bounds and every triangle's box in it is its own bounds. At a node, the

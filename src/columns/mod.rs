@@ -148,8 +148,10 @@ pub struct Scratch {
     peak_ram: AtomicU64,
     peak_file: AtomicU64,
     file_total: AtomicU64,
-    /// Files created so far; also makes file names unique.
+    /// Scratch files created so far.
     files: AtomicU64,
+    /// File names handed out; makes them unique.
+    names: AtomicU64,
 }
 
 impl Scratch {
@@ -181,6 +183,7 @@ impl Scratch {
             peak_file: AtomicU64::new(0),
             file_total: AtomicU64::new(0),
             files: AtomicU64::new(0),
+            names: AtomicU64::new(0),
         })
     }
 
@@ -203,9 +206,11 @@ impl Scratch {
         // Reserve the bytes against the budget first; give them back when
         // they do not fit, so concurrent allocations never overshoot it.
         let before = self.ram.fetch_add(bytes, Ordering::Relaxed);
-        if before
-            .checked_add(bytes)
-            .is_some_and(|b| b <= self.config.mem_budget)
+        // An empty column needs no file, whatever the budget.
+        if bytes == 0
+            || before
+                .checked_add(bytes)
+                .is_some_and(|b| b <= self.config.mem_budget)
         {
             self.peak_ram.fetch_max(before + bytes, Ordering::Relaxed);
             return Ok(Column {
@@ -216,7 +221,7 @@ impl Scratch {
             });
         }
         self.ram.fetch_sub(bytes, Ordering::Relaxed);
-        let seq = self.files.fetch_add(1, Ordering::Relaxed);
+        let seq = self.names.fetch_add(1, Ordering::Relaxed);
         let path = self
             .config
             .dir
@@ -243,6 +248,7 @@ impl Scratch {
         };
         self.peak_file.fetch_max(before + bytes, Ordering::Relaxed);
         self.file_total.fetch_add(bytes, Ordering::Relaxed);
+        self.files.fetch_add(1, Ordering::Relaxed);
         Ok(Column {
             storage: Storage::File {
                 map,

@@ -409,14 +409,19 @@ struct Pick {
 /// is picked (their subtrees are not walked further in this pass).
 fn find_picks(work: &Work, sub: Todo, sa_root: f64, params: &SlimParams) -> Vec<Pick> {
     let mut picks = Vec::new();
-    if sub.t2rn >= params.max_t2rn || !matches!(work.nodes[sub.node as usize], WNode::Inner { .. }) {
+    if sub.t2rn >= params.max_t2rn || !matches!(work.nodes[sub.node as usize], WNode::Inner { .. })
+    {
         return picks;
     }
     let analysis = analyze(work, sub.node, sub.cell, sa_root, params);
     let mut stack = vec![sub];
     while let Some(at) = stack.pop() {
         let WNode::Inner {
-            axis, pos, left, right, ..
+            axis,
+            pos,
+            left,
+            right,
+            ..
         } = work.nodes[at.node as usize]
         else {
             continue;
@@ -441,7 +446,11 @@ fn find_picks(work: &Work, sub: Todo, sa_root: f64, params: &SlimParams) -> Vec<
 /// The children of an inner node as subtrees to process.
 fn children(work: &Work, at: &Todo, t2rn: u32) -> [Todo; 2] {
     let WNode::Inner {
-        axis, pos, left, right, ..
+        axis,
+        pos,
+        left,
+        right,
+        ..
     } = work.nodes[at.node as usize]
     else {
         unreachable!("only inner nodes are picked");
@@ -463,7 +472,12 @@ fn children(work: &Work, at: &Todo, t2rn: u32) -> [Todo; 2] {
 /// children. A node's pick depends only on its own subtree, so this order
 /// gives the same tree as the sequential stack of the paper (the tests
 /// assert it against a literal implementation), for any thread count.
-pub fn slim(tree: &TreeIr, scene: &TriangleColumns, config: &BuildConfig, params: &SlimParams) -> (TreeIr, SlimReport) {
+pub fn slim(
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    params: &SlimParams,
+) -> (TreeIr, SlimReport) {
     use rayon::prelude::*;
     let mut work = Work {
         nodes: Vec::new(),

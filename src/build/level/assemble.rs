@@ -27,12 +27,12 @@ pub enum Rec {
     Sub(u32),
 }
 
-/// The tree, in pre-order from record 0.
+/// The tree, in pre-order from record 0; consumes the subtrees.
 pub fn assemble(
     bounds: crate::geom::Aabb,
     recs: &[Rec],
     tris: &[TriId],
-    subs: &[TreeIr],
+    subs: Vec<TreeIr>,
 ) -> TreeIr {
     let n_nodes: usize = recs
         .iter()
@@ -42,6 +42,7 @@ pub fn assemble(
         })
         .sum();
     let n_tris = tris.len() + subs.iter().map(|s| s.leaf_tris.len()).sum::<usize>();
+    let mut subs: Vec<Option<TreeIr>> = subs.into_iter().map(Some).collect();
     let mut nodes = Vec::with_capacity(n_nodes);
     let mut leaf_tris = Vec::with_capacity(n_tris);
     // (record, inner node whose right child it is)
@@ -76,7 +77,11 @@ pub fn assemble(
                 nodes.push(Node::Leaf { start: at, count });
             }
             Rec::Sub(s) => {
-                let sub = &subs[s as usize];
+                // Each subtree is copied once and freed at once, so the
+                // subtrees and the tree are not all held together.
+                let sub = subs[s as usize]
+                    .take()
+                    .expect("each subtree hangs below one record");
                 let base = nodes.len() as u32;
                 let tbase = leaf_tris.len() as u32;
                 nodes.extend(sub.nodes.iter().map(|n| match *n {

@@ -123,7 +123,9 @@ impl<'a> Finisher<'a> {
     ) {
         let sa = cell.surface_area();
         let mut best = None;
-        if n > 0 && sa > 0.0 {
+        // At the depth limit the node is a leaf whatever its best split
+        // ([`sah::is_leaf`]), so the sweep is skipped.
+        if n > 0 && sa > 0.0 && depth < self.depth_limit {
             for (axis, ev) in self.ev.iter().enumerate() {
                 let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
                 sweep_events(self.params, &cell, sa, axis, ev, 0, n, &mut best);
@@ -143,6 +145,41 @@ impl<'a> Finisher<'a> {
         let split: Split = best.expect("a split exists when the node is not a leaf");
         let (lc, rc) = cell.split(split.axis as usize, split.pos);
         let c = self.classify(r0, n, &split, &lc, &rc);
+        let (wl, wr) = Progress::share(weight, c.n[0], c.n[1]);
+        if depth + 1 >= self.depth_limit {
+            // Both children lie at the depth limit, so they are leaves: they
+            // need their triangle lists (the clipping above decided which
+            // straddlers stay), not their events.
+            self.nodes.push(Node::Inner {
+                axis: split.axis,
+                pos: split.pos,
+                right: NodeId(self.nodes.len() as u32 + 2),
+                t_ref: None,
+            });
+            for (side, w) in [(0, wl), (1, wr)] {
+                let start = self.leaf_tris.len() as u32;
+                let mut straddler = 0;
+                for i in 0..n {
+                    let code = self.place[i];
+                    let goes = if code & CLIPPED == 0 {
+                        usize::from(code == TO_RIGHT) == side
+                    } else {
+                        code & (1 << side) != 0
+                    };
+                    straddler += usize::from(code & CLIPPED != 0);
+                    if goes {
+                        self.leaf_tris.push(TriId(self.tri[r0 + i]));
+                    }
+                }
+                debug_assert_eq!(straddler, self.clipped.len());
+                self.nodes.push(Node::Leaf {
+                    start,
+                    count: self.leaf_tris.len() as u32 - start,
+                });
+                Progress::add(self.progress, w);
+            }
+            return;
+        }
 
         // Child references: left at [c0[0], c0[1]), right at [c0[1], end).
         let l0 = self.tri.len();
@@ -185,8 +222,7 @@ impl<'a> Finisher<'a> {
         let mut ce0 = [[0usize; 3]; 2];
         let mut cne = [[0usize; 3]; 2];
         for axis in 0..3 {
-            for side in 0..2 {
-                let new = &mut self.new_ev[side];
+            for (side, new) in self.new_ev.iter_mut().enumerate() {
                 new.clear();
                 if c.new[side][axis] > 0 {
                     for &(s, r) in &self.copies {
@@ -233,7 +269,6 @@ impl<'a> Finisher<'a> {
             }
         }
 
-        let (wl, wr) = Progress::share(weight, c.n[0], c.n[1]);
         let me = self.nodes.len();
         self.nodes.push(Node::Inner {
             axis: split.axis,
