@@ -19,33 +19,6 @@ fn check(tris: &[[Vec3; 3]], extent: f32) -> (TriangleColumns, TreeIr) {
     (scene, tree)
 }
 
-fn v(x: f32, y: f32, z: f32) -> Vec3 {
-    Vec3::new(x, y, z)
-}
-
-/// The 12 triangles of an axis-aligned box.
-fn box_mesh(lo: Vec3, hi: Vec3) -> Vec<[Vec3; 3]> {
-    let c = |i: u32| {
-        v(
-            if i & 1 == 0 { lo.x } else { hi.x },
-            if i & 2 == 0 { lo.y } else { hi.y },
-            if i & 4 == 0 { lo.z } else { hi.z },
-        )
-    };
-    let quads = [
-        [0, 1, 3, 2],
-        [4, 6, 7, 5],
-        [0, 4, 5, 1],
-        [2, 3, 7, 6],
-        [0, 2, 6, 4],
-        [1, 5, 7, 3],
-    ];
-    quads
-        .iter()
-        .flat_map(|q| [[c(q[0]), c(q[1]), c(q[2])], [c(q[0]), c(q[2]), c(q[3])]])
-        .collect()
-}
-
 #[test]
 fn empty_scene() {
     let (scene, tree) = check(&[], 1.0);
