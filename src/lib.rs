@@ -6,12 +6,17 @@
 //! 1. [`scene::load_obj`] reads a mesh into [`scene::TriangleColumns`].
 //! 2. [`build::build`] builds the standard SAH kd-tree (exact SAH, perfect
 //!    splits) as a [`tree::TreeIr`]; [`build::naive`] is the O(N²)
-//!    reference and [`build::sweep`] the O(N log N) builder of Wald &
-//!    Havran (2006); both produce the same tree.
-//! 3. [`trace`] finds closest hits (front-to-back traversal, or brute
-//!    force for reference).
-//! 4. [`render`] shoots camera rays over image tiles in parallel and writes
-//!    PNG or OpenEXR.
+//!    reference, [`build::sweep`] the O(N log N) builder of Wald & Havran
+//!    (2006), and [`build::level`] the breadth-first parallel builder of
+//!    Wu, Zhao & Liu (2011) over [`columns`] that may live in scratch
+//!    files; all three produce the same tree.
+//! 3. [`slim::slim`] hoists duplicated triangles into inner nodes (Choi,
+//!    Chang & Ihm 2013); [`format`] writes the tree and its geometry as a
+//!    `.kd` file that [`format::KdFile`] maps and validates.
+//! 4. [`trace`] finds closest hits: scalar front-to-back traversal, 4×4
+//!    SIMD packets, or brute force for reference.
+//! 5. [`render`] shoots camera rays over image tiles in parallel and writes
+//!    PNG or OpenEXR; [`stats`] reports the figures of the papers.
 //!
 //! ```
 //! use slimkd::{build, scene::TriangleColumns, trace, geom::Ray};
