@@ -25,7 +25,7 @@ figures() {  # figures NAME OBJ
   for _ in 1 2 3; do
     builds+=("$($S build "$obj" -o "$kd" --reorder --json | json build_s)")
   done
-  echo "$name: build (sweep, std) median of 3: $(median "${builds[@]}") s"
+  echo "$name: build (level builder, all threads, std tree) median of 3: $(median "${builds[@]}") s"
   for view in 1 2 3; do
     for mode in single packet; do
       for t in 1 2; do
