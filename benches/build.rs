@@ -127,6 +127,7 @@ fn builder_name(builder: Builder) -> &'static str {
     match builder {
         Builder::Naive => "naive",
         Builder::Sweep => "sweep",
+        Builder::Level => "level",
     }
 }
 

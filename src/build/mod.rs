@@ -44,9 +44,18 @@ pub struct BuildConfig {
 pub enum Builder {
     Naive,
     Sweep,
+    /// The level builder with default options (everything in RAM).
+    Level,
 }
 
 /// Builds the standard tree with the chosen builder.
+///
+/// # Panics
+///
+/// With [`Builder::Level`], if the level builder fails: with its default
+/// options (no scratch files) that happens only when one level holds more
+/// than 2³⁰ references. Call [`level::build`] for a fallible build with a
+/// report, a memory budget and scratch files.
 pub fn build(
     scene: &TriangleColumns,
     config: &BuildConfig,
@@ -56,6 +65,12 @@ pub fn build(
     match builder {
         Builder::Naive => naive::build(scene, config, progress),
         Builder::Sweep => sweep::build(scene, config, progress),
+        Builder::Level => {
+            match level::build(scene, config, progress, &level::LevelOptions::default()) {
+                Ok((tree, _)) => tree,
+                Err(e) => panic!("level builder failed: {e}"),
+            }
+        }
     }
 }
 
