@@ -19,10 +19,10 @@
 //! every node it finishes. A node's children are pushed above it, built
 //! one after the other, and popped.
 
-use super::event::{Box6, ev_ref, n_events, push_events, to_aabb, to_box, with_ref};
-use super::{CLIPPED, SideCounts, TO_LEFT, TO_RIGHT, sweep_events};
+use super::event::{Box6, ev_ref, push_events, to_box, with_ref};
+use super::{CLIPPED, SideCounts, TO_RIGHT, classify_ref, sweep_events};
+use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
-use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
@@ -296,44 +296,18 @@ impl<'a> Finisher<'a> {
         self.place.clear();
         self.clipped.clear();
         for i in r0..r0 + n {
-            let b = &self.boxes[i];
-            let bx = to_aabb(b);
-            let code = match classify(&bx, split) {
-                Placement::Left => {
-                    c.n[0] += 1;
-                    for k in 0..3 {
-                        c.inherited[0][k] += n_events(b, k);
-                    }
-                    TO_LEFT
-                }
-                Placement::Right => {
-                    c.n[1] += 1;
-                    for k in 0..3 {
-                        c.inherited[1][k] += n_events(b, k);
-                    }
-                    TO_RIGHT
-                }
-                Placement::Both => {
-                    let r = TriRef {
-                        tri: TriId(self.tri[i]),
-                        bounds: bx,
-                    };
-                    let (lb, rb) = clip_straddler(self.scene, &r, lc, rc);
-                    let mut code = CLIPPED;
-                    for (side, cb) in [lb, rb].iter().enumerate() {
-                        if let Some(cb) = cb {
-                            code |= 1 << side;
-                            c.n[side] += 1;
-                            let cb = to_box(cb);
-                            for k in 0..3 {
-                                c.new[side][k] += n_events(&cb, k);
-                            }
-                        }
-                    }
-                    self.clipped.push((lb, rb));
-                    code
-                }
-            };
+            let (code, straddler) = classify_ref(
+                self.scene,
+                self.tri[i],
+                &self.boxes[i],
+                split,
+                lc,
+                rc,
+                &mut c,
+            );
+            if let Some(boxes) = straddler {
+                self.clipped.push(boxes);
+            }
             self.place.push(code);
         }
         c

@@ -355,6 +355,61 @@ const TO_LEFT: u8 = 1;
 const TO_RIGHT: u8 = 2;
 const CLIPPED: u8 = 4;
 
+/// A straddler's clipped boxes in the left and right child.
+type ChildBoxes = (Option<Aabb>, Option<Aabb>);
+
+/// Classifies one reference (box `b` of triangle `tri`) against `split`,
+/// clips it if it straddles, and adds what each side inherits or gains to
+/// `c`. Returns the placement code and, for a straddler, its clipped boxes
+/// in the two children. The breadth-first pass and the depth-first
+/// finisher share it, so they cannot classify differently.
+fn classify_ref(
+    scene: &TriangleColumns,
+    tri: u32,
+    b: &Box6,
+    split: &Split,
+    lc: &Aabb,
+    rc: &Aabb,
+    c: &mut SideCounts,
+) -> (u8, Option<ChildBoxes>) {
+    let bx = to_aabb(b);
+    match classify(&bx, split) {
+        Placement::Left => {
+            c.n[0] += 1;
+            for k in 0..3 {
+                c.inherited[0][k] += n_events(b, k);
+            }
+            (TO_LEFT, None)
+        }
+        Placement::Right => {
+            c.n[1] += 1;
+            for k in 0..3 {
+                c.inherited[1][k] += n_events(b, k);
+            }
+            (TO_RIGHT, None)
+        }
+        Placement::Both => {
+            let r = TriRef {
+                tri: TriId(tri),
+                bounds: bx,
+            };
+            let (lb, rb) = clip_straddler(scene, &r, lc, rc);
+            let mut code = CLIPPED;
+            for (side, cb) in [lb, rb].iter().enumerate() {
+                if let Some(cb) = cb {
+                    code |= 1 << side;
+                    c.n[side] += 1;
+                    let cb = to_box(cb);
+                    for k in 0..3 {
+                        c.new[side][k] += n_events(&cb, k);
+                    }
+                }
+            }
+            (code, Some((lb, rb)))
+        }
+    }
+}
+
 /// What the classify pass found in one piece.
 struct Classified {
     /// Per node of the piece.
@@ -744,44 +799,11 @@ impl<'a> Builder<'a> {
                     let (lc, rc) = l.nodes[j].cell.split(split.axis as usize, split.pos);
                     let mut c = SideCounts::default();
                     for i in p.range(rsegs[si]) {
-                        let b = &l.bounds[i];
-                        let bx = to_aabb(b);
-                        let code = match classify(&bx, &split) {
-                            Placement::Left => {
-                                c.n[0] += 1;
-                                for k in 0..3 {
-                                    c.inherited[0][k] += n_events(b, k);
-                                }
-                                TO_LEFT
-                            }
-                            Placement::Right => {
-                                c.n[1] += 1;
-                                for k in 0..3 {
-                                    c.inherited[1][k] += n_events(b, k);
-                                }
-                                TO_RIGHT
-                            }
-                            Placement::Both => {
-                                let r = TriRef {
-                                    tri: TriId(l.tri[i]),
-                                    bounds: bx,
-                                };
-                                let (lb, rb) = clip_straddler(scene, &r, &lc, &rc);
-                                let mut code = CLIPPED;
-                                for (side, cb) in [lb, rb].iter().enumerate() {
-                                    if let Some(cb) = cb {
-                                        code |= 1 << side;
-                                        c.n[side] += 1;
-                                        let cb = to_box(cb);
-                                        for k in 0..3 {
-                                            c.new[side][k] += n_events(&cb, k);
-                                        }
-                                    }
-                                }
-                                clipped.push((i as u32, lb, rb));
-                                code
-                            }
-                        };
+                        let (code, straddler) =
+                            classify_ref(scene, l.tri[i], &l.bounds[i], &split, &lc, &rc, &mut c);
+                        if let Some((lb, rb)) = straddler {
+                            clipped.push((i as u32, lb, rb));
+                        }
                         // SAFETY: the pieces cover disjoint reference
                         // ranges, so position `i` is this piece's alone.
                         unsafe { place.write(i, code) };
