@@ -358,25 +358,6 @@ fn params_strategy() -> impl Strategy<Value = SlimParams> {
     })
 }
 
-/// 16 rays from one half-integer origin towards a 4×4 grid of targets (a
-/// coherent packet), or 16 independent rays, as in `tests/packet.rs`.
-fn packet(g: i32) -> impl Strategy<Value = [Ray; 16]> {
-    let coord = move || (-2..=2 * g + 2).prop_map(|k| k as f32 * 0.5);
-    let point = move || (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
-    let coherent = (point(), point(), 1..4i32, 0..3usize).prop_map(|(o, t, step, axis)| {
-        std::array::from_fn(|i| {
-            let mut target = t;
-            let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
-            target[a] += (i % 4) as f32 * 0.5 * step as f32;
-            target[b] += (i / 4) as f32 * 0.5 * step as f32;
-            let d = target - o;
-            Ray::new(o, if d == Vec3::ZERO { Vec3::X } else { d })
-        })
-    });
-    let loose = prop::collection::vec(grid_ray(g), 16).prop_map(|v| std::array::from_fn(|i| v[i]));
-    prop_oneof![3 => coherent, 1 => loose]
-}
-
 /// Asserts that `src` answers every ray with `want` (brute force's hit),
 /// scalar and in packets at every instruction set of this CPU.
 fn check_hits(src: &impl KdSource, packets: &[[Ray; 16]], want: &[[Hit; 16]], what: &str) {

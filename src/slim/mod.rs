@@ -416,29 +416,16 @@ fn find_picks(work: &Work, sub: Todo, sa_root: f64, params: &SlimParams) -> Vec<
     let analysis = analyze(work, sub.node, sub.cell, sa_root, params);
     let mut stack = vec![sub];
     while let Some(at) = stack.pop() {
-        let WNode::Inner {
-            axis,
-            pos,
-            left,
-            right,
-            ..
-        } = work.nodes[at.node as usize]
-        else {
+        if !matches!(work.nodes[at.node as usize], WNode::Inner { .. }) {
             continue;
-        };
+        }
         if let Some(&tri) = analysis.picks.get(&at.node) {
             picks.push(Pick { at, tri });
             continue;
         }
-        let (lc, rc) = at.cell.split(axis as usize, pos);
-        for (node, cell) in [(right, rc), (left, lc)] {
-            stack.push(Todo {
-                node,
-                cell,
-                depth: at.depth + 1,
-                t2rn: at.t2rn,
-            });
-        }
+        let [l, r] = children(work, &at, at.t2rn);
+        stack.push(r);
+        stack.push(l);
     }
     picks
 }
@@ -453,7 +440,7 @@ fn children(work: &Work, at: &Todo, t2rn: u32) -> [Todo; 2] {
         ..
     } = work.nodes[at.node as usize]
     else {
-        unreachable!("only inner nodes are picked");
+        unreachable!("children() is called on inner nodes only");
     };
     let (lc, rc) = at.cell.split(axis as usize, pos);
     [(left, lc), (right, rc)].map(|(node, cell)| Todo {

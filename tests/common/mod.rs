@@ -128,3 +128,22 @@ pub fn box_mesh(lo: Vec3, hi: Vec3) -> Vec<[Vec3; 3]> {
         .flat_map(|q| [[c(q[0]), c(q[1]), c(q[2])], [c(q[0]), c(q[2]), c(q[3])]])
         .collect()
 }
+
+/// 16 rays from one half-integer origin towards a 4×4 grid of targets (a
+/// coherent packet), or 16 independent grid rays.
+pub fn packet(g: i32) -> impl Strategy<Value = [Ray; 16]> {
+    let coord = move || (-2..=2 * g + 2).prop_map(|k| k as f32 * 0.5);
+    let point = move || (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
+    let coherent = (point(), point(), 1..4i32, 0..3usize).prop_map(|(o, t, step, axis)| {
+        std::array::from_fn(|i| {
+            let mut target = t;
+            let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+            target[a] += (i % 4) as f32 * 0.5 * step as f32;
+            target[b] += (i / 4) as f32 * 0.5 * step as f32;
+            let d = target - o;
+            Ray::new(o, if d == Vec3::ZERO { Vec3::X } else { d })
+        })
+    });
+    let loose = prop::collection::vec(grid_ray(g), 16).prop_map(|v| std::array::from_fn(|i| v[i]));
+    prop_oneof![3 => coherent, 1 => loose]
+}
