@@ -15,8 +15,9 @@
 //! candidate planes are the bounds of the triangles' boxes in that node
 //! (perfect splits); [`sah`] prices them and picks one or makes a leaf. A
 //! triangle whose box lies on one side of the chosen plane ([`classify`])
-//! keeps its box in that child; a straddler's box in each child is
-//! `clip_triangle(tri, child cell) ∩ box in the parent`, and a straddler
+//! keeps its box in that child; a straddler's box in each child is the
+//! bounds of `tri ∩ parent cell` on that side of the plane
+//! ([`crate::geom::clip_split`]) `∩ its box in the parent`, and a straddler
 //! whose clipped box is empty (possible only by a rounding margin) is left
 //! out of that child. Leaves list their triangles in ascending id, and the
 //! nodes are emitted in pre-order.
@@ -26,7 +27,7 @@ pub mod naive;
 pub mod sah;
 pub mod sweep;
 
-use crate::geom::{Aabb, clip_triangle};
+use crate::geom::{Aabb, clip_split};
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use glam::Vec3;
@@ -110,20 +111,25 @@ pub fn classify(bounds: &Aabb, split: &Split) -> Placement {
     }
 }
 
-/// The boxes of a straddler in the two children (see the module docs).
+/// The boxes of a straddler in the two children (see the module docs):
+/// `left_cell` and `right_cell` are the parent's cell split by `split`.
+/// The triangle is clipped to the parent's cell once and the polygon split
+/// by the plane ([`clip_split`]).
 pub fn clip_straddler(
     scene: &TriangleColumns,
     r: &TriRef,
+    split: &Split,
     left_cell: &Aabb,
     right_cell: &Aabb,
 ) -> (Option<Aabb>, Option<Aabb>) {
     let tri = scene.tri(r.tri.0);
-    let clip = |cell: &Aabb| {
-        clip_triangle(&tri, cell)
-            .map(|b| b.intersection(&r.bounds))
+    let cell = Aabb::new(left_cell.min, right_cell.max);
+    let [l, r2] = clip_split(&tri, &cell, split.axis as usize, split.pos);
+    let keep = |b: Option<Aabb>| {
+        b.map(|b| b.intersection(&r.bounds))
             .filter(|b| !b.is_empty())
     };
-    (clip(left_cell), clip(right_cell))
+    (keep(l), keep(r2))
 }
 
 /// The root cell and the root's triangle references.

@@ -83,7 +83,7 @@ impl Ctx<'_> {
                 Placement::Left => left.push(*r),
                 Placement::Right => right.push(*r),
                 Placement::Both => {
-                    let (lb, rb) = clip_straddler(self.scene, r, &left_cell, &right_cell);
+                    let (lb, rb) = clip_straddler(self.scene, r, &split, &left_cell, &right_cell);
                     if let Some(bounds) = lb {
                         left.push(TriRef { tri: r.tri, bounds });
                     }

@@ -393,7 +393,7 @@ fn classify_ref(
                 tri: TriId(tri),
                 bounds: bx,
             };
-            let (lb, rb) = clip_straddler(scene, &r, lc, rc);
+            let (lb, rb) = clip_straddler(scene, &r, split, lc, rc);
             let mut code = CLIPPED;
             for (side, cb) in [lb, rb].iter().enumerate() {
                 if let Some(cb) = cb {
