@@ -127,9 +127,9 @@ impl Bounds64 {
 
     #[inline]
     fn add(&mut self, p: &[f64; 3]) {
-        for k in 0..3 {
-            self.lo[k] = self.lo[k].min(p[k]);
-            self.hi[k] = self.hi[k].max(p[k]);
+        for (k, &x) in p.iter().enumerate() {
+            self.lo[k] = self.lo[k].min(x);
+            self.hi[k] = self.hi[k].max(x);
         }
     }
 
