@@ -20,12 +20,21 @@
 //! one after the other, and popped.
 
 use super::event::{Box6, ev_ref, push_events, to_box, with_ref};
-use super::{CLIPPED, SideCounts, TO_RIGHT, classify_ref, sweep_events};
+use super::{CLIPPED, SideCounts, TO_LEFT, TO_RIGHT, classify_ref, sweep_events};
 use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
+
+/// The partition slot of a placement code: 0 left, 1 right, 2 dropped
+/// (a clipped straddler, whose events are made anew).
+const SLOT: [usize; 8] = {
+    let mut t = [2; 8];
+    t[TO_LEFT as usize] = 0;
+    t[TO_RIGHT as usize] = 1;
+    t
+};
 
 /// A worker's scratch for finishing small nodes.
 pub struct Finisher<'a> {
@@ -216,9 +225,8 @@ impl<'a> Finisher<'a> {
             }
         }
 
-        // Child events: inherited by stable partition, with each side's
-        // sorted new events merged in on the way (one pass, where the level
-        // passes partition first and merge after).
+        // Child events: inherited by a stable partition, then each side's
+        // sorted new events merged in.
         let mut ce0 = [[0usize; 3]; 2];
         let mut cne = [[0usize; 3]; 2];
         for axis in 0..3 {
@@ -242,30 +250,39 @@ impl<'a> Finisher<'a> {
             ce0[1][axis] = base + nl;
             cne[0][axis] = nl;
             cne[1][axis] = nr;
-            stack.resize(base + nl + nr, 0);
+            // One slot past both children takes the straddlers' events,
+            // which are dropped: the partition writes every event somewhere
+            // and only advances the cursor of a side that keeps it, so it
+            // has no data-dependent branch.
+            stack.resize(base + nl + nr + 1, 0);
             let (src, dst) = stack.split_at_mut(base);
-            let mut at = [0, nl];
-            let mut next = [0usize; 2];
+            let mut at = [0, nl, nl + nr];
             for &e in &src[e0[axis]..e0[axis] + ne[axis]] {
                 let r = ev_ref(e) as usize;
-                let code = self.place[r];
-                if code & CLIPPED == 0 {
-                    let side = usize::from(code == TO_RIGHT);
-                    let e = with_ref(e, self.new_idx[r]);
-                    let new = &self.new_ev[side];
-                    while next[side] < new.len() && new[next[side]] < e {
-                        dst[at[side]] = new[next[side]];
-                        at[side] += 1;
-                        next[side] += 1;
-                    }
-                    dst[at[side]] = e;
-                    at[side] += 1;
-                }
+                let slot = SLOT[usize::from(self.place[r])];
+                dst[at[slot]] = with_ref(e, self.new_idx[r]);
+                at[slot] += usize::from(slot < 2);
             }
-            for side in 0..2 {
-                let rest = &self.new_ev[side][next[side]..];
-                dst[at[side]..at[side] + rest.len()].copy_from_slice(rest);
-                debug_assert_eq!(at[side] + rest.len(), if side == 0 { nl } else { nl + nr });
+            debug_assert_eq!(at[0], c.inherited[0][axis]);
+            debug_assert_eq!(at[1], nl + c.inherited[1][axis]);
+            stack.truncate(base + nl + nr);
+            // Each side's sorted new events merge in from the back: only the
+            // inherited events above the smallest new one move.
+            for (side, start) in [(0, base), (1, base + nl)] {
+                let new = &self.new_ev[side];
+                let mut i = c.inherited[side][axis];
+                let mut k = i + new.len();
+                let region = &mut stack[start..start + k];
+                for &ne in new.iter().rev() {
+                    while i > 0 && region[i - 1] > ne {
+                        k -= 1;
+                        i -= 1;
+                        region[k] = region[i];
+                    }
+                    k -= 1;
+                    region[k] = ne;
+                }
+                debug_assert_eq!(i, k);
             }
         }
 

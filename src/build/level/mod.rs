@@ -934,6 +934,12 @@ impl Pricer {
         let x = f64::from(pos);
         let p_l = self.a2 + (x - self.lo) * self.b2;
         let p_r = self.a2 + (self.hi - x) * self.b2;
+        if n_p == 0 && n_l != 0 && n_r != 0 {
+            // The common case: no planar triangles, both sides occupied, so
+            // λ = 1 and the planar side does not matter.
+            let c = self.k_t + self.k_i * (p_l * n_l as f64 + p_r * n_r as f64);
+            return c * (1.0 - 1e-10);
+        }
         let on_face = pos == self.lo32 || pos == self.hi32;
         let cost = |nl: usize, nr: usize| {
             let lambda = if (nl == 0 || nr == 0) && !on_face {
