@@ -22,7 +22,8 @@
 //! `SLIMKD_LEVEL_THRESHOLD=N` sets the level builder's small-node
 //! threshold; `SLIMKD_MEM_BUDGET=SIZE` (bytes, or with a K, M or G suffix)
 //! its column budget, with scratch files in `SLIMKD_SCRATCH` (default: the
-//! temporary directory); `-- --level-only` skips the naive and sweep timings (the tree
+//! temporary directory); `SLIMKD_NEW_EVENTS=bucket|merge` how clipped
+//! references' events join their child's list (default merge); `-- --level-only` skips the naive and sweep timings (the tree
 //! check then builds the sweep tree once, untimed, unless `--no-check`).
 //!
 //! Run it with `cargo bench --bench build`, or with the large scene as
@@ -32,7 +33,7 @@
 mod common;
 
 use glam::Vec3;
-use slimkd::build::level::{self, LevelOptions, LevelReport};
+use slimkd::build::level::{self, LevelOptions, LevelReport, NewEvents};
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::geom::double_area;
 use slimkd::scene::TriangleColumns;
@@ -299,6 +300,11 @@ fn main() {
         scratch_dir: std::env::var_os("SLIMKD_SCRATCH")
             .map(Into::into)
             .unwrap_or_else(std::env::temp_dir),
+        new_events: match std::env::var("SLIMKD_NEW_EVENTS").as_deref() {
+            Ok("bucket") => NewEvents::Bucket,
+            Ok("merge") | Err(_) => NewEvents::SortMerge,
+            Ok(v) => panic!("SLIMKD_NEW_EVENTS: {v:?} is not bucket or merge"),
+        },
         ..LevelOptions::default()
     };
     if mem_budget != u64::MAX {

@@ -11,7 +11,7 @@ mod common;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
-use slimkd::build::level::{self, LevelOptions, LevelReport};
+use slimkd::build::level::{self, LevelOptions, LevelReport, NewEvents};
 use slimkd::build::sah::SahParams;
 use slimkd::build::{self as b, BuildConfig, Builder};
 use slimkd::columns::ColumnsError;
@@ -77,11 +77,14 @@ proptest! {
         tris in grid_scene(40),
         t in 0..THRESHOLDS.len(),
         tiny_budget in any::<bool>(),
+        bucket in any::<bool>(),
     ) {
         let scene = columns(&tris);
         let dir = scratch_dir("prop");
         let budget = if tiny_budget { 0 } else { u64::MAX };
-        check_with(&scene, &BuildConfig::default(), &opts(THRESHOLDS[t], budget, &dir));
+        let new_events = if bucket { NewEvents::Bucket } else { NewEvents::SortMerge };
+        let options = LevelOptions { new_events, ..opts(THRESHOLDS[t], budget, &dir) };
+        check_with(&scene, &BuildConfig::default(), &options);
         std::fs::remove_dir_all(dir).unwrap();
     }
 

@@ -119,6 +119,10 @@ struct BuildArgs {
     /// temporary directory).
     #[arg(long)]
     scratch: Option<PathBuf>,
+    /// Level builder: how the events of clipped references join their
+    /// child's sorted list (the same tree either way; for measurements).
+    #[arg(long, value_enum, default_value_t = NewEventsArg::Merge)]
+    new_events: NewEventsArg,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -190,6 +194,14 @@ enum BuilderArg {
     Sweep,
     /// The O(N²)-per-node reference.
     Naive,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum NewEventsArg {
+    /// Sort them and merge them in from the back.
+    Merge,
+    /// Wu et al.'s bucket sort, the inherited events as buckets.
+    Bucket,
 }
 
 /// Parses a byte count: a number with an optional K, M, G or T suffix
@@ -385,6 +397,10 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
     let status = Arc::new(level::LevelStatus::default());
     let mut options = level::LevelOptions {
         status: Some(status.clone()),
+        new_events: match args.new_events {
+            NewEventsArg::Merge => level::NewEvents::SortMerge,
+            NewEventsArg::Bucket => level::NewEvents::Bucket,
+        },
         ..level::LevelOptions::default()
     };
     if let Some(b) = args.mem_budget {
@@ -1054,6 +1070,7 @@ fn main_job() -> Res<()> {
             builder: BuilderArg::Level,
             mem_budget: None,
             scratch: None,
+            new_events: NewEventsArg::Merge,
             threads: None,
             max_depth: None,
             preset: PresetArg::Std,

@@ -20,7 +20,7 @@
 //! one after the other, and popped.
 
 use super::event::{Box6, ev_ref, push_events, to_box, with_ref};
-use super::{CLIPPED, SideCounts, TO_LEFT, TO_RIGHT, classify_ref, sweep_events};
+use super::{CLIPPED, NewEvents, SideCounts, TO_LEFT, TO_RIGHT, classify_ref, sweep_events};
 use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
 use crate::geom::Aabb;
@@ -62,6 +62,7 @@ pub struct Finisher<'a> {
     new_ev: [Vec<u64>; 2],
     nodes: Vec<Node>,
     leaf_tris: Vec<TriId>,
+    new_events: NewEvents,
 }
 
 impl<'a> Finisher<'a> {
@@ -86,7 +87,14 @@ impl<'a> Finisher<'a> {
             new_ev: Default::default(),
             nodes: Vec::new(),
             leaf_tris: Vec::new(),
+            new_events: NewEvents::default(),
         }
+    }
+
+    /// How clipped references' events join their child's list.
+    pub fn with_new_events(mut self, mode: NewEvents) -> Self {
+        self.new_events = mode;
+        self
     }
 
     /// The subtree of one node: references `tri`/`boxes`, events `ev` per
@@ -270,19 +278,8 @@ impl<'a> Finisher<'a> {
             // inherited events above the smallest new one move.
             for (side, start) in [(0, base), (1, base + nl)] {
                 let new = &self.new_ev[side];
-                let mut i = c.inherited[side][axis];
-                let mut k = i + new.len();
-                let region = &mut stack[start..start + k];
-                for &ne in new.iter().rev() {
-                    while i > 0 && region[i - 1] > ne {
-                        k -= 1;
-                        i -= 1;
-                        region[k] = region[i];
-                    }
-                    k -= 1;
-                    region[k] = ne;
-                }
-                debug_assert_eq!(i, k);
+                let len = c.inherited[side][axis] + new.len();
+                self.new_events.merge(&mut stack[start..start + len], new);
             }
         }
 

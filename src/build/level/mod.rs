@@ -40,10 +40,15 @@
 //! 5. **Child events**: inherited events keep their order through a stable
 //!    parallel partition, with their reference renumbered; the events of
 //!    clipped references are sorted per child and merged in (sort + merge,
-//!    in place from the back of the child's segment). **Deviation from the
-//!    paper:** Wu et al. bucket-sort the new events with the parent's
-//!    events as buckets; on CPU cores sorting the few new events of a child
-//!    and merging them is simpler and reads the inherited events only once.
+//!    in place from the back of the child's segment). Wu et al.'s bucket
+//!    sort, with the inherited events as buckets, is implemented too
+//!    ([`NewEvents::Bucket`], `slimkd build --new-events bucket`): it gives
+//!    the same lists and was measured slower on CPU cores (stk_black_forest,
+//!    1 thread, 3 alternating runs: events phase median 1.27 s merge vs
+//!    1.59 s bucket, whole build user time 10.3 s vs 11.5 s; a binary search
+//!    per new event and a block move per bucket cost more than one
+//!    predictable comparison per moved event), so sort + merge is the
+//!    default.
 //!
 //! The tree is assembled in pre-order at the end (`assemble`), from the
 //! breadth-first records, leaf lists and depth-first subtrees.
@@ -109,6 +114,36 @@ pub struct LevelOptions {
     pub scratch_limit: Option<u64>,
     /// Where a progress display can read the current level.
     pub status: Option<Arc<LevelStatus>>,
+    /// How clipped references' events join their child's list.
+    pub new_events: NewEvents,
+}
+
+/// How the events of clipped references (created, unsorted) join the
+/// inherited events of their child (sorted). Both give the same list; the
+/// choice is measured (see the module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum NewEvents {
+    /// Sort the new events, then merge them in from the back of the
+    /// child's segment, one comparison per moved event ([`merge_back`]).
+    #[default]
+    SortMerge,
+    /// The bucket sort of Wu et al.: the child's inherited events are the
+    /// buckets. The new events are sorted; each one's bucket is found by a
+    /// binary search among the inherited events, and the inherited events
+    /// between two buckets move up as one block ([`bucket_merge`]).
+    Bucket,
+}
+
+impl NewEvents {
+    /// `seg` holds sorted events followed by `new.len()` free slots; puts
+    /// the sorted `new` in place.
+    #[inline]
+    pub(crate) fn merge(self, seg: &mut [u64], new: &[u64]) {
+        match self {
+            NewEvents::SortMerge => merge_back(seg, new),
+            NewEvents::Bucket => bucket_merge(seg, new),
+        }
+    }
 }
 
 impl Default for LevelOptions {
@@ -119,6 +154,7 @@ impl Default for LevelOptions {
             scratch_dir: std::env::temp_dir(),
             scratch_limit: None,
             status: None,
+            new_events: NewEvents::default(),
         }
     }
 }
@@ -652,7 +688,13 @@ impl<'a> Builder<'a> {
         partition_events(&l, &splits, &place, &new_idx, &next_nodes, &mut ev);
         drop(place);
         drop(new_idx);
-        merge_new_events(copies, &boxes, &next_nodes, &mut ev);
+        merge_new_events(
+            copies,
+            &boxes,
+            &next_nodes,
+            &mut ev,
+            self.options.new_events,
+        );
         self.report.phases.events_s += lap(&mut clock);
         self.sample_rss();
         drop(l);
@@ -669,10 +711,11 @@ impl<'a> Builder<'a> {
     fn finish_small(&mut self, l: &Level<'a>, small: &[usize], depth: u32) {
         let (scene, params, progress) = (self.scene, &self.config.sah, self.progress);
         let depth_limit = self.depth_limit;
+        let mode = self.options.new_events;
         let subs: Vec<TreeIr> = small
             .par_iter()
             .map_init(
-                || Finisher::new(scene, params, depth_limit, progress),
+                || Finisher::new(scene, params, depth_limit, progress).with_new_events(mode),
                 |fin, &j| {
                     let nd = &l.nodes[j];
                     let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
@@ -1118,6 +1161,7 @@ fn merge_new_events(
     boxes: &[Box6],
     next: &[LNode],
     ev: &mut [Column<'_, u64>; 3],
+    mode: NewEvents,
 ) {
     copies.par_sort_unstable();
     // Runs of copies of the same child.
@@ -1147,7 +1191,7 @@ fn merge_new_events(
             // SAFETY: child segments are disjoint, and each child is one
             // run.
             let seg = unsafe { dst.range_mut(child.ev[axis], child.ev[axis] + child.nev[axis]) };
-            merge_back(seg, tmp);
+            mode.merge(seg, tmp);
         }
     });
 }
@@ -1198,6 +1242,20 @@ fn merge_back(seg: &mut [u64], new: &[u64]) {
     }
 }
 
+/// [`merge_back`]'s result by Wu et al.'s buckets: for each new event,
+/// last first, the binary search of its bucket among the inherited events
+/// not yet moved, one block move of the inherited events above it, and
+/// one write.
+fn bucket_merge(seg: &mut [u64], new: &[u64]) {
+    let mut hi = seg.len() - new.len();
+    for (j, &e) in new.iter().enumerate().rev() {
+        let b = seg[..hi].partition_point(|&x| x < e);
+        seg.copy_within(b..hi, b + j + 1);
+        seg[b + j] = e;
+        hi = b;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1228,5 +1286,33 @@ mod tests {
         let mut seg = vec![0, 0];
         merge_back(&mut seg, &[2, 3]);
         assert_eq!(seg, vec![2, 3]);
+    }
+
+    #[test]
+    fn bucket_merge_equals_merge_back() {
+        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        for case in 0..500 {
+            let (h, m) = ((next() % 40) as usize, (next() % 12) as usize);
+            let range = 1 + next() % if case % 2 == 0 { 8 } else { 1000 };
+            let mut old: Vec<u64> = (0..h).map(|_| next() % range).collect();
+            let mut new: Vec<u64> = (0..m).map(|_| next() % range).collect();
+            old.sort_unstable();
+            new.sort_unstable();
+            let mut a = old.clone();
+            a.resize(h + m, 0);
+            let mut b = a.clone();
+            merge_back(&mut a, &new);
+            bucket_merge(&mut b, &new);
+            let mut want = [old, new].concat();
+            want.sort_unstable();
+            assert_eq!(a, want);
+            assert_eq!(b, want);
+        }
     }
 }
