@@ -491,23 +491,32 @@ impl<'a> Builder<'a> {
         // (position, kind) with a stable radix sort, which leaves them in
         // (position, kind, reference) order. The sort ping-pongs between
         // two columns, so above the budget it runs in scratch files too.
+        // The three axes are sorted in parallel.
         let mut nev = [0; 3];
-        let mut ev = Vec::with_capacity(3);
+        let mut cols = Vec::with_capacity(3);
         for (axis, nev) in nev.iter_mut().enumerate() {
             *nev = boxes.par_iter().map(|b| n_events(b, axis)).sum();
-            let mut a = self.scratch.column::<u64>("ev", *nev)?;
-            let mut b = self.scratch.column::<u64>("ev", *nev)?;
-            let mut at = 0;
-            let mut buf = Vec::with_capacity(2);
-            for (i, bx) in boxes.iter().enumerate() {
-                buf.clear();
-                push_events(bx, axis, i as u32, &mut buf);
-                a[at..at + buf.len()].copy_from_slice(&buf);
-                at += buf.len();
-            }
-            let in_b = radix_sort_by_position_and_kind(&mut a, &mut b);
-            ev.push(if in_b { b } else { a });
+            let a = self.scratch.column::<u64>("ev", *nev)?;
+            let b = self.scratch.column::<u64>("ev", *nev)?;
+            cols.push((a, b));
         }
+        let boxes_ref = &boxes;
+        let ev: Vec<Column<'a, u64>> = cols
+            .into_par_iter()
+            .enumerate()
+            .map(|(axis, (mut a, mut b))| {
+                let mut at = 0;
+                let mut buf = Vec::with_capacity(2);
+                for (i, bx) in boxes_ref.iter().enumerate() {
+                    buf.clear();
+                    push_events(bx, axis, i as u32, &mut buf);
+                    a[at..at + buf.len()].copy_from_slice(&buf);
+                    at += buf.len();
+                }
+                let in_b = radix_sort_by_position_and_kind(&mut a, &mut b);
+                if in_b { b } else { a }
+            })
+            .collect();
         let ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
         let node = LNode {
             cell: bounds,
