@@ -7,7 +7,7 @@ use super::{
 };
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId};
-use std::io::Write;
+use std::io::{Seek, SeekFrom, Write};
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -258,20 +258,25 @@ fn put_u64(b: &mut [u8], at: usize, v: u64) {
     b[at..at + 8].copy_from_slice(&v.to_le_bytes());
 }
 
-/// Serialises a tree and its scene into the bytes of a `.kd` file.
-///
-/// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
-/// would reject: a tree that does not fit the format
-/// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
-/// range, a node reached twice, an axis over 2, a non-finite split, a
-/// triangle id out of range) or scene (non-finite bounds or vertices, a
-/// vertex index out of range) is an error, never a panic. The tree need not
-/// pass [`TreeIr::validate`] otherwise: leaves may repeat a triangle.
-pub fn write_to_vec(
+/// A file ready to be written: everything checked, the tree laid out, the
+/// header filled in but for the section checksums.
+struct Prepared<'a> {
+    scene: &'a TriangleColumns,
+    lay: Layout,
+    /// `perm[new] = old` when reordered.
+    perm: Option<Vec<u32>>,
+    header: [u8; HEADER_SIZE],
+    /// Byte length of each section.
+    lens: [u64; 6],
+}
+
+/// Checks the tree and the scene and lays the tree out (see
+/// [`write_to_vec`] for what is refused).
+fn prepare<'a>(
     tree: &TreeIr,
-    scene: &TriangleColumns,
+    scene: &'a TriangleColumns,
     options: &WriteOptions,
-) -> Result<Vec<u8>, FormatError> {
+) -> Result<Prepared<'a>, FormatError> {
     let n_tris = scene.len();
     // Refuse what the reader would reject.
     let b = tree.bounds;
@@ -305,36 +310,27 @@ pub fn write_to_vec(
         });
     }
     let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
-    let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
-        let mut inv = vec![0u32; p.len()];
-        for (new, &old) in p.iter().enumerate() {
-            inv[old as usize] = new as u32;
-        }
-        inv
-    });
-    let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
-    let lay = layout(tree, n_tris, &new_id)?;
+    let lay = {
+        let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
+            let mut inv = vec![0u32; p.len()];
+            for (new, &old) in p.iter().enumerate() {
+                inv[old as usize] = new as u32;
+            }
+            inv
+        });
+        let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
+        layout(tree, n_tris, &new_id)?
+    };
 
-    let mut sections: [Vec<u8>; 6] = Default::default();
-    sections[Section::Nodes as usize] = lay.words.iter().flat_map(|w| w.to_le_bytes()).collect();
-    sections[Section::Idx32 as usize] = lay.idx32.iter().flat_map(|w| w.to_le_bytes()).collect();
-    sections[Section::Idx16 as usize] = lay.idx16.iter().flat_map(|w| w.to_le_bytes()).collect();
-    sections[Section::Vertices as usize] = scene
-        .positions
-        .iter()
-        .flat_map(|p| [p.x, p.y, p.z])
-        .flat_map(f32::to_le_bytes)
-        .collect();
-    sections[Section::Triangles as usize] = (0..n_tris)
-        .map(|new| perm.as_ref().map_or(new, |p| p[new] as usize))
-        .flat_map(|old| scene.indices[old])
-        .flat_map(u32::to_le_bytes)
-        .collect();
-    if let Some(p) = &perm {
-        sections[Section::TriMap as usize] = p.iter().flat_map(|w| w.to_le_bytes()).collect();
-    }
+    let mut lens = [0u64; 6];
+    lens[Section::Nodes as usize] = lay.words.len() as u64 * 8;
+    lens[Section::Idx32 as usize] = lay.idx32.len() as u64 * 4;
+    lens[Section::Idx16 as usize] = lay.idx16.len() as u64 * 2;
+    lens[Section::Vertices as usize] = n_vertices * 12;
+    lens[Section::Triangles as usize] = n_tris as u64 * 12;
+    lens[Section::TriMap as usize] = perm.as_ref().map_or(0, |p| p.len() as u64 * 4);
 
-    let mut header = vec![0u8; HEADER_SIZE];
+    let mut header = [0u8; HEADER_SIZE];
     header[0..8].copy_from_slice(&MAGIC);
     put_u32(&mut header, 8, VERSION);
     put_u32(&mut header, 12, ENDIAN_CHECK);
@@ -361,30 +357,159 @@ pub fn write_to_vec(
     put_u64(&mut header, 104, lay.idx32.len() as u64);
     put_u64(&mut header, 112, lay.idx16.len() as u64);
     put_u64(&mut header, 120, n_tris as u64);
-    put_u64(&mut header, 128, scene.positions.len() as u64);
+    put_u64(&mut header, 128, n_vertices);
     for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
         .into_iter()
         .enumerate()
     {
         put_u32(&mut header, 136 + 4 * k, v.to_bits());
     }
-    let mut offset = HEADER_SIZE;
-    for (s, bytes) in sections.iter().enumerate() {
+    let mut offset = HEADER_SIZE as u64;
+    for (s, &len) in lens.iter().enumerate() {
         let entry = SECTION_TABLE + s * SECTION_ENTRY;
-        put_u64(&mut header, entry, offset as u64);
-        put_u64(&mut header, entry + 8, bytes.len() as u64);
-        put_u32(&mut header, entry + 16, crc32fast::hash(bytes));
-        offset = (offset + bytes.len()).next_multiple_of(SECTION_ALIGN);
+        put_u64(&mut header, entry, offset);
+        put_u64(&mut header, entry + 8, len);
+        offset = (offset + len).next_multiple_of(SECTION_ALIGN as u64);
     }
-    let crc = crc32fast::hash(&header[..HEADER_CRC]);
-    put_u32(&mut header, HEADER_CRC, crc);
+    Ok(Prepared {
+        scene,
+        lay,
+        perm,
+        header,
+        lens,
+    })
+}
 
-    let mut out = Vec::with_capacity(offset);
-    out.extend_from_slice(&header);
-    for bytes in &sections {
-        out.extend_from_slice(bytes);
-        out.resize(out.len().next_multiple_of(SECTION_ALIGN), 0);
+impl Prepared<'_> {
+    /// Bytes of the whole file.
+    fn file_len(&self) -> u64 {
+        self.lens.iter().fold(HEADER_SIZE as u64, |at, &len| {
+            (at + len).next_multiple_of(SECTION_ALIGN as u64)
+        })
     }
+
+    /// Streams the file to `out`, the header as zeros (its checksums are
+    /// known only at the end); returns the header, which belongs at
+    /// offset 0. Each section is encoded in small pieces, so nothing the
+    /// size of a section is held besides the layout itself.
+    fn emit(&self, out: &mut impl Write) -> std::io::Result<[u8; HEADER_SIZE]> {
+        let mut header = self.header;
+        out.write_all(&[0u8; HEADER_SIZE])?;
+        let mut sink = SectionSink {
+            out,
+            buf: Vec::with_capacity(SINK_BUF + 16),
+            crc: crc32fast::Hasher::new(),
+            len: 0,
+        };
+        for section in Section::ALL {
+            let scene = self.scene;
+            match section {
+                Section::Nodes => self
+                    .lay
+                    .words
+                    .iter()
+                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
+                Section::Idx32 => self
+                    .lay
+                    .idx32
+                    .iter()
+                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
+                Section::Idx16 => self
+                    .lay
+                    .idx16
+                    .iter()
+                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
+                Section::Vertices => scene.positions.iter().try_for_each(|p| {
+                    [p.x, p.y, p.z]
+                        .iter()
+                        .try_for_each(|v| sink.put(&v.to_le_bytes()))
+                }),
+                Section::Triangles => (0..scene.len()).try_for_each(|new| {
+                    let old = self.perm.as_ref().map_or(new, |p| p[new] as usize);
+                    scene.indices[old]
+                        .iter()
+                        .try_for_each(|v| sink.put(&v.to_le_bytes()))
+                }),
+                Section::TriMap => self
+                    .perm
+                    .iter()
+                    .flatten()
+                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
+            }?;
+            let (crc, len) = sink.finish_section()?;
+            debug_assert_eq!(len, self.lens[section as usize]);
+            let entry = SECTION_TABLE + section as usize * SECTION_ENTRY;
+            put_u32(&mut header, entry + 16, crc);
+        }
+        let crc = crc32fast::hash(&header[..HEADER_CRC]);
+        put_u32(&mut header, HEADER_CRC, crc);
+        Ok(header)
+    }
+}
+
+/// Bytes buffered per write by [`SectionSink`].
+const SINK_BUF: usize = 1 << 20;
+
+/// Writes one section after another, each checksummed and padded to
+/// [`SECTION_ALIGN`].
+struct SectionSink<'w, W: Write> {
+    out: &'w mut W,
+    buf: Vec<u8>,
+    crc: crc32fast::Hasher,
+    /// Bytes of the current section so far.
+    len: u64,
+}
+
+impl<W: Write> SectionSink<'_, W> {
+    #[inline]
+    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.buf.extend_from_slice(bytes);
+        if self.buf.len() >= SINK_BUF {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.crc.update(&self.buf);
+        self.len += self.buf.len() as u64;
+        self.out.write_all(&self.buf)?;
+        self.buf.clear();
+        Ok(())
+    }
+
+    /// Ends a section: its CRC and length; writes the padding after it.
+    fn finish_section(&mut self) -> std::io::Result<(u32, u64)> {
+        self.flush()?;
+        let crc = std::mem::take(&mut self.crc).finalize();
+        let len = std::mem::take(&mut self.len);
+        // The sections start at HEADER_SIZE, a multiple of SECTION_ALIGN,
+        // and every one is padded, so the section's own length decides.
+        let pad = len.next_multiple_of(SECTION_ALIGN as u64) - len;
+        self.out.write_all(&[0u8; SECTION_ALIGN][..pad as usize])?;
+        Ok((crc, len))
+    }
+}
+
+/// Serialises a tree and its scene into the bytes of a `.kd` file.
+///
+/// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
+/// would reject: a tree that does not fit the format
+/// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
+/// range, a node reached twice, an axis over 2, a non-finite split, a
+/// triangle id out of range) or scene (non-finite bounds or vertices, a
+/// vertex index out of range) is an error, never a panic. The tree need not
+/// pass [`TreeIr::validate`] otherwise: leaves may repeat a triangle.
+pub fn write_to_vec(
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+) -> Result<Vec<u8>, FormatError> {
+    let file = prepare(tree, scene, options)?;
+    let mut out = Vec::with_capacity(file.file_len() as usize);
+    let header = file.emit(&mut out).expect("writing to a Vec cannot fail");
+    out[..HEADER_SIZE].copy_from_slice(&header);
+    debug_assert_eq!(out.len() as u64, file.file_len());
     Ok(out)
 }
 
@@ -396,13 +521,16 @@ static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// it), fsync, rename, then a best-effort fsync of the directory. A failed
 /// or killed write leaves no file at `path` (and never a half-written one
 /// that could pass for valid); a failed write removes its temporary file.
+/// The bytes are those of [`write_to_vec`], streamed to the file rather
+/// than built in memory: the header goes last, at offset 0, once the
+/// section checksums are known.
 pub fn write_file(
     path: &Path,
     tree: &TreeIr,
     scene: &TriangleColumns,
     options: &WriteOptions,
 ) -> Result<(), FormatError> {
-    let bytes = write_to_vec(tree, scene, options)?;
+    let file = prepare(tree, scene, options)?;
     let io = |source| FormatError::Io {
         path: path.to_path_buf(),
         source,
@@ -436,7 +564,10 @@ pub fn write_file(
         }
     };
     let result = (|| {
-        f.write_all(&bytes)?;
+        // `emit` writes in pieces of about `SINK_BUF` bytes.
+        let header = file.emit(&mut f)?;
+        f.seek(SeekFrom::Start(0))?;
+        f.write_all(&header)?;
         f.sync_all()?;
         drop(f);
         std::fs::rename(&tmp, path)
