@@ -146,8 +146,8 @@ fn layout(
         message: format!("node {i} lists triangle {} of {n_tris}", t.0),
     };
     // Each IR node is laid out at most once, so a malformed tree (a cycle,
-    // shared children) cannot make the loop run away.
-    let mut visited = vec![false; tree.nodes.len()];
+    // shared children) cannot make the loop run away. One bit per node.
+    let mut visited = vec![0u64; tree.nodes.len().div_ceil(64)];
     // (IR node, slot in `words`, depth), processed left subtree first.
     let mut stack = vec![(0usize, 0usize, 0u32)];
     let mut ids = Vec::new();
@@ -158,9 +158,11 @@ fn layout(
                 format!("a child outside the {} nodes", tree.nodes.len()),
             ));
         };
-        if std::mem::replace(&mut visited[i], true) {
+        let (word, bit) = (i / 64, 1u64 << (i % 64));
+        if visited[word] & bit != 0 {
             return Err(bad_node(i, "reached twice (not a tree)".into()));
         }
+        visited[word] |= bit;
         if depth > MAX_DEPTH {
             return Err(too_large(&format!("a node deeper than {MAX_DEPTH}")));
         }

@@ -256,9 +256,9 @@ fn lap(clock: &mut Instant) -> f64 {
     s
 }
 
-/// `RssAnon` and `RssFile` in bytes, from `/proc/self/status` (zeros where
-/// it cannot be read).
-fn rss() -> (u64, u64) {
+/// This process's `RssAnon` and `RssFile` in bytes, from
+/// `/proc/self/status` (zeros where it cannot be read).
+pub fn rss() -> (u64, u64) {
     let Ok(text) = std::fs::read_to_string("/proc/self/status") else {
         return (0, 0);
     };
