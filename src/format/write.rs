@@ -7,7 +7,7 @@ use super::{
 };
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId};
-use std::io::{Seek, SeekFrom, Write};
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -104,9 +104,57 @@ fn morton_order(scene: &TriangleColumns) -> Vec<u32> {
     keyed.into_iter().map(|(_, i)| i).collect()
 }
 
-/// What the layout pass produces.
+/// Node words per window of [`Words`] (8 MiB).
+const WINDOW: usize = 1 << 20;
+
+/// The node words as the layout makes them, streamed out in windows of
+/// [`WINDOW`] words. A word is set when its node is laid out, which for a
+/// right child is after its whole left sibling subtree; a word set after
+/// its window has gone out is kept in `late` and patched in afterwards
+/// (a few per window: the right children waiting on the layout stack).
+struct Words<'f> {
+    /// Words per window ([`WINDOW`] but in tests).
+    window: usize,
+    /// Words already handed to `flush`.
+    base: usize,
+    buf: Vec<u64>,
+    /// `(slot, word)` of the words set after their window went out.
+    late: Vec<(usize, u64)>,
+    flush: &'f mut dyn FnMut(&[u64]) -> Result<(), FormatError>,
+}
+
+impl Words<'_> {
+    fn len(&self) -> usize {
+        self.base + self.buf.len()
+    }
+
+    fn push(&mut self, w: u64) -> Result<(), FormatError> {
+        self.buf.push(w);
+        if self.buf.len() >= self.window {
+            (self.flush)(&self.buf)?;
+            self.base += self.buf.len();
+            self.buf.clear();
+        }
+        Ok(())
+    }
+
+    fn set(&mut self, slot: usize, w: u64) {
+        match slot.checked_sub(self.base) {
+            Some(i) => self.buf[i] = w,
+            None => self.late.push((slot, w)),
+        }
+    }
+
+    /// Hands out the last words; returns the late ones.
+    fn finish(self) -> Result<Vec<(usize, u64)>, FormatError> {
+        (self.flush)(&self.buf)?;
+        Ok(self.late)
+    }
+}
+
+/// What the layout pass produces besides the node words.
 struct Layout {
-    words: Vec<u64>,
+    n_words: u64,
     idx32: Vec<u32>,
     idx16: Vec<u16>,
     n_inner: u64,
@@ -125,9 +173,11 @@ fn layout(
     tree: &TreeIr,
     n_tris: usize,
     new_id: &dyn Fn(TriId) -> u32,
+    words: &mut Words<'_>,
 ) -> Result<Layout, FormatError> {
+    words.push(0)?;
     let mut out = Layout {
-        words: vec![0],
+        n_words: 0,
         idx32: Vec::new(),
         idx16: Vec::new(),
         n_inner: 0,
@@ -180,14 +230,14 @@ fn layout(
                 if !pos.is_finite() {
                     return Err(bad_node(i, "split position is not finite".into()));
                 }
-                let block = out.words.len();
+                let block = words.len();
                 let first_child = match t_ref {
                     Some(t) => {
                         if t.0 as usize >= n_tris {
                             return Err(bad_tri(i, t));
                         }
                         out.n_t_inner += 1;
-                        out.words.push(node::encode_tref(new_id(t)));
+                        words.push(node::encode_tref(new_id(t)))?;
                         block + 1
                     }
                     None => {
@@ -195,13 +245,17 @@ fn layout(
                         block
                     }
                 };
-                out.words.extend([0, 0]);
-                if out.words.len() as u64 > MAX_NODES {
+                words.push(0)?;
+                words.push(0)?;
+                if words.len() as u64 > MAX_NODES {
                     return Err(too_large(
                         "more than 2^29 node words (the 4 GiB offset limit)",
                     ));
                 }
-                out.words[slot] = node::encode_inner(axis, t_ref.is_some(), block as u32, pos);
+                words.set(
+                    slot,
+                    node::encode_inner(axis, t_ref.is_some(), block as u32, pos),
+                );
                 stack.push((right.0 as usize, first_child + 1, depth + 1));
                 stack.push((i + 1, first_child, depth + 1));
             }
@@ -235,7 +289,7 @@ fn layout(
                 let upper = ids.first().map_or(0, |&t| t >> 16);
                 let two_byte =
                     (ids.len() as u32) < LEAF16_LIMIT && ids.iter().all(|&t| t >> 16 == upper);
-                out.words[slot] = if two_byte {
+                let word = if two_byte {
                     let first = u32::try_from(out.idx16.len())
                         .map_err(|_| too_large("idx16 over 2^32 entries"))?;
                     out.idx16.extend(ids.iter().map(|&t| t as u16));
@@ -246,9 +300,11 @@ fn layout(
                     out.idx32.extend_from_slice(&ids);
                     node::encode_leaf32(ids.len() as u32, first)
                 };
+                words.set(slot, word);
             }
         }
     }
+    out.n_words = words.len() as u64;
     Ok(out)
 }
 
@@ -260,34 +316,15 @@ fn put_u64(b: &mut [u8], at: usize, v: u64) {
     b[at..at + 8].copy_from_slice(&v.to_le_bytes());
 }
 
-/// A file ready to be written: everything checked, the tree laid out, the
-/// header filled in but for the section checksums.
-struct Prepared<'a> {
-    scene: &'a TriangleColumns,
-    lay: Layout,
-    /// `perm[new] = old` when reordered.
-    perm: Option<Vec<u32>>,
-    header: [u8; HEADER_SIZE],
-    /// Byte length of each section.
-    lens: [u64; 6],
-}
-
-/// Checks the tree and the scene and lays the tree out (see
-/// [`write_to_vec`] for what is refused).
-fn prepare<'a>(
-    tree: &TreeIr,
-    scene: &'a TriangleColumns,
-    options: &WriteOptions,
-) -> Result<Prepared<'a>, FormatError> {
-    let n_tris = scene.len();
-    // Refuse what the reader would reject.
+/// Refuses a scene the reader would reject (see [`write_to_vec`]).
+fn check_scene(tree: &TreeIr, scene: &TriangleColumns) -> Result<(), FormatError> {
     let b = tree.bounds;
     if !(b.min.is_finite() && b.max.is_finite() && b.min.cmple(b.max).all()) {
         return Err(FormatError::Header(
             "scene bounds are not a finite box".into(),
         ));
     }
-    if n_tris > u32::MAX as usize || scene.positions.len() > u32::MAX as usize {
+    if scene.len() > u32::MAX as usize || scene.positions.len() > u32::MAX as usize {
         return Err(FormatError::TooLarge(
             "more than 2^32 triangles or vertices".into(),
         ));
@@ -311,145 +348,10 @@ fn prepare<'a>(
             message: format!("vertex index out of {n_vertices}"),
         });
     }
-    let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
-    let lay = {
-        let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
-            let mut inv = vec![0u32; p.len()];
-            for (new, &old) in p.iter().enumerate() {
-                inv[old as usize] = new as u32;
-            }
-            inv
-        });
-        let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
-        layout(tree, n_tris, &new_id)?
-    };
-
-    let mut lens = [0u64; 6];
-    lens[Section::Nodes as usize] = lay.words.len() as u64 * 8;
-    lens[Section::Idx32 as usize] = lay.idx32.len() as u64 * 4;
-    lens[Section::Idx16 as usize] = lay.idx16.len() as u64 * 2;
-    lens[Section::Vertices as usize] = n_vertices * 12;
-    lens[Section::Triangles as usize] = n_tris as u64 * 12;
-    lens[Section::TriMap as usize] = perm.as_ref().map_or(0, |p| p.len() as u64 * 4);
-
-    let mut header = [0u8; HEADER_SIZE];
-    header[0..8].copy_from_slice(&MAGIC);
-    put_u32(&mut header, 8, VERSION);
-    put_u32(&mut header, 12, ENDIAN_CHECK);
-    put_u32(&mut header, 16, HEADER_SIZE as u32);
-    put_u32(
-        &mut header,
-        20,
-        if perm.is_some() { FLAG_REORDERED } else { 0 },
-    );
-    let c = &options.config;
-    put_u64(&mut header, 24, c.k_t.to_bits());
-    put_u64(&mut header, 32, c.k_i.to_bits());
-    put_u64(&mut header, 40, c.lambda_empty.to_bits());
-    put_u32(&mut header, 48, c.depth_limit);
-    put_u32(&mut header, 52, c.preset as u32);
-    put_u32(&mut header, 56, c.tau_occu.to_bits());
-    put_u32(&mut header, 60, c.tau_freq.to_bits());
-    put_u32(&mut header, 64, c.max_t2rn);
-    put_u32(&mut header, 68, lay.max_depth);
-    put_u64(&mut header, 72, lay.words.len() as u64);
-    put_u64(&mut header, 80, lay.n_inner);
-    put_u64(&mut header, 88, lay.n_t_inner);
-    put_u64(&mut header, 96, lay.n_leaves);
-    put_u64(&mut header, 104, lay.idx32.len() as u64);
-    put_u64(&mut header, 112, lay.idx16.len() as u64);
-    put_u64(&mut header, 120, n_tris as u64);
-    put_u64(&mut header, 128, n_vertices);
-    for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
-        .into_iter()
-        .enumerate()
-    {
-        put_u32(&mut header, 136 + 4 * k, v.to_bits());
-    }
-    let mut offset = HEADER_SIZE as u64;
-    for (s, &len) in lens.iter().enumerate() {
-        let entry = SECTION_TABLE + s * SECTION_ENTRY;
-        put_u64(&mut header, entry, offset);
-        put_u64(&mut header, entry + 8, len);
-        offset = (offset + len).next_multiple_of(SECTION_ALIGN as u64);
-    }
-    Ok(Prepared {
-        scene,
-        lay,
-        perm,
-        header,
-        lens,
-    })
+    Ok(())
 }
 
-impl Prepared<'_> {
-    /// Bytes of the whole file.
-    fn file_len(&self) -> u64 {
-        self.lens.iter().fold(HEADER_SIZE as u64, |at, &len| {
-            (at + len).next_multiple_of(SECTION_ALIGN as u64)
-        })
-    }
-
-    /// Streams the file to `out`, the header as zeros (its checksums are
-    /// known only at the end); returns the header, which belongs at
-    /// offset 0. Each section is encoded in small pieces, so nothing the
-    /// size of a section is held besides the layout itself.
-    fn emit(&self, out: &mut impl Write) -> std::io::Result<[u8; HEADER_SIZE]> {
-        let mut header = self.header;
-        out.write_all(&[0u8; HEADER_SIZE])?;
-        let mut sink = SectionSink {
-            out,
-            buf: Vec::with_capacity(SINK_BUF + 16),
-            crc: crc32fast::Hasher::new(),
-            len: 0,
-        };
-        for section in Section::ALL {
-            let scene = self.scene;
-            match section {
-                Section::Nodes => self
-                    .lay
-                    .words
-                    .iter()
-                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
-                Section::Idx32 => self
-                    .lay
-                    .idx32
-                    .iter()
-                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
-                Section::Idx16 => self
-                    .lay
-                    .idx16
-                    .iter()
-                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
-                Section::Vertices => scene.positions.iter().try_for_each(|p| {
-                    [p.x, p.y, p.z]
-                        .iter()
-                        .try_for_each(|v| sink.put(&v.to_le_bytes()))
-                }),
-                Section::Triangles => (0..scene.len()).try_for_each(|new| {
-                    let old = self.perm.as_ref().map_or(new, |p| p[new] as usize);
-                    scene.indices[old]
-                        .iter()
-                        .try_for_each(|v| sink.put(&v.to_le_bytes()))
-                }),
-                Section::TriMap => self
-                    .perm
-                    .iter()
-                    .flatten()
-                    .try_for_each(|w| sink.put(&w.to_le_bytes())),
-            }?;
-            let (crc, len) = sink.finish_section()?;
-            debug_assert_eq!(len, self.lens[section as usize]);
-            let entry = SECTION_TABLE + section as usize * SECTION_ENTRY;
-            put_u32(&mut header, entry + 16, crc);
-        }
-        let crc = crc32fast::hash(&header[..HEADER_CRC]);
-        put_u32(&mut header, HEADER_CRC, crc);
-        Ok(header)
-    }
-}
-
-/// Bytes buffered per write by [`SectionSink`].
+/// Bytes encoded per write by [`SectionSink`].
 const SINK_BUF: usize = 1 << 20;
 
 /// Writes one section after another, each checksummed and padded to
@@ -485,12 +387,185 @@ impl<W: Write> SectionSink<'_, W> {
         self.flush()?;
         let crc = std::mem::take(&mut self.crc).finalize();
         let len = std::mem::take(&mut self.len);
-        // The sections start at HEADER_SIZE, a multiple of SECTION_ALIGN,
-        // and every one is padded, so the section's own length decides.
-        let pad = len.next_multiple_of(SECTION_ALIGN as u64) - len;
-        self.out.write_all(&[0u8; SECTION_ALIGN][..pad as usize])?;
+        // Sections start at multiples of SECTION_ALIGN (the header's size
+        // is one), so the section's own length decides the padding.
+        write_padding(self.out, len)?;
         Ok((crc, len))
     }
+}
+
+/// The zeros after a section of `len` bytes, up to a multiple of
+/// [`SECTION_ALIGN`].
+fn write_padding(out: &mut impl Write, len: u64) -> std::io::Result<()> {
+    let pad = len.next_multiple_of(SECTION_ALIGN as u64) - len;
+    out.write_all(&[0u8; SECTION_ALIGN][..pad as usize])
+}
+
+/// Writes the `.kd` file to `out` (positioned at its start), which must
+/// read back what was written: the node words stream out as the layout
+/// makes them, the few set late are patched in, their section is read
+/// back for its checksum, the other sections stream out from the layout's
+/// index arrays and the scene, and the header goes last, at offset 0.
+/// Nothing the size of the file or of the node section is held; `io`
+/// names `out` in errors.
+fn write_kd<W: Read + Write + Seek>(
+    out: &mut W,
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+    io: &dyn Fn(std::io::Error) -> FormatError,
+    window: usize,
+) -> Result<(), FormatError> {
+    check_scene(tree, scene)?;
+    let n_tris = scene.len();
+    let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
+    out.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
+
+    // The node section.
+    let (lay, late) = {
+        let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
+            let mut inv = vec![0u32; p.len()];
+            for (new, &old) in p.iter().enumerate() {
+                inv[old as usize] = new as u32;
+            }
+            inv
+        });
+        let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
+        let mut bytes = Vec::with_capacity(8 * window);
+        let mut flush = |ws: &[u64]| {
+            bytes.clear();
+            bytes.extend(ws.iter().flat_map(|w| w.to_le_bytes()));
+            out.write_all(&bytes).map_err(io)
+        };
+        let mut words = Words {
+            window,
+            base: 0,
+            buf: Vec::with_capacity(window),
+            late: Vec::new(),
+            flush: &mut flush,
+        };
+        let lay = layout(tree, n_tris, &new_id, &mut words)?;
+        (lay, words.finish()?)
+    };
+    let nodes_len = lay.n_words * 8;
+    let crc_nodes = (|| {
+        for (slot, w) in late {
+            out.seek(SeekFrom::Start(HEADER_SIZE as u64 + 8 * slot as u64))?;
+            out.write_all(&w.to_le_bytes())?;
+        }
+        out.seek(SeekFrom::Start(HEADER_SIZE as u64))?;
+        let mut crc = crc32fast::Hasher::new();
+        let mut buf = vec![0u8; SINK_BUF];
+        let mut left = nodes_len;
+        while left > 0 {
+            let n = left.min(buf.len() as u64) as usize;
+            out.read_exact(&mut buf[..n])?;
+            crc.update(&buf[..n]);
+            left -= n as u64;
+        }
+        write_padding(out, nodes_len)?;
+        Ok(crc.finalize())
+    })()
+    .map_err(io)?;
+
+    // The other sections.
+    let mut lens = [0u64; 6];
+    let mut crcs = [0u32; 6];
+    lens[Section::Nodes as usize] = nodes_len;
+    crcs[Section::Nodes as usize] = crc_nodes;
+    let mut sink = SectionSink {
+        out,
+        buf: Vec::with_capacity(SINK_BUF + 16),
+        crc: crc32fast::Hasher::new(),
+        len: 0,
+    };
+    for section in &Section::ALL[1..] {
+        match section {
+            Section::Nodes => unreachable!("written above"),
+            Section::Idx32 => lay
+                .idx32
+                .iter()
+                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+            Section::Idx16 => lay
+                .idx16
+                .iter()
+                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+            Section::Vertices => scene.positions.iter().try_for_each(|p| {
+                [p.x, p.y, p.z]
+                    .iter()
+                    .try_for_each(|v| sink.put(&v.to_le_bytes()))
+            }),
+            Section::Triangles => (0..n_tris).try_for_each(|new| {
+                let old = perm.as_ref().map_or(new, |p| p[new] as usize);
+                scene.indices[old]
+                    .iter()
+                    .try_for_each(|v| sink.put(&v.to_le_bytes()))
+            }),
+            Section::TriMap => perm
+                .iter()
+                .flatten()
+                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+        }
+        .map_err(io)?;
+        let (crc, len) = sink.finish_section().map_err(io)?;
+        lens[*section as usize] = len;
+        crcs[*section as usize] = crc;
+    }
+
+    let b = tree.bounds;
+    let mut header = [0u8; HEADER_SIZE];
+    header[0..8].copy_from_slice(&MAGIC);
+    put_u32(&mut header, 8, VERSION);
+    put_u32(&mut header, 12, ENDIAN_CHECK);
+    put_u32(&mut header, 16, HEADER_SIZE as u32);
+    put_u32(
+        &mut header,
+        20,
+        if perm.is_some() { FLAG_REORDERED } else { 0 },
+    );
+    let c = &options.config;
+    put_u64(&mut header, 24, c.k_t.to_bits());
+    put_u64(&mut header, 32, c.k_i.to_bits());
+    put_u64(&mut header, 40, c.lambda_empty.to_bits());
+    put_u32(&mut header, 48, c.depth_limit);
+    put_u32(&mut header, 52, c.preset as u32);
+    put_u32(&mut header, 56, c.tau_occu.to_bits());
+    put_u32(&mut header, 60, c.tau_freq.to_bits());
+    put_u32(&mut header, 64, c.max_t2rn);
+    put_u32(&mut header, 68, lay.max_depth);
+    put_u64(&mut header, 72, lay.n_words);
+    put_u64(&mut header, 80, lay.n_inner);
+    put_u64(&mut header, 88, lay.n_t_inner);
+    put_u64(&mut header, 96, lay.n_leaves);
+    put_u64(&mut header, 104, lay.idx32.len() as u64);
+    put_u64(&mut header, 112, lay.idx16.len() as u64);
+    put_u64(&mut header, 120, n_tris as u64);
+    put_u64(&mut header, 128, scene.positions.len() as u64);
+    for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
+        .into_iter()
+        .enumerate()
+    {
+        put_u32(&mut header, 136 + 4 * k, v.to_bits());
+    }
+    let mut offset = HEADER_SIZE as u64;
+    for s in 0..6 {
+        let entry = SECTION_TABLE + s * SECTION_ENTRY;
+        put_u64(&mut header, entry, offset);
+        put_u64(&mut header, entry + 8, lens[s]);
+        put_u32(&mut header, entry + 16, crcs[s]);
+        offset = (offset + lens[s]).next_multiple_of(SECTION_ALIGN as u64);
+    }
+    let crc = crc32fast::hash(&header[..HEADER_CRC]);
+    put_u32(&mut header, HEADER_CRC, crc);
+    (|| {
+        let end = out.stream_position()?;
+        debug_assert_eq!(end, offset);
+        out.seek(SeekFrom::Start(0))?;
+        out.write_all(&header)?;
+        out.seek(SeekFrom::Start(end))?;
+        Ok(())
+    })()
+    .map_err(io)
 }
 
 /// Serialises a tree and its scene into the bytes of a `.kd` file.
@@ -507,12 +582,16 @@ pub fn write_to_vec(
     scene: &TriangleColumns,
     options: &WriteOptions,
 ) -> Result<Vec<u8>, FormatError> {
-    let file = prepare(tree, scene, options)?;
-    let mut out = Vec::with_capacity(file.file_len() as usize);
-    let header = file.emit(&mut out).expect("writing to a Vec cannot fail");
-    out[..HEADER_SIZE].copy_from_slice(&header);
-    debug_assert_eq!(out.len() as u64, file.file_len());
-    Ok(out)
+    let mut out = std::io::Cursor::new(Vec::new());
+    write_kd(
+        &mut out,
+        tree,
+        scene,
+        options,
+        &|e| unreachable!("writing to a Vec cannot fail: {e}"),
+        WINDOW,
+    )?;
+    Ok(out.into_inner())
 }
 
 /// Distinguishes the temporary files of concurrent writes in one process.
@@ -524,15 +603,15 @@ static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// or killed write leaves no file at `path` (and never a half-written one
 /// that could pass for valid); a failed write removes its temporary file.
 /// The bytes are those of [`write_to_vec`], streamed to the file rather
-/// than built in memory: the header goes last, at offset 0, once the
-/// section checksums are known.
+/// than built in memory (see `write_kd`).
 pub fn write_file(
     path: &Path,
     tree: &TreeIr,
     scene: &TriangleColumns,
     options: &WriteOptions,
 ) -> Result<(), FormatError> {
-    let file = prepare(tree, scene, options)?;
+    // Refuse a bad scene before any file is made.
+    check_scene(tree, scene)?;
     let io = |source| FormatError::Io {
         path: path.to_path_buf(),
         source,
@@ -546,7 +625,7 @@ pub fn write_file(
         .ok_or_else(|| io(std::io::Error::other("not a file name")))?;
     // A name left behind by a killed writer is skipped, never reused.
     let mut attempt = 0;
-    let (tmp, mut f) = loop {
+    let (tmp, f) = loop {
         let tmp = dir.join(format!(
             ".{}.tmp.{}.{}",
             name.to_string_lossy(),
@@ -554,6 +633,7 @@ pub fn write_file(
             TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
         ));
         match std::fs::OpenOptions::new()
+            .read(true)
             .write(true)
             .create_new(true)
             .open(&tmp)
@@ -566,21 +646,64 @@ pub fn write_file(
         }
     };
     let result = (|| {
-        // `emit` writes in pieces of about `SINK_BUF` bytes.
-        let header = file.emit(&mut f)?;
-        f.seek(SeekFrom::Start(0))?;
-        f.write_all(&header)?;
-        f.sync_all()?;
+        // `write_kd` writes in pieces of about a MiB, except for the
+        // header and the padding.
+        let mut f = f;
+        write_kd(&mut f, tree, scene, options, &io, WINDOW)?;
+        f.sync_all().map_err(io)?;
         drop(f);
-        std::fs::rename(&tmp, path)
+        std::fs::rename(&tmp, path).map_err(io)
     })();
     if let Err(e) = result {
         let _ = std::fs::remove_file(&tmp);
-        return Err(io(e));
+        return Err(e);
     }
     // Make the rename durable; not every platform can open a directory.
     if let Ok(d) = std::fs::File::open(&dir) {
         let _ = d.sync_all();
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::{self, BuildConfig, Builder};
+    use glam::Vec3;
+
+    /// Windows of a few words send many words out before they are set;
+    /// the file is the same as with one window for the whole section.
+    #[test]
+    fn late_words_are_patched_in() {
+        // A grid of small triangles, one per unit cell.
+        let tris: Vec<[Vec3; 3]> = (0..400)
+            .map(|i| {
+                let p = Vec3::new((i % 20) as f32, (i / 20) as f32, (i % 7) as f32);
+                [p, p + Vec3::X, p + Vec3::Y]
+            })
+            .collect();
+        let scene = TriangleColumns::from_triangles(&tris).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        assert!(tree.nodes.len() > 100);
+        for reorder in [false, true] {
+            let options = WriteOptions {
+                reorder,
+                ..WriteOptions::default()
+            };
+            let whole = write_to_vec(&tree, &scene, &options).unwrap();
+            for window in [1, 2, 3, 7, 64] {
+                let mut out = std::io::Cursor::new(Vec::new());
+                write_kd(
+                    &mut out,
+                    &tree,
+                    &scene,
+                    &options,
+                    &|e| panic!("{e}"),
+                    window,
+                )
+                .unwrap();
+                assert!(out.into_inner() == whole, "window {window}");
+            }
+        }
+    }
 }
