@@ -695,7 +695,7 @@ fn cmd_build(
     let watch = PeakRss::start();
     pool.install(|| {
         let loaded = load(path)?;
-        let built = build_tree(&loaded.scene, args, json)?;
+        let mut built = build_tree(&loaded.scene, args, json)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
         let mut written = None;
         if let Some(out) = output {
@@ -706,6 +706,10 @@ fn cmd_build(
             };
             format::write_file(out, &built.tree, &loaded.scene, &options)?;
             let secs = start.elapsed().as_secs_f64();
+            // Only figures are left to print: free the tree before the file
+            // is mapped and checked, so that the two never add up.
+            built.tree.nodes = Vec::new();
+            built.tree.leaf_tris = Vec::new();
             let file = KdFile::open(out, false)?;
             written = Some((out.to_path_buf(), file.figures(), secs));
         }
