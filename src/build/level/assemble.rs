@@ -18,10 +18,10 @@
 //! does) as soon as it has been read. The tree and the subtrees left to
 //! copy together stay within about one chunk per level of the tree alone.
 
+use crate::columns::ColumnsError;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use memmap2::MmapMut;
 use std::collections::VecDeque;
-use std::io;
 
 /// What became of one node of a level.
 #[derive(Clone, Copy, Debug)]
@@ -63,9 +63,13 @@ struct Chunk {
 }
 
 impl Chunk {
-    fn new(words: usize) -> io::Result<Chunk> {
+    fn new(words: usize) -> Result<Chunk, ColumnsError> {
+        let bytes = words * 4;
         Ok(Chunk {
-            map: MmapMut::map_anon(words * 4)?,
+            map: MmapMut::map_anon(bytes).map_err(|source| ColumnsError::Memory {
+                bytes: bytes as u64,
+                source,
+            })?,
             len: 0,
             read: 0,
         })
@@ -109,7 +113,12 @@ impl SubStream {
 
     /// Appends the subtree of record `rec` (nodes numbered from 0, leaf
     /// lists starting at 0, no hoisted triangles).
-    pub fn push(&mut self, rec: u32, nodes: &[Node], leaf_tris: &[TriId]) -> io::Result<()> {
+    pub fn push(
+        &mut self,
+        rec: u32,
+        nodes: &[Node],
+        leaf_tris: &[TriId],
+    ) -> Result<(), ColumnsError> {
         let need = HEADER_WORDS + NODE_WORDS * nodes.len() + leaf_tris.len();
         if self
             .chunks

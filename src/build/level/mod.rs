@@ -83,7 +83,6 @@ use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{TreeIr, TriId};
 use rayon::prelude::*;
-use std::io;
 use std::ops::Add;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -683,7 +682,7 @@ impl<'a> Builder<'a> {
         let (scene, params, progress) = (self.scene, &self.config.sah, self.progress);
         let depth_limit = self.depth_limit;
         let chunk_words = self.subs.chunk_words();
-        let runs: Vec<(usize, io::Result<SubStream>)> = small
+        let runs: Vec<(usize, Result<SubStream, ColumnsError>)> = small
             .par_iter()
             .enumerate()
             .fold(
@@ -718,10 +717,7 @@ impl<'a> Builder<'a> {
             .collect();
         let mut next = 0;
         for (first, run) in runs {
-            let run = run.map_err(|source| ColumnsError::Memory {
-                bytes: (chunk_words * 4) as u64,
-                source,
-            })?;
+            let run = run?;
             // Runs tile `small` in order; the assembly relies on it.
             assert_eq!(first, next, "the runs of small nodes are in order");
             next += run.len();
