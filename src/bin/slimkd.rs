@@ -19,6 +19,7 @@ use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 /// The embedded default scene: nexuiz_dieselpower (see scenes/README.md).
@@ -609,9 +610,11 @@ fn build_json(
             "levels": r.levels,
             "small_nodes": r.small_nodes,
             "start_rss_anon_bytes": r.start_rss_anon_bytes,
+            "peak_rss_anon_bytes": r.peak_rss_anon_bytes,
             "peak_rss_file_bytes": r.peak_rss_file_bytes,
             "scratch_bytes_written": r.scratch.file_bytes_total,
         })),
+        // The builder's figure; `build` replaces it with the whole command's.
         "peak_rss_anon_bytes": built.level.as_ref().map_or_else(rss_anon_bytes, |r| r.peak_rss_anon_bytes),
         "hoisted": built.slim.as_ref().map_or(0, |(_, r)| r.hoisted),
         "tau_occu": built.slim.as_ref().map(|(p, _)| p.tau_occu),
@@ -622,14 +625,60 @@ fn build_json(
 
 /// The current `RssAnon` of this process (0 where /proc is missing).
 fn rss_anon_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("RssAnon:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
+    level::rss().0
+}
+
+/// The peak `RssAnon` and `RssFile` of this process from its creation on:
+/// a thread samples `/proc/self/status` every 10 ms until it is dropped.
+struct PeakRss {
+    peak: Arc<[AtomicU64; 2]>,
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl PeakRss {
+    fn start() -> PeakRss {
+        let peak = Arc::new([AtomicU64::new(0), AtomicU64::new(0)]);
+        let stop = Arc::new(AtomicBool::new(false));
+        let thread = {
+            let (peak, stop) = (peak.clone(), stop.clone());
+            std::thread::spawn(move || {
+                while !stop.load(Ordering::Relaxed) {
+                    PeakRss::sample(&peak);
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+            })
+        };
+        PeakRss {
+            peak,
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    fn sample(peak: &[AtomicU64; 2]) {
+        let (anon, file) = level::rss();
+        peak[0].fetch_max(anon, Ordering::Relaxed);
+        peak[1].fetch_max(file, Ordering::Relaxed);
+    }
+
+    /// (RssAnon, RssFile) peaks so far, now included.
+    fn peaks(&self) -> (u64, u64) {
+        PeakRss::sample(&self.peak);
+        (
+            self.peak[0].load(Ordering::Relaxed),
+            self.peak[1].load(Ordering::Relaxed),
+        )
+    }
+}
+
+impl Drop for PeakRss {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }
 
 fn merge(into: &mut serde_json::Value, extra: serde_json::Value) {
@@ -659,9 +708,10 @@ fn cmd_build(
     json: bool,
 ) -> Res<()> {
     let pool = pool(args.threads)?;
+    let watch = PeakRss::start();
     pool.install(|| {
         let loaded = load(path)?;
-        let built = build_tree(&loaded.scene, args, json)?;
+        let mut built = build_tree(&loaded.scene, args, json)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
         let mut written = None;
         if let Some(out) = output {
@@ -672,9 +722,16 @@ fn cmd_build(
             };
             format::write_file(out, &built.tree, &loaded.scene, &options)?;
             let secs = start.elapsed().as_secs_f64();
+            // Only figures are left to print: free the tree before the file
+            // is mapped and checked, so that the two never add up.
+            built.tree.nodes = Vec::new();
+            built.tree.leaf_tris = Vec::new();
             let file = KdFile::open(out, false)?;
             written = Some((out.to_path_buf(), file.figures(), secs));
         }
+        // The whole command: loading, building, writing.
+        let (peak_anon, peak_file) = watch.peaks();
+        let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
         if json {
             let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
             if let Some((out, fig, secs)) = &written {
@@ -684,6 +741,10 @@ fn cmd_build(
                     json!({"output": out.display().to_string(), "write_s": secs, "reorder": reorder}),
                 );
             }
+            merge(
+                &mut j,
+                json!({"peak_rss_anon_bytes": peak_anon, "peak_rss_file_bytes": peak_file}),
+            );
             println!("{j}");
         } else {
             print_summary(&loaded, &built, &stats);
@@ -698,6 +759,11 @@ fn cmd_build(
                     fig.geometry_bytes() as f64 / (1 << 20) as f64
                 );
             }
+            println!(
+                "memory     peak RssAnon {:.1} MiB, peak RssFile {:.1} MiB (load, build and write)",
+                peak_anon as f64 / (1 << 20) as f64,
+                peak_file as f64 / (1 << 20) as f64
+            );
         }
         Ok(())
     })

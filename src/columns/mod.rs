@@ -80,6 +80,8 @@ pub enum ColumnsError {
     },
     /// A count does not fit the builder's index width.
     Capacity { what: &'static str, limit: u64 },
+    /// Memory could not be mapped (out of memory, or of mappings).
+    Memory { bytes: u64, source: io::Error },
 }
 
 impl fmt::Display for ColumnsError {
@@ -110,6 +112,9 @@ impl fmt::Display for ColumnsError {
             ColumnsError::Capacity { what, limit } => {
                 write!(f, "too many {what}: at most {limit} are supported")
             }
+            ColumnsError::Memory { bytes, source } => {
+                write!(f, "cannot map {bytes} bytes of memory: {source}")
+            }
         }
     }
 }
@@ -117,7 +122,9 @@ impl fmt::Display for ColumnsError {
 impl std::error::Error for ColumnsError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
-            ColumnsError::NoDir { source, .. } | ColumnsError::File { source, .. } => Some(source),
+            ColumnsError::NoDir { source, .. }
+            | ColumnsError::File { source, .. }
+            | ColumnsError::Memory { source, .. } => Some(source),
             _ => None,
         }
     }

@@ -7,7 +7,7 @@ use super::{
 };
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId};
-use std::io::Write;
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -104,9 +104,57 @@ fn morton_order(scene: &TriangleColumns) -> Vec<u32> {
     keyed.into_iter().map(|(_, i)| i).collect()
 }
 
-/// What the layout pass produces.
+/// Node words per window of [`Words`] (8 MiB).
+const WINDOW: usize = 1 << 20;
+
+/// The node words as the layout makes them, streamed out in windows of
+/// [`WINDOW`] words. A word is set when its node is laid out, which for a
+/// right child is after its whole left sibling subtree; a word set after
+/// its window has gone out is kept in `late` and patched in afterwards
+/// (a few per window: the right children waiting on the layout stack).
+struct Words<'f> {
+    /// Words per window ([`WINDOW`] but in tests).
+    window: usize,
+    /// Words already handed to `flush`.
+    base: usize,
+    buf: Vec<u64>,
+    /// `(slot, word)` of the words set after their window went out.
+    late: Vec<(usize, u64)>,
+    flush: &'f mut dyn FnMut(&[u64]) -> Result<(), FormatError>,
+}
+
+impl Words<'_> {
+    fn len(&self) -> usize {
+        self.base + self.buf.len()
+    }
+
+    fn push(&mut self, w: u64) -> Result<(), FormatError> {
+        self.buf.push(w);
+        if self.buf.len() >= self.window {
+            (self.flush)(&self.buf)?;
+            self.base += self.buf.len();
+            self.buf.clear();
+        }
+        Ok(())
+    }
+
+    fn set(&mut self, slot: usize, w: u64) {
+        match slot.checked_sub(self.base) {
+            Some(i) => self.buf[i] = w,
+            None => self.late.push((slot, w)),
+        }
+    }
+
+    /// Hands out the last words; returns the late ones.
+    fn finish(self) -> Result<Vec<(usize, u64)>, FormatError> {
+        (self.flush)(&self.buf)?;
+        Ok(self.late)
+    }
+}
+
+/// What the layout pass produces besides the node words.
 struct Layout {
-    words: Vec<u64>,
+    n_words: u64,
     idx32: Vec<u32>,
     idx16: Vec<u16>,
     n_inner: u64,
@@ -125,9 +173,11 @@ fn layout(
     tree: &TreeIr,
     n_tris: usize,
     new_id: &dyn Fn(TriId) -> u32,
+    words: &mut Words<'_>,
 ) -> Result<Layout, FormatError> {
+    words.push(0)?;
     let mut out = Layout {
-        words: vec![0],
+        n_words: 0,
         idx32: Vec::new(),
         idx16: Vec::new(),
         n_inner: 0,
@@ -146,8 +196,8 @@ fn layout(
         message: format!("node {i} lists triangle {} of {n_tris}", t.0),
     };
     // Each IR node is laid out at most once, so a malformed tree (a cycle,
-    // shared children) cannot make the loop run away.
-    let mut visited = vec![false; tree.nodes.len()];
+    // shared children) cannot make the loop run away. One bit per node.
+    let mut visited = vec![0u64; tree.nodes.len().div_ceil(64)];
     // (IR node, slot in `words`, depth), processed left subtree first.
     let mut stack = vec![(0usize, 0usize, 0u32)];
     let mut ids = Vec::new();
@@ -158,9 +208,11 @@ fn layout(
                 format!("a child outside the {} nodes", tree.nodes.len()),
             ));
         };
-        if std::mem::replace(&mut visited[i], true) {
+        let (word, bit) = (i / 64, 1u64 << (i % 64));
+        if visited[word] & bit != 0 {
             return Err(bad_node(i, "reached twice (not a tree)".into()));
         }
+        visited[word] |= bit;
         if depth > MAX_DEPTH {
             return Err(too_large(&format!("a node deeper than {MAX_DEPTH}")));
         }
@@ -178,14 +230,14 @@ fn layout(
                 if !pos.is_finite() {
                     return Err(bad_node(i, "split position is not finite".into()));
                 }
-                let block = out.words.len();
+                let block = words.len();
                 let first_child = match t_ref {
                     Some(t) => {
                         if t.0 as usize >= n_tris {
                             return Err(bad_tri(i, t));
                         }
                         out.n_t_inner += 1;
-                        out.words.push(node::encode_tref(new_id(t)));
+                        words.push(node::encode_tref(new_id(t)))?;
                         block + 1
                     }
                     None => {
@@ -193,13 +245,17 @@ fn layout(
                         block
                     }
                 };
-                out.words.extend([0, 0]);
-                if out.words.len() as u64 > MAX_NODES {
+                words.push(0)?;
+                words.push(0)?;
+                if words.len() as u64 > MAX_NODES {
                     return Err(too_large(
                         "more than 2^29 node words (the 4 GiB offset limit)",
                     ));
                 }
-                out.words[slot] = node::encode_inner(axis, t_ref.is_some(), block as u32, pos);
+                words.set(
+                    slot,
+                    node::encode_inner(axis, t_ref.is_some(), block as u32, pos),
+                );
                 stack.push((right.0 as usize, first_child + 1, depth + 1));
                 stack.push((i + 1, first_child, depth + 1));
             }
@@ -233,7 +289,7 @@ fn layout(
                 let upper = ids.first().map_or(0, |&t| t >> 16);
                 let two_byte =
                     (ids.len() as u32) < LEAF16_LIMIT && ids.iter().all(|&t| t >> 16 == upper);
-                out.words[slot] = if two_byte {
+                let word = if two_byte {
                     let first = u32::try_from(out.idx16.len())
                         .map_err(|_| too_large("idx16 over 2^32 entries"))?;
                     out.idx16.extend(ids.iter().map(|&t| t as u16));
@@ -244,9 +300,11 @@ fn layout(
                     out.idx32.extend_from_slice(&ids);
                     node::encode_leaf32(ids.len() as u32, first)
                 };
+                words.set(slot, word);
             }
         }
     }
+    out.n_words = words.len() as u64;
     Ok(out)
 }
 
@@ -258,29 +316,15 @@ fn put_u64(b: &mut [u8], at: usize, v: u64) {
     b[at..at + 8].copy_from_slice(&v.to_le_bytes());
 }
 
-/// Serialises a tree and its scene into the bytes of a `.kd` file.
-///
-/// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
-/// would reject: a tree that does not fit the format
-/// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
-/// range, a node reached twice, an axis over 2, a non-finite split, a
-/// triangle id out of range) or scene (non-finite bounds or vertices, a
-/// vertex index out of range) is an error, never a panic. The tree need not
-/// pass [`TreeIr::validate`] otherwise: leaves may repeat a triangle.
-pub fn write_to_vec(
-    tree: &TreeIr,
-    scene: &TriangleColumns,
-    options: &WriteOptions,
-) -> Result<Vec<u8>, FormatError> {
-    let n_tris = scene.len();
-    // Refuse what the reader would reject.
+/// Refuses a scene the reader would reject (see [`write_to_vec`]).
+fn check_scene(tree: &TreeIr, scene: &TriangleColumns) -> Result<(), FormatError> {
     let b = tree.bounds;
     if !(b.min.is_finite() && b.max.is_finite() && b.min.cmple(b.max).all()) {
         return Err(FormatError::Header(
             "scene bounds are not a finite box".into(),
         ));
     }
-    if n_tris > u32::MAX as usize || scene.positions.len() > u32::MAX as usize {
+    if scene.len() > u32::MAX as usize || scene.positions.len() > u32::MAX as usize {
         return Err(FormatError::TooLarge(
             "more than 2^32 triangles or vertices".into(),
         ));
@@ -304,37 +348,172 @@ pub fn write_to_vec(
             message: format!("vertex index out of {n_vertices}"),
         });
     }
-    let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
-    let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
-        let mut inv = vec![0u32; p.len()];
-        for (new, &old) in p.iter().enumerate() {
-            inv[old as usize] = new as u32;
-        }
-        inv
-    });
-    let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
-    let lay = layout(tree, n_tris, &new_id)?;
+    Ok(())
+}
 
-    let mut sections: [Vec<u8>; 6] = Default::default();
-    sections[Section::Nodes as usize] = lay.words.iter().flat_map(|w| w.to_le_bytes()).collect();
-    sections[Section::Idx32 as usize] = lay.idx32.iter().flat_map(|w| w.to_le_bytes()).collect();
-    sections[Section::Idx16 as usize] = lay.idx16.iter().flat_map(|w| w.to_le_bytes()).collect();
-    sections[Section::Vertices as usize] = scene
-        .positions
-        .iter()
-        .flat_map(|p| [p.x, p.y, p.z])
-        .flat_map(f32::to_le_bytes)
-        .collect();
-    sections[Section::Triangles as usize] = (0..n_tris)
-        .map(|new| perm.as_ref().map_or(new, |p| p[new] as usize))
-        .flat_map(|old| scene.indices[old])
-        .flat_map(u32::to_le_bytes)
-        .collect();
-    if let Some(p) = &perm {
-        sections[Section::TriMap as usize] = p.iter().flat_map(|w| w.to_le_bytes()).collect();
+/// Bytes encoded per write by [`SectionSink`].
+const SINK_BUF: usize = 1 << 20;
+
+/// Writes one section after another, each checksummed and padded to
+/// [`SECTION_ALIGN`].
+struct SectionSink<'w, W: Write> {
+    out: &'w mut W,
+    buf: Vec<u8>,
+    crc: crc32fast::Hasher,
+    /// Bytes of the current section so far.
+    len: u64,
+}
+
+impl<W: Write> SectionSink<'_, W> {
+    #[inline]
+    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.buf.extend_from_slice(bytes);
+        if self.buf.len() >= SINK_BUF {
+            self.flush()?;
+        }
+        Ok(())
     }
 
-    let mut header = vec![0u8; HEADER_SIZE];
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.crc.update(&self.buf);
+        self.len += self.buf.len() as u64;
+        self.out.write_all(&self.buf)?;
+        self.buf.clear();
+        Ok(())
+    }
+
+    /// Ends a section: its CRC and length; writes the padding after it.
+    fn finish_section(&mut self) -> std::io::Result<(u32, u64)> {
+        self.flush()?;
+        let crc = std::mem::take(&mut self.crc).finalize();
+        let len = std::mem::take(&mut self.len);
+        // Sections start at multiples of SECTION_ALIGN (the header's size
+        // is one), so the section's own length decides the padding.
+        write_padding(self.out, len)?;
+        Ok((crc, len))
+    }
+}
+
+/// The zeros after a section of `len` bytes, up to a multiple of
+/// [`SECTION_ALIGN`].
+fn write_padding(out: &mut impl Write, len: u64) -> std::io::Result<()> {
+    let pad = len.next_multiple_of(SECTION_ALIGN as u64) - len;
+    out.write_all(&[0u8; SECTION_ALIGN][..pad as usize])
+}
+
+/// Writes the `.kd` file to `out` (positioned at its start), which must
+/// read back what was written: the node words stream out as the layout
+/// makes them, the few set late are patched in, their section is read
+/// back for its checksum, the other sections stream out from the layout's
+/// index arrays and the scene, and the header goes last, at offset 0.
+/// Nothing the size of the file or of the node section is held; `io`
+/// names `out` in errors.
+fn write_kd<W: Read + Write + Seek>(
+    out: &mut W,
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+    io: &dyn Fn(std::io::Error) -> FormatError,
+    window: usize,
+) -> Result<(), FormatError> {
+    check_scene(tree, scene)?;
+    let n_tris = scene.len();
+    let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
+    out.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
+
+    // The node section.
+    let (lay, late) = {
+        let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
+            let mut inv = vec![0u32; p.len()];
+            for (new, &old) in p.iter().enumerate() {
+                inv[old as usize] = new as u32;
+            }
+            inv
+        });
+        let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
+        let mut bytes = Vec::with_capacity(8 * window);
+        let mut flush = |ws: &[u64]| {
+            bytes.clear();
+            bytes.extend(ws.iter().flat_map(|w| w.to_le_bytes()));
+            out.write_all(&bytes).map_err(io)
+        };
+        let mut words = Words {
+            window,
+            base: 0,
+            buf: Vec::with_capacity(window),
+            late: Vec::new(),
+            flush: &mut flush,
+        };
+        let lay = layout(tree, n_tris, &new_id, &mut words)?;
+        (lay, words.finish()?)
+    };
+    let nodes_len = lay.n_words * 8;
+    let crc_nodes = (|| {
+        for (slot, w) in late {
+            out.seek(SeekFrom::Start(HEADER_SIZE as u64 + 8 * slot as u64))?;
+            out.write_all(&w.to_le_bytes())?;
+        }
+        out.seek(SeekFrom::Start(HEADER_SIZE as u64))?;
+        let mut crc = crc32fast::Hasher::new();
+        let mut buf = vec![0u8; SINK_BUF];
+        let mut left = nodes_len;
+        while left > 0 {
+            let n = left.min(buf.len() as u64) as usize;
+            out.read_exact(&mut buf[..n])?;
+            crc.update(&buf[..n]);
+            left -= n as u64;
+        }
+        write_padding(out, nodes_len)?;
+        Ok(crc.finalize())
+    })()
+    .map_err(io)?;
+
+    // The other sections.
+    let mut lens = [0u64; 6];
+    let mut crcs = [0u32; 6];
+    lens[Section::Nodes as usize] = nodes_len;
+    crcs[Section::Nodes as usize] = crc_nodes;
+    let mut sink = SectionSink {
+        out,
+        buf: Vec::with_capacity(SINK_BUF + 16),
+        crc: crc32fast::Hasher::new(),
+        len: 0,
+    };
+    for section in &Section::ALL[1..] {
+        match section {
+            Section::Nodes => unreachable!("written above"),
+            Section::Idx32 => lay
+                .idx32
+                .iter()
+                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+            Section::Idx16 => lay
+                .idx16
+                .iter()
+                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+            Section::Vertices => scene.positions.iter().try_for_each(|p| {
+                [p.x, p.y, p.z]
+                    .iter()
+                    .try_for_each(|v| sink.put(&v.to_le_bytes()))
+            }),
+            Section::Triangles => (0..n_tris).try_for_each(|new| {
+                let old = perm.as_ref().map_or(new, |p| p[new] as usize);
+                scene.indices[old]
+                    .iter()
+                    .try_for_each(|v| sink.put(&v.to_le_bytes()))
+            }),
+            Section::TriMap => perm
+                .iter()
+                .flatten()
+                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+        }
+        .map_err(io)?;
+        let (crc, len) = sink.finish_section().map_err(io)?;
+        lens[*section as usize] = len;
+        crcs[*section as usize] = crc;
+    }
+
+    let b = tree.bounds;
+    let mut header = [0u8; HEADER_SIZE];
     header[0..8].copy_from_slice(&MAGIC);
     put_u32(&mut header, 8, VERSION);
     put_u32(&mut header, 12, ENDIAN_CHECK);
@@ -354,7 +533,7 @@ pub fn write_to_vec(
     put_u32(&mut header, 60, c.tau_freq.to_bits());
     put_u32(&mut header, 64, c.max_t2rn);
     put_u32(&mut header, 68, lay.max_depth);
-    put_u64(&mut header, 72, lay.words.len() as u64);
+    put_u64(&mut header, 72, lay.n_words);
     put_u64(&mut header, 80, lay.n_inner);
     put_u64(&mut header, 88, lay.n_t_inner);
     put_u64(&mut header, 96, lay.n_leaves);
@@ -368,24 +547,51 @@ pub fn write_to_vec(
     {
         put_u32(&mut header, 136 + 4 * k, v.to_bits());
     }
-    let mut offset = HEADER_SIZE;
-    for (s, bytes) in sections.iter().enumerate() {
+    let mut offset = HEADER_SIZE as u64;
+    for s in 0..6 {
         let entry = SECTION_TABLE + s * SECTION_ENTRY;
-        put_u64(&mut header, entry, offset as u64);
-        put_u64(&mut header, entry + 8, bytes.len() as u64);
-        put_u32(&mut header, entry + 16, crc32fast::hash(bytes));
-        offset = (offset + bytes.len()).next_multiple_of(SECTION_ALIGN);
+        put_u64(&mut header, entry, offset);
+        put_u64(&mut header, entry + 8, lens[s]);
+        put_u32(&mut header, entry + 16, crcs[s]);
+        offset = (offset + lens[s]).next_multiple_of(SECTION_ALIGN as u64);
     }
     let crc = crc32fast::hash(&header[..HEADER_CRC]);
     put_u32(&mut header, HEADER_CRC, crc);
+    (|| {
+        let end = out.stream_position()?;
+        debug_assert_eq!(end, offset);
+        out.seek(SeekFrom::Start(0))?;
+        out.write_all(&header)?;
+        out.seek(SeekFrom::Start(end))?;
+        Ok(())
+    })()
+    .map_err(io)
+}
 
-    let mut out = Vec::with_capacity(offset);
-    out.extend_from_slice(&header);
-    for bytes in &sections {
-        out.extend_from_slice(bytes);
-        out.resize(out.len().next_multiple_of(SECTION_ALIGN), 0);
-    }
-    Ok(out)
+/// Serialises a tree and its scene into the bytes of a `.kd` file.
+///
+/// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
+/// would reject: a tree that does not fit the format
+/// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
+/// range, a node reached twice, an axis over 2, a non-finite split, a
+/// triangle id out of range) or scene (non-finite bounds or vertices, a
+/// vertex index out of range) is an error, never a panic. The tree need not
+/// pass [`TreeIr::validate`] otherwise: leaves may repeat a triangle.
+pub fn write_to_vec(
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+) -> Result<Vec<u8>, FormatError> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    write_kd(
+        &mut out,
+        tree,
+        scene,
+        options,
+        &|e| unreachable!("writing to a Vec cannot fail: {e}"),
+        WINDOW,
+    )?;
+    Ok(out.into_inner())
 }
 
 /// Distinguishes the temporary files of concurrent writes in one process.
@@ -396,13 +602,16 @@ static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
 /// it), fsync, rename, then a best-effort fsync of the directory. A failed
 /// or killed write leaves no file at `path` (and never a half-written one
 /// that could pass for valid); a failed write removes its temporary file.
+/// The bytes are those of [`write_to_vec`], streamed to the file rather
+/// than built in memory (see `write_kd`).
 pub fn write_file(
     path: &Path,
     tree: &TreeIr,
     scene: &TriangleColumns,
     options: &WriteOptions,
 ) -> Result<(), FormatError> {
-    let bytes = write_to_vec(tree, scene, options)?;
+    // Refuse a bad scene before any file is made.
+    check_scene(tree, scene)?;
     let io = |source| FormatError::Io {
         path: path.to_path_buf(),
         source,
@@ -416,7 +625,7 @@ pub fn write_file(
         .ok_or_else(|| io(std::io::Error::other("not a file name")))?;
     // A name left behind by a killed writer is skipped, never reused.
     let mut attempt = 0;
-    let (tmp, mut f) = loop {
+    let (tmp, f) = loop {
         let tmp = dir.join(format!(
             ".{}.tmp.{}.{}",
             name.to_string_lossy(),
@@ -424,6 +633,7 @@ pub fn write_file(
             TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
         ));
         match std::fs::OpenOptions::new()
+            .read(true)
             .write(true)
             .create_new(true)
             .open(&tmp)
@@ -436,18 +646,64 @@ pub fn write_file(
         }
     };
     let result = (|| {
-        f.write_all(&bytes)?;
-        f.sync_all()?;
+        // `write_kd` writes in pieces of about a MiB, except for the
+        // header and the padding.
+        let mut f = f;
+        write_kd(&mut f, tree, scene, options, &io, WINDOW)?;
+        f.sync_all().map_err(io)?;
         drop(f);
-        std::fs::rename(&tmp, path)
+        std::fs::rename(&tmp, path).map_err(io)
     })();
     if let Err(e) = result {
         let _ = std::fs::remove_file(&tmp);
-        return Err(io(e));
+        return Err(e);
     }
     // Make the rename durable; not every platform can open a directory.
     if let Ok(d) = std::fs::File::open(&dir) {
         let _ = d.sync_all();
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::{self, BuildConfig, Builder};
+    use glam::Vec3;
+
+    /// Windows of a few words send many words out before they are set;
+    /// the file is the same as with one window for the whole section.
+    #[test]
+    fn late_words_are_patched_in() {
+        // A grid of small triangles, one per unit cell.
+        let tris: Vec<[Vec3; 3]> = (0..400)
+            .map(|i| {
+                let p = Vec3::new((i % 20) as f32, (i / 20) as f32, (i % 7) as f32);
+                [p, p + Vec3::X, p + Vec3::Y]
+            })
+            .collect();
+        let scene = TriangleColumns::from_triangles(&tris).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        assert!(tree.nodes.len() > 100);
+        for reorder in [false, true] {
+            let options = WriteOptions {
+                reorder,
+                ..WriteOptions::default()
+            };
+            let whole = write_to_vec(&tree, &scene, &options).unwrap();
+            for window in [1, 2, 3, 7, 64] {
+                let mut out = std::io::Cursor::new(Vec::new());
+                write_kd(
+                    &mut out,
+                    &tree,
+                    &scene,
+                    &options,
+                    &|e| panic!("{e}"),
+                    window,
+                )
+                .unwrap();
+                assert!(out.into_inner() == whole, "window {window}");
+            }
+        }
+    }
 }

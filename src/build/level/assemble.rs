@@ -2,13 +2,26 @@
 //!
 //! Consumes one record per node, made in breadth-first order (an inner
 //! node names its children's records; a leaf names its triangle list; a
-//! small node names the subtree the depth-first builder made for it).
-//! Produces the nodes in depth-first pre-order with the leaf lists
-//! concatenated in the same order, which is the order every builder emits
-//! (see [`crate::tree`]), so the result compares equal to the sweep
-//! builder's tree.
+//! small node names the level whose depth-first subtrees hold its own) and
+//! the [`SubStore`] of those subtrees. Produces the nodes in depth-first
+//! pre-order with the leaf lists concatenated in the same order, which is
+//! the order every builder emits (see [`crate::tree`]), so the result
+//! compares equal to the sweep builder's tree.
+//!
+//! **Memory.** The depth-first subtrees are most of the tree, so they are
+//! never held twice. They are stored packed (12 bytes a node instead of a
+//! [`Node`]'s 20), one stream per level in the level's node order, in
+//! chunks that are anonymous mappings of their own. A level's nodes are in
+//! left-to-right order of the tree, so pre-order reads each level's stream
+//! front to back: the assembly copies every subtree once, and each chunk is
+//! unmapped (its pages returned to the system, whatever the allocator
+//! does) as soon as it has been read. The tree and the subtrees left to
+//! copy together stay within about one chunk per level of the tree alone.
 
+use crate::columns::ColumnsError;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
+use memmap2::MmapMut;
+use std::collections::VecDeque;
 
 /// What became of one node of a level.
 #[derive(Clone, Copy, Debug)]
@@ -23,8 +36,184 @@ pub enum Rec {
     },
     /// `tris[start .. start + count]` of the breadth-first leaves.
     Leaf { start: usize, count: u32 },
-    /// A subtree finished depth-first.
+    /// A subtree finished depth-first at this depth: the next one in that
+    /// level's [`SubStream`].
     Sub(u32),
+}
+
+/// The smallest chunk, in `u32` words (1 MiB).
+const MIN_CHUNK_WORDS: usize = 1 << 18;
+/// Words of one packed node: `[axis or LEAF, pos bits or start, right or
+/// count]`.
+const NODE_WORDS: usize = 3;
+const LEAF: u32 = 3;
+/// Words before a subtree's nodes: its record, node count, triangle count.
+const HEADER_WORDS: usize = 3;
+
+/// A chunk of a stream: an anonymous mapping, so that dropping it returns
+/// its pages to the system (a `Vec` of a few MiB may come from the
+/// allocator's heap, which keeps freed pages), and pages never written are
+/// never resident.
+struct Chunk {
+    map: MmapMut,
+    /// Words written.
+    len: usize,
+    /// Words read back.
+    read: usize,
+}
+
+impl Chunk {
+    fn new(words: usize) -> Result<Chunk, ColumnsError> {
+        let bytes = words * 4;
+        Ok(Chunk {
+            map: MmapMut::map_anon(bytes).map_err(|source| ColumnsError::Memory {
+                bytes: bytes as u64,
+                source,
+            })?,
+            len: 0,
+            read: 0,
+        })
+    }
+
+    fn capacity(&self) -> usize {
+        self.map.len() / 4
+    }
+
+    fn words(&self) -> &[u32] {
+        // A page-aligned mapping of a multiple of 4 bytes: cannot fail.
+        bytemuck::cast_slice(&self.map[..])
+    }
+
+    fn words_mut(&mut self) -> &mut [u32] {
+        bytemuck::cast_slice_mut(&mut self.map[..])
+    }
+}
+
+/// Depth-first subtrees, packed, in the order they were pushed.
+pub struct SubStream {
+    chunks: VecDeque<Chunk>,
+    /// The size of a new chunk (a subtree larger than it gets a chunk of
+    /// its own size).
+    chunk_words: usize,
+    subs: usize,
+    nodes: usize,
+    tris: usize,
+}
+
+impl SubStream {
+    pub fn new(chunk_words: usize) -> SubStream {
+        SubStream {
+            chunks: VecDeque::new(),
+            chunk_words: chunk_words.max(MIN_CHUNK_WORDS),
+            subs: 0,
+            nodes: 0,
+            tris: 0,
+        }
+    }
+
+    /// Appends the subtree of record `rec` (nodes numbered from 0, leaf
+    /// lists starting at 0, no hoisted triangles).
+    pub fn push(
+        &mut self,
+        rec: u32,
+        nodes: &[Node],
+        leaf_tris: &[TriId],
+    ) -> Result<(), ColumnsError> {
+        let need = HEADER_WORDS + NODE_WORDS * nodes.len() + leaf_tris.len();
+        if self
+            .chunks
+            .back()
+            .is_none_or(|c| c.capacity() - c.len < need)
+        {
+            self.chunks
+                .push_back(Chunk::new(need.max(self.chunk_words))?);
+        }
+        let c = self.chunks.back_mut().expect("a chunk was just made");
+        let at = c.len;
+        let w = &mut c.words_mut()[at..at + need];
+        let (head, rest) = w.split_at_mut(HEADER_WORDS);
+        let (packed, tris) = rest.split_at_mut(NODE_WORDS * nodes.len());
+        head.copy_from_slice(&[rec, nodes.len() as u32, leaf_tris.len() as u32]);
+        for (p, n) in packed.chunks_exact_mut(NODE_WORDS).zip(nodes) {
+            p.copy_from_slice(&match *n {
+                Node::Inner {
+                    axis,
+                    pos,
+                    right,
+                    t_ref,
+                } => {
+                    assert!(t_ref.is_none(), "standard trees hoist no triangles");
+                    [u32::from(axis), pos.to_bits(), right.0]
+                }
+                Node::Leaf { start, count } => [LEAF, start, count],
+            });
+        }
+        for (p, t) in tris.iter_mut().zip(leaf_tris) {
+            *p = t.0;
+        }
+        c.len += need;
+        self.subs += 1;
+        self.nodes += nodes.len();
+        self.tris += leaf_tris.len();
+        Ok(())
+    }
+
+    /// Appends `other`'s subtrees after this one's.
+    pub fn append(&mut self, mut other: SubStream) {
+        self.chunks.append(&mut other.chunks);
+        self.subs += other.subs;
+        self.nodes += other.nodes;
+        self.tris += other.tris;
+    }
+
+    pub fn len(&self) -> usize {
+        self.subs
+    }
+
+    /// The next subtree: its record, packed nodes and leaf triangles.
+    /// Chunks read to the end are dropped first.
+    fn pop(&mut self) -> Option<(u32, &[u32], &[u32])> {
+        while self.chunks.front().is_some_and(|c| c.read == c.len) {
+            self.chunks.pop_front();
+        }
+        let c = self.chunks.front_mut()?;
+        let at = c.read;
+        let [rec, n, t] = [0, 1, 2].map(|k| c.words()[at + k] as usize);
+        let need = HEADER_WORDS + NODE_WORDS * n + t;
+        c.read += need;
+        let w = &c.words()[at + HEADER_WORDS..at + need];
+        let (packed, tris) = w.split_at(NODE_WORDS * n);
+        Some((rec as u32, packed, tris))
+    }
+}
+
+/// The depth-first subtrees of the whole build: one stream per depth.
+#[derive(Default)]
+pub struct SubStore {
+    levels: Vec<SubStream>,
+    words: usize,
+    nodes: usize,
+    tris: usize,
+}
+
+impl SubStore {
+    /// The chunk size for new streams: at least 1 MiB, and large enough
+    /// that the store never needs more than a few thousand mappings.
+    pub fn chunk_words(&self) -> usize {
+        (self.words / 512).max(MIN_CHUNK_WORDS)
+    }
+
+    /// Appends subtrees finished at `depth`, in the level's node order.
+    pub fn add(&mut self, depth: u32, s: SubStream) {
+        let d = depth as usize;
+        if self.levels.len() <= d {
+            self.levels.resize_with(d + 1, || SubStream::new(0));
+        }
+        self.words += HEADER_WORDS * s.subs + NODE_WORDS * s.nodes + s.tris;
+        self.nodes += s.nodes;
+        self.tris += s.tris;
+        self.levels[d].append(s);
+    }
 }
 
 /// The tree, in pre-order from record 0; consumes the subtrees.
@@ -32,17 +221,10 @@ pub fn assemble(
     bounds: crate::geom::Aabb,
     recs: &[Rec],
     tris: &[TriId],
-    subs: Vec<TreeIr>,
+    mut subs: SubStore,
 ) -> TreeIr {
-    let n_nodes: usize = recs
-        .iter()
-        .map(|r| match r {
-            Rec::Sub(s) => subs[*s as usize].nodes.len(),
-            _ => 1,
-        })
-        .sum();
-    let n_tris = tris.len() + subs.iter().map(|s| s.leaf_tris.len()).sum::<usize>();
-    let mut subs: Vec<Option<TreeIr>> = subs.into_iter().map(Some).collect();
+    let n_nodes = recs.iter().filter(|r| !matches!(r, Rec::Sub(_))).count() + subs.nodes;
+    let n_tris = tris.len() + subs.tris;
     let mut nodes = Vec::with_capacity(n_nodes);
     let mut leaf_tris = Vec::with_capacity(n_tris);
     // (record, inner node whose right child it is)
@@ -76,35 +258,34 @@ pub fn assemble(
                 leaf_tris.extend_from_slice(&tris[start..start + count as usize]);
                 nodes.push(Node::Leaf { start: at, count });
             }
-            Rec::Sub(s) => {
-                // Each subtree is copied once and freed at once, so the
-                // subtrees and the tree are not all held together.
-                let sub = subs[s as usize]
-                    .take()
-                    .expect("each subtree hangs below one record");
+            Rec::Sub(depth) => {
+                let (rec, packed, sub_tris) = subs.levels[depth as usize]
+                    .pop()
+                    .expect("each small node has its subtree");
+                assert_eq!(rec, r, "a level's subtrees are read in its node order");
                 let base = nodes.len() as u32;
                 let tbase = leaf_tris.len() as u32;
-                nodes.extend(sub.nodes.iter().map(|n| match *n {
-                    Node::Inner {
-                        axis,
-                        pos,
-                        right,
-                        t_ref,
-                    } => Node::Inner {
-                        axis,
-                        pos,
-                        right: NodeId(right.0 + base),
-                        t_ref,
-                    },
-                    Node::Leaf { start, count } => Node::Leaf {
-                        start: start + tbase,
-                        count,
-                    },
+                nodes.extend(packed.chunks_exact(NODE_WORDS).map(|w| {
+                    if w[0] == LEAF {
+                        Node::Leaf {
+                            start: w[1] + tbase,
+                            count: w[2],
+                        }
+                    } else {
+                        Node::Inner {
+                            axis: w[0] as u8,
+                            pos: f32::from_bits(w[1]),
+                            right: NodeId(w[2] + base),
+                            t_ref: None,
+                        }
+                    }
                 }));
-                leaf_tris.extend_from_slice(&sub.leaf_tris);
+                leaf_tris.extend(sub_tris.iter().map(|&t| TriId(t)));
             }
         }
     }
+    debug_assert_eq!(nodes.len(), n_nodes);
+    debug_assert_eq!(leaf_tris.len(), n_tris);
     TreeIr {
         bounds,
         nodes,

@@ -6,8 +6,9 @@
 //!
 //! Consumes one small node of a level: its references (ascending by
 //! triangle), its sorted events per axis ([`super::event`]), its cell,
-//! depth and progress weight. Produces the node's subtree as a
-//! [`TreeIr`] of its own (indices from 0, `bounds` = the cell), equal to
+//! depth and progress weight. Produces the node's subtree as nodes and
+//! leaf lists of its own (indices from 0), borrowed from the finisher
+//! until its next node, equal to
 //! what [`crate::build::sweep::Subtrees`] builds for the same node: the
 //! same sweep ([`super::sweep_events`], pricing through
 //! [`crate::build::sah`]), the same [`classify`] and [`clip_straddler`],
@@ -25,7 +26,7 @@ use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
-use crate::tree::{Node, NodeId, TreeIr, TriId};
+use crate::tree::{Node, NodeId, TriId};
 
 /// The partition slot of a placement code: 0 left, 1 right, 2 dropped
 /// (a clipped straddler, whose events are made anew).
@@ -98,7 +99,8 @@ impl<'a> Finisher<'a> {
     }
 
     /// The subtree of one node: references `tri`/`boxes`, events `ev` per
-    /// axis whose references count from `ref_base`.
+    /// axis whose references count from `ref_base`. Returns its nodes and
+    /// leaf lists.
     #[allow(clippy::too_many_arguments)]
     pub fn build(
         &mut self,
@@ -109,7 +111,9 @@ impl<'a> Finisher<'a> {
         cell: Aabb,
         depth: u32,
         weight: u64,
-    ) -> TreeIr {
+    ) -> (&[Node], &[TriId]) {
+        self.nodes.clear();
+        self.leaf_tris.clear();
         self.tri.clear();
         self.tri.extend_from_slice(tri);
         self.boxes.clear();
@@ -120,11 +124,7 @@ impl<'a> Finisher<'a> {
         }
         let nev = [0, 1, 2].map(|k| self.ev[k].len());
         self.node(0, tri.len(), [0; 3], nev, cell, depth, weight);
-        TreeIr {
-            bounds: cell,
-            nodes: std::mem::take(&mut self.nodes),
-            leaf_tris: std::mem::take(&mut self.leaf_tris),
-        }
+        (&self.nodes, &self.leaf_tris)
     }
 
     #[allow(clippy::too_many_arguments)]

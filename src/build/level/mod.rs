@@ -61,16 +61,20 @@
 //! The threshold was tuned there (256 to 131072 references); 2048 was
 //! fastest on 2 threads, with 1024 to 32768 within the noise.
 //!
-//! **Memory.** The level columns obey `mem_budget`; the breadth-first
-//! records, leaf lists and the depth-first subtrees (together about the
-//! size of the output tree) stay in RAM until the tree is assembled.
+//! **Memory.** The level columns obey `mem_budget`. The breadth-first
+//! records and leaf lists stay in RAM until the tree is assembled, and so
+//! do the depth-first subtrees, packed (12 bytes a node) in one stream per
+//! level that the assembly reads front to back, unmapping each chunk once
+//! read (`assemble`): the subtrees are never held twice, and never as
+//! many small allocations that the allocator would keep after they are
+//! freed.
 
 mod assemble;
 mod dfs;
 mod event;
 mod pieces;
 
-use self::assemble::{Rec, assemble};
+use self::assemble::{Rec, SubStore, SubStream, assemble};
 use self::dfs::Finisher;
 use self::event::{
     Box6, MAX_REFS, ev_key, ev_kind, ev_ref, key_pos, n_events, push_events, to_aabb, to_box,
@@ -253,7 +257,7 @@ pub fn build(
         depth_limit: config.sah.depth_limit(scene.len()),
         recs: vec![Rec::Open],
         leaf_tris: Vec::new(),
-        subs: Vec::new(),
+        subs: SubStore::default(),
         report: LevelReport {
             start_rss_anon_bytes: start_rss.0,
             peak_rss_anon_bytes: start_rss.0,
@@ -287,9 +291,9 @@ fn lap(clock: &mut Instant) -> f64 {
     s
 }
 
-/// `RssAnon` and `RssFile` in bytes, from `/proc/self/status` (zeros where
-/// it cannot be read).
-fn rss() -> (u64, u64) {
+/// This process's `RssAnon` and `RssFile` in bytes, from
+/// `/proc/self/status` (zeros where it cannot be read).
+pub fn rss() -> (u64, u64) {
     let Ok(text) = std::fs::read_to_string("/proc/self/status") else {
         return (0, 0);
     };
@@ -345,7 +349,7 @@ struct Builder<'a> {
     /// The triangle lists of the breadth-first leaves.
     leaf_tris: Vec<TriId>,
     /// The subtrees finished depth-first.
-    subs: Vec<TreeIr>,
+    subs: SubStore,
     report: LevelReport,
 }
 
@@ -559,7 +563,7 @@ impl<'a> Builder<'a> {
 
         // 1. Small nodes, depth-first.
         if !small.is_empty() {
-            self.finish_small(&l, &small, depth);
+            self.finish_small(&l, &small, depth)?;
             self.report.phases.small_s += lap(&mut clock);
             self.sample_rss();
         }
@@ -717,34 +721,66 @@ impl<'a> Builder<'a> {
     }
 
     /// Finishes the small nodes depth-first, in parallel across nodes.
-    fn finish_small(&mut self, l: &Level<'a>, small: &[usize], depth: u32) {
+    /// Their subtrees go packed into the level's stream of `subs`, in the
+    /// level's node order: each fold of rayon's covers a run of
+    /// consecutive nodes, and the runs are appended in order.
+    fn finish_small(
+        &mut self,
+        l: &Level<'a>,
+        small: &[usize],
+        depth: u32,
+    ) -> Result<(), ColumnsError> {
         let (scene, params, progress) = (self.scene, &self.config.sah, self.progress);
         let depth_limit = self.depth_limit;
+        let chunk_words = self.subs.chunk_words();
         let mode = self.options.new_events;
-        let subs: Vec<TreeIr> = small
+        let runs: Vec<(usize, Result<SubStream, ColumnsError>)> = small
             .par_iter()
-            .map_init(
-                || Finisher::new(scene, params, depth_limit, progress).with_new_events(mode),
-                |fin, &j| {
-                    let nd = &l.nodes[j];
-                    let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
-                    fin.build(
-                        &l.tri[nd.refs..nd.refs + nd.n],
-                        &l.bounds[nd.refs..nd.refs + nd.n],
-                        ev,
-                        nd.refs as u32,
-                        nd.cell,
-                        depth,
-                        nd.weight,
+            .enumerate()
+            .fold(
+                || {
+                    (
+                        usize::MAX,
+                        Finisher::new(scene, params, depth_limit, progress).with_new_events(mode),
+                        Ok(SubStream::new(chunk_words)),
                     )
                 },
+                |(first, mut fin, out), (k, &j)| {
+                    let out = out.and_then(|mut out| {
+                        let nd = &l.nodes[j];
+                        let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
+                        let (nodes, leaf_tris) = fin.build(
+                            &l.tri[nd.refs..nd.refs + nd.n],
+                            &l.bounds[nd.refs..nd.refs + nd.n],
+                            ev,
+                            nd.refs as u32,
+                            nd.cell,
+                            depth,
+                            nd.weight,
+                        );
+                        out.push(nd.rec, nodes, leaf_tris)?;
+                        Ok(out)
+                    });
+                    (first.min(k), fin, out)
+                },
             )
+            .map(|(first, _, out)| (first, out))
+            .filter(|(first, _)| *first != usize::MAX)
             .collect();
-        self.report.small_nodes += subs.len() as u64;
-        for (&j, sub) in small.iter().zip(subs) {
-            self.recs[l.nodes[j].rec as usize] = Rec::Sub(self.subs.len() as u32);
-            self.subs.push(sub);
+        let mut next = 0;
+        for (first, run) in runs {
+            let run = run?;
+            // Runs tile `small` in order; the assembly relies on it.
+            assert_eq!(first, next, "the runs of small nodes are in order");
+            next += run.len();
+            self.subs.add(depth, run);
         }
+        assert_eq!(next, small.len());
+        for &j in small {
+            self.recs[l.nodes[j].rec as usize] = Rec::Sub(depth);
+        }
+        self.report.small_nodes += small.len() as u64;
+        Ok(())
     }
 
     /// The best split of each of the `big` nodes (`None` for an empty node
