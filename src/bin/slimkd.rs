@@ -12,6 +12,7 @@ use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, Writ
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::slim::{self, SlimParams, SlimReport};
+use slimkd::stats::bytes::ByteSplit;
 use slimkd::stats::{TreeStats, report};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
@@ -703,6 +704,7 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
     let f = file.figures();
     let c = file.config();
     let hist = file.leaf_depth_histogram();
+    let split = ByteSplit::of(&file);
     let mib = |b: u64| b as f64 / (1 << 20) as f64;
     let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
     if json {
@@ -723,6 +725,16 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
                 "tree_bytes_per_triangle": per_tri(f.tree_bytes()),
                 "max_depth": file.max_depth(),
                 "leaf_depth_histogram": hist,
+                "bytes": json!({
+                    "inner": split.inner_bytes,
+                    "t_inner": split.t_inner_bytes,
+                    "leaves": split.leaf_bytes,
+                    "empty_leaves": split.empty_leaf_bytes,
+                    "idx32": split.idx32_bytes,
+                    "idx16": split.idx16_bytes,
+                    "duplicates": split.duplicate_bytes,
+                    "hoist_bound": split.hoist_bound_bytes,
+                }),
                 "open_ms": open_ms,
             }),
         );
@@ -782,6 +794,23 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
         per_tri(f.tree_bytes()),
         f.geometry_bytes(),
         per_tri(f.geometry_bytes())
+    );
+    let pct = |b: u64| 100.0 * b as f64 / split.total().max(1) as f64;
+    println!(
+        "split       inner {:.1}%, t-inner + T-ref {:.1}%, leaves {:.1}%, empty leaves {:.1}%, idx32 {:.1}%, idx16 {:.1}%",
+        pct(split.inner_bytes),
+        pct(split.t_inner_bytes),
+        pct(split.leaf_bytes),
+        pct(split.empty_leaf_bytes),
+        pct(split.idx32_bytes),
+        pct(split.idx16_bytes)
+    );
+    println!(
+        "bound       with the nodes unchanged: duplicate references {} bytes ({:.1}%), hoisting saves at most {} bytes ({:.1}%)",
+        split.duplicate_bytes,
+        pct(split.duplicate_bytes),
+        split.hoist_bound_bytes,
+        pct(split.hoist_bound_bytes)
     );
     println!("depth       max {}; leaves per depth:", file.max_depth());
     let peak = hist.iter().copied().max().unwrap_or(1).max(1);
