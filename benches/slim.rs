@@ -5,7 +5,8 @@
 //! thresholds under both hoist rules (`bytes`, the presets', and `paper`),
 //! and prints, as medians of the repetitions: the std build time, the slim
 //! pass time and its ratio to the std build (each ratio within one
-//! repetition, so that machine noise cancels as far as it can), the pass's
+//! repetition, so that machine noise cancels as far as it can; in wall
+//! time and in CPU time, which a shared machine disturbs less), the pass's
 //! phases, what it did, and (untimed) the tree memory of the reordered
 //! `.kd` file against std's.
 //!
@@ -37,6 +38,22 @@ const SHARED: [&str; 3] = [
     "stk_candela_city.obj",
 ];
 
+/// CPU seconds (user + system) of this process so far, from
+/// `/proc/self/stat` (0 where it cannot be read). On a shared machine the
+/// ratio of CPU times is steadier than the ratio of wall times.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    // Fields after the command name (which is in parentheses): state is
+    // field 3, utime and stime are fields 14 and 15, in clock ticks (100
+    // per second on Linux).
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let tick = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (tick(11) + tick(12)) / 100.0
+}
+
 /// Tree memory as the paper counts it, of the reordered `.kd` file.
 fn tree_bytes(tree: &TreeIr, scene: &TriangleColumns) -> u64 {
     let options = WriteOptions {
@@ -59,20 +76,23 @@ fn bench_scene(name: &str, scene: &TriangleColumns, reps: usize) {
     let mut std_s = Vec::new();
     let mut slim_s = vec![Vec::new(); runs.len()];
     let mut ratio = vec![Vec::new(); runs.len()];
+    let mut cpu_ratio = vec![Vec::new(); runs.len()];
     let mut phases = vec![Vec::<SlimPhases>::new(); runs.len()];
     let mut results: Vec<Option<(TreeIr, SlimReport)>> = vec![None; runs.len()];
     let mut std_tree = None;
     for _ in 0..reps {
-        let start = Instant::now();
+        let (start, cpu) = (Instant::now(), cpu_seconds());
         let tree = build::build(scene, &config, Builder::Level, None);
         let s = start.elapsed().as_secs_f64();
+        let std_cpu = cpu_seconds() - cpu;
         std_s.push(s);
         for (k, (_, p)) in runs.iter().enumerate() {
-            let start = Instant::now();
+            let (start, cpu) = (Instant::now(), cpu_seconds());
             let (slimmed, report, ph) = slim::slim_with_phases(&tree, scene, &config, p);
             let t = start.elapsed().as_secs_f64();
             slim_s[k].push(t);
             ratio[k].push(t / s);
+            cpu_ratio[k].push((cpu_seconds() - cpu) / std_cpu);
             phases[k].push(ph);
             results[k] = Some((slimmed, report));
         }
@@ -88,10 +108,11 @@ fn bench_scene(name: &str, scene: &TriangleColumns, reps: usize) {
         std_bytes
     );
     println!(
-        "  {:<12} {:>8} {:>7} {:>9} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9} {:>10}",
+        "  {:<12} {:>8} {:>7} {:>7} {:>9} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9} {:>10}",
         "run",
         "slim s",
         "×std",
+        "cpu×std",
         "analysis",
         "rebuilds",
         "apply",
@@ -108,10 +129,11 @@ fn bench_scene(name: &str, scene: &TriangleColumns, reps: usize) {
         let (tree, report) = results[k].as_ref().expect("at least one repetition");
         let bytes = tree_bytes(tree, scene);
         println!(
-            "  {:<12} {:>8.3} {:>7.2} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>8} {:>9} {:>9} {:>9} {:>9.1}%",
+            "  {:<12} {:>8.3} {:>7.2} {:>7.2} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>8} {:>9} {:>9} {:>9} {:>9.1}%",
             label,
             common::median(&slim_s[k]),
             common::median(&ratio[k]),
+            common::median(&cpu_ratio[k]),
             med(|p| p.analysis_s),
             med(|p| p.rebuild_s),
             med(|p| p.apply_s),

@@ -434,26 +434,31 @@ enum Prefix {
 }
 
 impl Prefix {
-    fn of(weights: impl ExactSizeIterator<Item = u64>) -> Prefix {
-        let n = weights.len();
+    /// The running sums of `weight(0..n)`; the terms are gathered in
+    /// parallel when `parallel`.
+    fn of(n: usize, weight: impl Fn(usize) -> u64 + Sync, parallel: bool) -> Prefix {
+        let mut v: Vec<u64> = Vec::with_capacity(n + 1);
+        v.push(0);
+        if parallel {
+            v.par_extend((0..n).into_par_iter().map(&weight));
+        } else {
+            v.extend((0..n).map(&weight));
+        }
         if n < 1 << 24 {
-            let mut v = Vec::with_capacity(n + 1);
-            let mut sum = 0u64;
-            v.push(0);
-            for w in weights {
-                sum += w;
-                v.push(sum);
+            for i in 1..v.len() {
+                v[i] += v[i - 1];
             }
             Prefix::Narrow(v)
         } else {
-            let mut v = Vec::with_capacity(n + 1);
             let mut sum = 0u128;
-            v.push(0);
-            for w in weights {
-                sum += u128::from(w);
-                v.push(sum);
-            }
-            Prefix::Wide(v)
+            Prefix::Wide(
+                v.into_iter()
+                    .map(|w| {
+                        sum += u128::from(w);
+                        sum
+                    })
+                    .collect(),
+            )
         }
     }
 
@@ -492,7 +497,7 @@ struct Counts<'a> {
 impl Counts<'_> {
     /// Count and occupancy of triangle `t` in the leaves `a..b`.
     #[inline]
-    fn stats(&self, t: u32, a: u32, b: u32) -> (u64, u128) {
+    fn stats(&self, t: u32, a: u32, b: u32) -> (u32, u128) {
         let (s, e) = match &self.segments {
             Some(seg) => {
                 let (s, e) = seg[t as usize];
@@ -503,24 +508,31 @@ impl Counts<'_> {
         let list = &self.keys[s..e];
         let lo = s + list.partition_point(|&k| k < key(t, a));
         let hi = s + list.partition_point(|&k| k < key(t, b));
-        ((hi - lo) as u64, self.pair_prefix.sum(lo, hi))
+        ((hi - lo) as u32, self.pair_prefix.sum(lo, hi))
     }
 
     /// Appends the frequent triangles of the subtree `node` (`size` nodes,
-    /// first leaf number `first_leaf`) to `out`, ascending, and fills
-    /// `picks` (the subtree's slice). `merged` is scratch.
+    /// first leaf number `first_leaf`) to `out`, ascending, with their
+    /// counts and occupancies there, and fills `picks` (the subtree's
+    /// slice). `merged` is scratch.
     fn candidates(
         &self,
         node: u32,
         size: u32,
         first_leaf: u32,
-        out: &mut Vec<u32>,
+        out: &mut Vec<Cand>,
         picks: &mut [u32],
-        merged: &mut Vec<u32>,
+        merged: &mut Vec<Cand>,
     ) {
         let (left, right) = match self.work.nodes[node as usize] {
             WNode::Leaf { start, count } => {
-                out.extend(self.work.leaf(start, count).iter().map(|t| t.0));
+                let leaf = first_leaf as usize;
+                let occu = self.leaf_prefix.sum(leaf, leaf + 1);
+                out.extend(self.work.leaf(start, count).iter().map(|t| Cand {
+                    tri: t.0,
+                    count: 1,
+                    occu,
+                }));
                 return;
             }
             WNode::Inner { left, right, .. } => (left, right),
@@ -546,37 +558,76 @@ impl Counts<'_> {
             self.candidates(right, size_r, first_r, out, picks_r, merged);
             mid
         };
-        // The union of the children's candidates, ascending.
+        // Leaves `a..m` are the left child's, `m..b` the right child's.
+        let (a, m, b) = (first_leaf, first_r, first_leaf + size.div_ceil(2));
+        let n_leaves = f64::from(b - a);
+        let tau_freq = self.params.tau_freq;
+        // The union of the children's candidates, ascending, with their
+        // counts and occupancies here: a triangle frequent in one child
+        // only is looked up in the other child's leaves, unless it cannot
+        // be frequent here even if it lay in all of them.
         merged.clear();
+        let other = |c: &Cand, lo: u32, hi: u32| {
+            if above(f64::from(c.count + (hi - lo)), n_leaves, tau_freq) {
+                let (count, occu) = self.stats(c.tri, lo, hi);
+                Some(Cand {
+                    tri: c.tri,
+                    count: c.count + count,
+                    occu: c.occu + occu,
+                })
+            } else {
+                None
+            }
+        };
         let (l, r) = out[base..].split_at(mid - base);
         let (mut i, mut j) = (0, 0);
-        while i < l.len() && j < r.len() {
-            let (x, y) = (l[i], r[j]);
-            merged.push(x.min(y));
-            i += usize::from(x <= y);
-            j += usize::from(y <= x);
+        while i < l.len() || j < r.len() {
+            let (x, y) = (l.get(i), r.get(j));
+            match (x, y) {
+                (Some(x), Some(y)) if x.tri == y.tri => {
+                    merged.push(Cand {
+                        tri: x.tri,
+                        count: x.count + y.count,
+                        occu: x.occu + y.occu,
+                    });
+                    i += 1;
+                    j += 1;
+                }
+                (Some(x), y) if y.is_none_or(|y| x.tri < y.tri) => {
+                    merged.extend(other(x, m, b));
+                    i += 1;
+                }
+                (_, Some(y)) => {
+                    merged.extend(other(y, a, m));
+                    j += 1;
+                }
+                (_, None) => unreachable!("the left list is handled above"),
+            }
         }
-        merged.extend_from_slice(&l[i..]);
-        merged.extend_from_slice(&r[j..]);
         out.truncate(base);
         // Keep the frequent ones; pick the best of those above τ_occu.
-        let (a, b) = (first_leaf, first_leaf + size.div_ceil(2));
-        let n_leaves = f64::from(b - a);
         let total = self.leaf_prefix.sum(a as usize, b as usize) as f64;
         let mut best: Option<(u128, u32)> = None;
-        for &t in merged.iter() {
-            let (count, occu) = self.stats(t, a, b);
-            if above(count as f64, n_leaves, self.params.tau_freq) {
-                out.push(t);
-                if above(occu as f64, total, self.params.tau_occu)
-                    && best.is_none_or(|(bo, bt)| occu > bo || (occu == bo && t < bt))
+        for c in merged.iter() {
+            if above(f64::from(c.count), n_leaves, tau_freq) {
+                out.push(*c);
+                if above(c.occu as f64, total, self.params.tau_occu)
+                    && best.is_none_or(|(bo, bt)| c.occu > bo || (c.occu == bo && c.tri < bt))
                 {
-                    best = Some((occu, t));
+                    best = Some((c.occu, c.tri));
                 }
             }
         }
         picks[0] = best.map_or(NONE, |(_, t)| t);
     }
+}
+
+/// A candidate triangle of a subtree, with its count and occupancy there.
+#[derive(Clone, Copy)]
+struct Cand {
+    tri: u32,
+    count: u32,
+    occu: u128,
 }
 
 /// Fills the leaf weights and the (triangle, leaf) pairs of the subtree
@@ -666,19 +717,31 @@ fn analyze(
     } else {
         keys.sort_unstable();
     }
-    let pair_prefix = Prefix::of(keys.iter().map(|&k| w[k as u32 as usize]));
-    let leaf_prefix = Prefix::of(w.iter().copied());
-    let segments = large.then(|| {
-        let mut seg = vec![(0u32, 0u32); n_tris];
-        let mut i = 0;
-        while i < keys.len() {
-            let t = (keys[i] >> 32) as u32;
-            let j = i + keys[i..].partition_point(|&k| (k >> 32) as u32 == t);
-            seg[t as usize] = (i as u32, j as u32);
-            i = j;
-        }
-        seg
-    });
+    let tri_of = |i: usize| (keys[i] >> 32) as u32;
+    let (pair_prefix, (leaf_prefix, segments)) = rayon::join(
+        || Prefix::of(keys.len(), |i| w[keys[i] as u32 as usize], large),
+        || {
+            rayon::join(
+                || Prefix::of(w.len(), |i| w[i], large),
+                || {
+                    large.then(|| {
+                        // Where each triangle's pairs start, then its range.
+                        let starts: Vec<u32> = (0..keys.len())
+                            .into_par_iter()
+                            .filter(|&i| i == 0 || tri_of(i) != tri_of(i - 1))
+                            .map(|i| i as u32)
+                            .collect();
+                        let mut seg = vec![(0u32, 0u32); n_tris];
+                        for (j, &a) in starts.iter().enumerate() {
+                            let b = starts.get(j + 1).copied().unwrap_or(keys.len() as u32);
+                            seg[tri_of(a as usize) as usize] = (a, b);
+                        }
+                        seg
+                    })
+                },
+            )
+        },
+    );
     let counts = Counts {
         work,
         params,
