@@ -53,11 +53,17 @@
 //! - *Bottom-up candidates.* A triangle frequent in `I` is frequent in one
 //!   of `I`'s children (a weighted average exceeds τ only if one of its
 //!   terms does), so each node's candidates are the frequent triangles of
-//!   its children, merged bottom-up. Counts and occupancies in a subtree
-//!   come from the subtree's (triangle, leaf) pairs sorted once, with
-//!   prefix sums of their leaf weights (two binary searches), not from
-//!   rescanning leaves. One analysis gives the pick of every node of a
-//!   subtree; it is computed in parallel over subtrees for large trees.
+//!   its children, merged bottom-up with their counts and occupancies
+//!   (which add up). A triangle frequent in one child only is counted in
+//!   the other child's leaves from the subtree's (triangle, leaf) pairs,
+//!   sorted once, with prefix sums of their leaf weights (two binary
+//!   searches), and only if it could still be frequent; leaves are never
+//!   rescanned. One analysis gives the pick of every node of a subtree;
+//!   it is computed in parallel over subtrees for large trees.
+//! - *Skips.* Under the byte rule, a pick whose subtree takes at most 8
+//!   bytes more than the least any rebuilt subtree of its references could
+//!   take ([`min_subtree_bytes`]) is rejected without a rebuild; it could
+//!   not pass the rule.
 //! - *Passes.* Each pass finds, in every pending subtree, the highest nodes
 //!   where a triangle is picked, rebuilds those (disjoint) subtrees in
 //!   parallel, and queues their children. A node's pick depends only on

@@ -5,9 +5,11 @@
 //! ([`TreeFigures::tree_bytes`]): `8·(nodes + T-references) + 4·|idx32| +
 //! 2·|idx16|`. [`ByteSplit::of`] splits it into inner nodes (type I and
 //! II), T-references, non-empty and empty leaves, and the two index lists,
-//! and bounds what hoisting could save, assuming the nodes stay as they are
-//! (rebuilding a subtree without a triangle keeps the same geometry to
-//! split, and in practice the node count stays or grows):
+//! and bounds what hoisting could save on the index side, with the nodes
+//! as they are. (A rebuilt subtree can also have fewer nodes than the one
+//! it replaces, or more: removing a triangle that filled a cell lets the
+//! SAH cut off the empty space it leaves. These bounds say how much the
+//! indices alone can give.)
 //!
 //! - `duplicate_bytes`: every duplicate reference vanishes (each triangle
 //!   keeps only its cheapest reference) and costs nothing;
