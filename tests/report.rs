@@ -60,6 +60,7 @@ fn bunny_report() -> &'static (Report, Vec<String>) {
             sweep: true,
             all_threads: 2,
             sweep_grid: Some((GRID_OCCU.to_vec(), GRID_FREQ.to_vec())),
+            rule: SlimParams::FAST.rule,
         };
         let mut lines = Vec::new();
         let r = report::run(&options, &mut |l| lines.push(l.to_string())).unwrap();
@@ -264,6 +265,7 @@ fn table4_and_figure5_are_consistent() {
             tau_occu: p.tau_occu,
             tau_freq: p.tau_freq,
             max_t2rn: p.max_t2rn,
+            rule: SlimParams::FAST.rule,
         };
         let (tree, sr) = slim::slim(std_tree(), bunny(), &BuildConfig::default(), &params);
         assert_eq!(p.tree_bytes, written(&tree).0.tree_bytes());
@@ -459,6 +461,7 @@ fn scene_without_views_uses_the_default_camera_and_no_sweep_writes_no_figure5() 
         sweep: false,
         all_threads: 1,
         sweep_grid: None,
+        rule: SlimParams::FAST.rule,
     };
     let r = report::run(&options, &mut |_| {}).unwrap();
     let s = &r.scenes[0];

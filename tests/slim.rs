@@ -1,16 +1,22 @@
 //! The slim kd-tree (Choi, Chang & Ihm 2013; `slimkd::slim`).
 //!
 //! - The fast post-pass builds exactly the tree of a plainly literal
-//!   implementation of the oracle and of Algorithm 1 written here, on random
-//!   grid-snapped scenes, on the shipped bunny and Nexuiz map and on a scene of big
-//!   triangles over many small ones.
+//!   implementation of the oracle and of Algorithm 1 written here (with
+//!   the paper's hoist rule and with the byte rule, whose byte count is
+//!   checked against the written file), on random grid-snapped scenes, on
+//!   the shipped bunny and Nexuiz map and on a scene of big triangles over
+//!   many small ones. The literal algorithm rebuilds with the sweep
+//!   builder, the fast one with the level builder's finisher.
+//! - With the byte rule the tree never grows, and shrinks when anything
+//!   is hoisted.
 //! - Slim trees give exactly the hits of the standard tree and of brute
 //!   force, scalar and in 4×4 packets (every instruction set of this CPU),
 //!   in memory and from `.kd` files (reordered or not).
 //! - `max_t2rn` bounds the hoisted triangles on every root path (0 leaves
 //!   the standard tree as it is).
 //! - Hand-checked tiny scenes: a huge triangle over a grid of small ones is
-//!   hoisted into the root, and small disjoint triangles are never hoisted.
+//!   hoisted into the root (with the byte rule: where it pays), and small
+//!   disjoint triangles are never hoisted.
 //! - The report counts the type II nodes of the result.
 
 mod common;
@@ -21,10 +27,14 @@ use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
 use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::format::node::leaf_index_bytes;
 use slimkd::format::{self, KdFile, WriteOptions};
+use slimkd::geom::clip_triangle;
 use slimkd::geom::{Aabb, Ray};
 use slimkd::scene::TriangleColumns;
-use slimkd::slim::{self, SlimParams, SlimReport, above, occupancy_weight, rebuild};
+use slimkd::slim::{
+    self, HoistRule, SlimParams, SlimReport, above, min_subtree_bytes, occupancy_weight, rebuild,
+};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{self, ClosestHit, Hit, KdSource, TreeTracer};
 use slimkd::tree::{Node, NodeId, TreeIr, TriId};
@@ -114,6 +124,22 @@ impl LTree {
         }
     }
 
+    /// The bytes of the subtree under `n` as a file stores them: 8 per
+    /// node, 8 more per hoisted triangle, and per leaf its index list
+    /// (`file_id` gives a triangle's id in the file).
+    fn bytes(&self, n: usize, file_id: &impl Fn(TriId) -> u32) -> u64 {
+        match &self.nodes[n] {
+            LNode::Leaf(tris) => 8 + leaf_index_bytes(tris.len(), tris.iter().map(|&t| file_id(t))),
+            LNode::Inner {
+                left, right, t_ref, ..
+            } => {
+                8 + 8 * u64::from(t_ref.is_some())
+                    + self.bytes(*left, file_id)
+                    + self.bytes(*right, file_id)
+            }
+        }
+    }
+
     /// Writes the subtree under `n` in canonical pre-order.
     fn emit(&self, n: usize, out: &mut TreeIr) {
         match &self.nodes[n] {
@@ -182,9 +208,38 @@ fn literal_pick(tree: &LTree, n: usize, cell: Aabb, sa_root: f64, p: &SlimParams
         .find(|t| above(count[t] as f64, n_leaves as f64, p.tau_freq))
 }
 
+/// The bytes of a tree as a file stores them (see `LTree::bytes`).
+fn ir_bytes(ir: &TreeIr, file_id: &impl Fn(TriId) -> u32) -> u64 {
+    let mut t = LTree::default();
+    let root = t.append(ir);
+    t.bytes(root, file_id)
+}
+
+/// The triangle ids in a file written with or without reordering, by input
+/// id: the Morton ranks, or the input ids.
+fn file_ids(scene: &TriangleColumns, reordered: bool) -> Vec<u32> {
+    if reordered {
+        let perm = scene.morton_order();
+        let mut rank = vec![0u32; perm.len()];
+        for (new, &old) in perm.iter().enumerate() {
+            rank[old as usize] = new as u32;
+        }
+        rank
+    } else {
+        (0..scene.len() as u32).collect()
+    }
+}
+
 /// Algorithm 1, literally, with an explicit stack of (node, cell, depth,
 /// hoisted triangles on the path from the root to the node, exclusive).
 /// Returns the tree and what was done, counted as `SlimReport` counts it.
+///
+/// With the byte rule, every pick is rebuilt and the hoist kept only if
+/// the rebuilt subtree plus 8 bytes is smaller than the subtree it
+/// replaces. The fast pass skips the rebuild where the replaced subtree
+/// is at most 8 bytes larger than `min_subtree_bytes` of the rebuilt
+/// references; here such a pick is rebuilt all the same, checked not to
+/// hoist, and counted as skipped.
 fn literal_slim(
     std_tree: &TreeIr,
     scene: &TriangleColumns,
@@ -194,6 +249,11 @@ fn literal_slim(
     let mut report = SlimReport::default();
     let mut tree = LTree::default();
     let root = tree.append(std_tree);
+    let ids = match p.rule {
+        HoistRule::Paper => None,
+        HoistRule::Bytes { reordered } => Some(file_ids(scene, reordered)),
+    };
+    let file_id = |t: TriId| ids.as_ref().map_or(t.0, |ids| ids[t.0 as usize]);
     let sa_root = std_tree.bounds.surface_area();
     let mut stack = Vec::new();
     if p.max_t2rn > 0 {
@@ -210,10 +270,38 @@ fn literal_slim(
             tris.retain(|&u| u != t);
             tris.sort();
             tris.dedup();
-            report.rebuilds += 1;
-            report.rebuilt_refs += tris.len();
             let fresh = rebuild(scene, config, &tris, &cell, depth);
-            if matches!(fresh.nodes[0], Node::Inner { .. }) {
+            let is_inner = matches!(fresh.nodes[0], Node::Inner { .. });
+            // The byte rule: the replaced subtree's bytes, and whether the
+            // rebuilt one is smaller by more than the T-reference word.
+            let old = ids.is_some().then(|| tree.bytes(i, &file_id));
+            let smaller = old.is_none_or(|old| ir_bytes(&fresh, &file_id) + 8 < old);
+            let refs = tris
+                .iter()
+                .filter(|u| clip_triangle(&scene.tri(u.0), &cell).is_some())
+                .count();
+            if let Some(old) = old
+                && old <= 8 + min_subtree_bytes(refs)
+            {
+                assert!(
+                    !(is_inner && smaller),
+                    "the skip bound is wrong: {old} bytes, {refs} references"
+                );
+                report.skipped += 1;
+            } else if !is_inner {
+                // The rebuilt subtree would be a single leaf: the hoist is
+                // cancelled and `i` keeps its subtree.
+                report.rebuilds += 1;
+                report.rebuilt_refs += tris.len();
+                report.cancelled += 1;
+            } else if !smaller {
+                // Not smaller: rejected, `i` keeps its subtree.
+                report.rebuilds += 1;
+                report.rebuilt_refs += tris.len();
+                report.rejected += 1;
+            } else {
+                report.rebuilds += 1;
+                report.rebuilt_refs += tris.len();
                 // The fresh root becomes node `i`, holding `t`.
                 let base = tree.append(&fresh);
                 let LNode::Inner {
@@ -235,10 +323,6 @@ fn literal_slim(
                 };
                 hoisted += 1;
                 report.hoisted += 1;
-            } else {
-                // The rebuilt subtree would be a single leaf: the hoist is
-                // cancelled and `i` keeps its subtree.
-                report.cancelled += 1;
             }
         }
         if hoisted < p.max_t2rn {
@@ -296,7 +380,34 @@ fn slim_checked(std: &TreeIr, scene: &TriangleColumns, p: &SlimParams) -> (TreeI
     assert_eq!(tree, literal, "fast and literal slim trees differ ({p:?})");
     assert_eq!(report, literal_report, "{p:?}");
     assert_eq!(report.hoisted, tree.n_t_inner(), "{p:?}");
-    assert_eq!(report.rebuilds, report.hoisted + report.cancelled, "{p:?}");
+    assert_eq!(
+        report.rebuilds,
+        report.hoisted + report.cancelled + report.rejected,
+        "{p:?}"
+    );
+    if p.rule == HoistRule::Paper {
+        assert_eq!((report.rejected, report.skipped), (0, 0), "{p:?}");
+    }
+    // The byte count of the literal rule is the file's; with the byte
+    // rule every hoist makes the tree smaller in the file it counts for.
+    for reordered in [false, true] {
+        let options = WriteOptions {
+            reorder: reordered,
+            ..Default::default()
+        };
+        let ids = file_ids(scene, reordered);
+        let [slim_bytes, std_bytes] = [&tree, std].map(|t| {
+            let bytes = format::write_to_vec(t, scene, &options).unwrap();
+            let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+            let counted = ir_bytes(t, &|t: TriId| ids[t.0 as usize]);
+            assert_eq!(counted, file.figures().tree_bytes(), "{p:?}");
+            counted
+        });
+        if p.rule == (HoistRule::Bytes { reordered }) {
+            assert!(slim_bytes <= std_bytes, "{p:?}");
+            assert_eq!(slim_bytes < std_bytes, report.hoisted > 0, "{p:?}");
+        }
+    }
     assert!(max_t2_on_path(&tree) <= p.max_t2rn, "{p:?}");
     if p.max_t2rn == 0 {
         assert_eq!(&tree, std);
@@ -349,13 +460,31 @@ fn scene_strategy() -> impl Strategy<Value = (i32, Vec<[Vec3; 3]>)> {
     prop_oneof![1 => anywhere, 2 => mixed]
 }
 
-/// Random thresholds in `0.05..0.95` and `max_t2rn` in `0..5`.
+/// Every hoist rule.
+const RULES: [HoistRule; 3] = [
+    HoistRule::Paper,
+    HoistRule::Bytes { reordered: true },
+    HoistRule::Bytes { reordered: false },
+];
+
+/// The presets (byte rule) and their thresholds with the paper's rule.
+const PRESETS: [SlimParams; 4] = [
+    SlimParams::FAST,
+    SlimParams::SMALL,
+    SlimParams::FAST.with_rule(HoistRule::Paper),
+    SlimParams::SMALL.with_rule(HoistRule::Paper),
+];
+
+/// Random thresholds in `0.05..0.95`, `max_t2rn` in `0..5` and any rule.
 fn params_strategy() -> impl Strategy<Value = SlimParams> {
-    (0.05f64..0.95, 0.05f64..0.95, 0u32..5).prop_map(|(tau_occu, tau_freq, max_t2rn)| SlimParams {
-        tau_occu,
-        tau_freq,
-        max_t2rn,
-    })
+    (0.05f64..0.95, 0.05f64..0.95, 0u32..5, 0..RULES.len()).prop_map(
+        |(tau_occu, tau_freq, max_t2rn, rule)| SlimParams {
+            tau_occu,
+            tau_freq,
+            max_t2rn,
+            rule: RULES[rule],
+        },
+    )
 }
 
 /// Asserts that `src` answers every ray with `want` (brute force's hit),
@@ -506,7 +635,7 @@ proptest! {
     ) {
         let scene = columns(&tris);
         let std = std_tree(&scene);
-        for p in [SlimParams::FAST, SlimParams::SMALL, random] {
+        for p in PRESETS.into_iter().chain([random]) {
             slim_checked(&std, &scene, &p);
         }
     }
@@ -516,7 +645,7 @@ proptest! {
 fn fast_equals_literal_on_shipped_bunny() {
     let scene = load_bunny();
     let std = std_tree(&scene);
-    for p in [SlimParams::FAST, SlimParams::SMALL] {
+    for p in PRESETS {
         slim_checked(&std, &scene, &p);
     }
 }
@@ -528,7 +657,7 @@ fn fast_equals_literal_on_shipped_nexuiz() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let scene = slimkd::scene::load_obj(&path).unwrap().0;
     let std = std_tree(&scene);
-    for p in [SlimParams::FAST, SlimParams::SMALL] {
+    for p in PRESETS {
         slim_checked(&std, &scene, &p);
     }
 }
@@ -537,32 +666,52 @@ fn fast_equals_literal_on_shipped_nexuiz() {
 fn fast_equals_literal_with_big_triangles_over_small_ones() {
     let scene = columns(&big_over_small());
     let std = std_tree(&scene);
-    for p in [SlimParams::FAST, SlimParams::SMALL] {
+    for p in PRESETS {
         let (tree, report) = slim_checked(&std, &scene, &p);
         assert!(report.hoisted >= 1, "{p:?}: {report:?}");
         assert!(tree.leaf_tris.len() < std.leaf_tris.len(), "{p:?}");
     }
 }
 
-/// The random scenes are not trivial: with `small`, many of them hoist.
+/// The random scenes are not trivial: with `small`, many of them hoist
+/// with the paper's rule and some cancel; with the byte rule some hoist,
+/// some reject and some skip.
 #[test]
 fn random_scenes_hoist_often() {
     let mut runner = TestRunner::deterministic();
     let strategy = scene_strategy();
-    let (mut scenes, mut hoisting, mut cancelling) = (0, 0, 0);
+    let (mut scenes, mut paper, mut bytes) = (0, [0; 4], [0; 4]);
     for _ in 0..100 {
         let (_, tris) = strategy.new_tree(&mut runner).unwrap().current();
         let scene = columns(&tris);
-        let (_, report) = slim::slim(&std_tree(&scene), &scene, &config(), &SlimParams::SMALL);
+        let std = std_tree(&scene);
         scenes += 1;
-        hoisting += usize::from(report.hoisted > 0);
-        cancelling += usize::from(report.cancelled > 0);
+        for (p, counts) in [
+            (SlimParams::SMALL.with_rule(HoistRule::Paper), &mut paper),
+            (SlimParams::SMALL, &mut bytes),
+        ] {
+            let (_, r) = slim::slim(&std, &scene, &config(), &p);
+            for (c, n) in counts
+                .iter_mut()
+                .zip([r.hoisted, r.cancelled, r.rejected, r.skipped])
+            {
+                *c += usize::from(n > 0);
+            }
+        }
     }
+    let [hoisting, cancelling, ..] = paper;
     assert!(
         hoisting * 3 >= scenes,
         "{hoisting} of {scenes} scenes hoist"
     );
     assert!(cancelling > 0, "no scene cancels a hoist");
+    // With the byte rule, the subtrees that would be rebuilt into a leaf
+    // are mostly too small to be rebuilt at all.
+    let [hoisting, _, rejecting, skipping] = bytes;
+    assert!(
+        hoisting > 0 && rejecting > 0 && skipping > 0,
+        "{bytes:?} of {scenes} scenes"
+    );
 }
 
 // ---------------------------------------------------------------------
@@ -588,7 +737,7 @@ proptest! {
         let std = std_tree(&scene);
         let want = brute_force_hits(&scene, &packets);
         check_hits(&TreeTracer { tree: &std, scene: &scene }, &packets, &want, "std");
-        for p in [SlimParams::FAST, SlimParams::SMALL, random] {
+        for p in PRESETS.into_iter().chain([random]) {
             let (tree, _) = slim::slim(&std, &scene, &config(), &p);
             prop_assert_eq!(tree.validate(&scene), Ok(()), "{:?}", p);
             check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
@@ -617,8 +766,9 @@ fn slim_hits_on_shipped_bunny() {
         tau_occu: 0.2,
         tau_freq: 0.1,
         max_t2rn: 4,
+        rule: HoistRule::Paper,
     };
-    for p in [SlimParams::FAST, SlimParams::SMALL, aggressive] {
+    for p in PRESETS.into_iter().chain([aggressive]) {
         let (tree, _) = slim::slim(&std, &scene, &config(), &p);
         tree.validate(&scene).unwrap();
         check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
@@ -631,7 +781,7 @@ fn slim_hits_with_big_triangles_over_small_ones() {
     let std = std_tree(&scene);
     let packets = packet_fan(&std.bounds);
     let want = brute_force_hits(&scene, &packets);
-    for p in [SlimParams::FAST, SlimParams::SMALL] {
+    for p in PRESETS {
         let (tree, report) = slim::slim(&std, &scene, &config(), &p);
         assert!(report.hoisted > 0);
         tree.validate(&scene).unwrap();
@@ -658,13 +808,15 @@ proptest! {
         let scene = columns(&tris);
         let std = std_tree(&scene);
         for max_t2rn in 0..5 {
-            let p = SlimParams { tau_occu, tau_freq, max_t2rn };
-            let (tree, report) = slim::slim(&std, &scene, &config(), &p);
-            prop_assert!(max_t2_on_path(&tree) <= max_t2rn, "{:?}", p);
-            prop_assert_eq!(report.hoisted, tree.n_t_inner());
-            if max_t2rn == 0 {
-                prop_assert_eq!(&tree, &std);
-                prop_assert_eq!(report, SlimReport::default());
+            for rule in RULES {
+                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule };
+                let (tree, report) = slim::slim(&std, &scene, &config(), &p);
+                prop_assert!(max_t2_on_path(&tree) <= max_t2rn, "{:?}", p);
+                prop_assert_eq!(report.hoisted, tree.n_t_inner());
+                if max_t2rn == 0 {
+                    prop_assert_eq!(&tree, &std);
+                    prop_assert_eq!(report, SlimReport::default());
+                }
             }
         }
     }
@@ -672,20 +824,24 @@ proptest! {
 
 #[test]
 fn max_t2rn_on_big_triangles_over_small_ones() {
-    // With `small` thresholds, hoisting is limited only by `max_t2rn` here:
-    // the deepest path holds exactly `max_t2rn` type II nodes for 1 and 2.
+    // With `small` thresholds and the paper's rule, hoisting is limited
+    // only by `max_t2rn` here: the deepest path holds exactly `max_t2rn`
+    // type II nodes for 1 and 2.
     let scene = columns(&big_over_small());
     let std = std_tree(&scene);
     for max_t2rn in 0..=4 {
-        let p = SlimParams {
-            max_t2rn,
-            ..SlimParams::SMALL
-        };
-        let (tree, report) = slim_checked(&std, &scene, &p);
-        let most = max_t2_on_path(&tree);
-        assert!(most <= max_t2rn);
-        if max_t2rn <= 2 {
-            assert_eq!(most, max_t2rn, "{report:?}");
+        for rule in RULES {
+            let p = SlimParams {
+                max_t2rn,
+                rule,
+                ..SlimParams::SMALL
+            };
+            let (tree, report) = slim_checked(&std, &scene, &p);
+            let most = max_t2_on_path(&tree);
+            assert!(most <= max_t2rn);
+            if max_t2rn <= 2 && rule == HoistRule::Paper {
+                assert_eq!(most, max_t2rn, "{report:?}");
+            }
         }
     }
 }
@@ -795,6 +951,21 @@ fn area(c: &Aabb) -> u32 {
 ///   (`[1, 6] × [-1, 4]`, all three leaves hold it). The rebuilt subtrees
 ///   hold each small triangle once, with `f_freq ≤ 1/2`: two hoists, and
 ///   again 4 references.
+///
+/// With the byte rule (all leaves in 2-byte mode: 5 triangles), a node
+/// takes 8 bytes and a reference 2; the standard tree takes
+/// `11·8 + 9·2 = 106` bytes.
+///
+/// - `small`: the rebuilt tree (11 nodes, 4 references) takes 96 bytes,
+///   and `96 + 8 < 106`: the same hoist as with the paper's rule.
+/// - `fast`: at the left child (2 leaves, `3·8 + 4·2 = 32` bytes) no
+///   rebuilt subtree of the 2 remaining references can take fewer than
+///   `3·8 + 2·2 = 28` bytes, and `28 + 8 ≥ 32`: skipped. At
+///   `[1, 6] × [-1, 4]` (5 nodes, 5 references: 50 bytes) the rebuilt
+///   subtree cuts the empty space around triangles 3 and 4 (7 nodes, 2
+///   references: 60 bytes): rejected. Its left child `[1, 3] × [-1, 4]`
+///   then picks triangle 0 (both leaves hold it) and is skipped like the
+///   left child of the root. Nothing is hoisted.
 #[test]
 fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     let scene = columns(&grid_under_huge(2, Some(6.0)));
@@ -812,17 +983,23 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     assert_eq!(areas, [16, 34, 16, 22, 46, 34]);
     assert_eq!(std.leaf_tris.len(), 9);
 
+    let input_ids = |t: TriId| t.0;
+    assert_eq!(ir_bytes(&std, &input_ids), 106);
+
     // `small`: triangle 0 goes into the root; the rest is the SAH tree of
     // triangles 1–4 in the root cell, with nothing more hoisted.
-    for max_t2rn in [1, 4] {
+    for (max_t2rn, rule) in [1, 4].into_iter().flat_map(|m| RULES.map(|r| (m, r))) {
         let p = SlimParams {
             max_t2rn,
+            rule,
             ..SlimParams::SMALL
         };
         let (tree, report) = slim_checked(&std, &scene, &p);
         let expected_report = SlimReport {
             hoisted: 1,
             cancelled: 0,
+            rejected: 0,
+            skipped: 0,
             rebuilds: 1,
             rebuilt_refs: 4,
         };
@@ -839,6 +1016,7 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
         };
         *t_ref = Some(TriId(0));
         assert_eq!(tree, expected);
+        assert_eq!(ir_bytes(&tree, &input_ids), 96 + 8);
         assert_eq!(t_inner_of(&tree), [(std.bounds, 0)]);
         let leaves = leaves_of(&tree);
         let nonempty: Vec<&Vec<u32>> = leaves
@@ -854,7 +1032,8 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     }
 
     // `fast`: two hoists, below the root.
-    let (tree, report) = slim_checked(&std, &scene, &SlimParams::FAST);
+    let fast_paper = SlimParams::FAST.with_rule(HoistRule::Paper);
+    let (tree, report) = slim_checked(&std, &scene, &fast_paper);
     assert_eq!(report.hoisted, 2, "{report:?}");
     assert_eq!(report.cancelled, 0);
     assert_eq!(
@@ -867,19 +1046,42 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     assert_eq!(tree.leaf_tris.len(), 4);
     assert_eq!(leaves_holding(&tree, 0), 0);
 
-    // Both give the standard tree's hits.
+    // `fast` with the byte rule: nothing hoisted.
+    let sub = cell([1.0, -1.0, 0.0], [6.0, 4.0, 1.0]);
+    let fresh = rebuild(&scene, &config(), &[TriId(3), TriId(4)], &sub, 2);
+    assert_eq!((fresh.nodes.len(), ir_bytes(&fresh, &input_ids)), (7, 60));
+    for rule in [RULES[1], RULES[2]] {
+        let (tree, report) = slim_checked(&std, &scene, &SlimParams::FAST.with_rule(rule));
+        let expected = SlimReport {
+            hoisted: 0,
+            cancelled: 0,
+            rejected: 1,
+            skipped: 2,
+            rebuilds: 1,
+            rebuilt_refs: 2,
+        };
+        assert_eq!(report, expected);
+        assert_eq!(tree, std);
+    }
+
+    // All give the standard tree's hits.
     let packets = packet_fan(&std.bounds);
     let want = brute_force_hits(&scene, &packets);
-    for p in [SlimParams::SMALL, SlimParams::FAST] {
+    for p in [SlimParams::SMALL, fast_paper] {
         let (tree, _) = slim::slim(&std, &scene, &config(), &p);
         check_tree_hits(&tree, &scene, &packets, &want, &format!("{p:?}"));
     }
 }
 
-/// One huge triangle over a 4×4 grid: with `small` it is hoisted into the
-/// root, and the leaf references drop by exactly the number of leaves of
-/// the standard tree that held it (each small triangle lies in one leaf
-/// before and after).
+/// One huge triangle over a 4×4 grid: with `small` and the paper's rule it
+/// is hoisted into the root, and the leaf references drop by exactly the
+/// number of leaves of the standard tree that held it (each small triangle
+/// lies in one leaf before and after).
+///
+/// With the byte rule it is not: without the huge triangle the SAH cuts
+/// the empty space around the small ones, so the rebuilt tree has 49
+/// nodes instead of 35 and takes 424 bytes instead of 336; nothing below
+/// pays off either, and the tree stays as it is.
 #[test]
 fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
     let scene = columns(&grid_under_huge(4, Some(10.0)));
@@ -890,6 +1092,16 @@ fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
         assert_eq!(leaves_holding(&std, t), 1, "triangle {t}");
     }
     let (tree, report) = slim_checked(&std, &scene, &SlimParams::SMALL);
+    assert_eq!(report.hoisted, 0, "{report:?}");
+    assert_eq!(tree, std);
+    let input_ids = |t: TriId| t.0;
+    let all_but_0: Vec<TriId> = (1..=16).map(TriId).collect();
+    let fresh = rebuild(&scene, &config(), &all_but_0, &std.bounds, 0);
+    assert_eq!((std.nodes.len(), ir_bytes(&std, &input_ids)), (35, 336));
+    assert_eq!((fresh.nodes.len(), ir_bytes(&fresh, &input_ids)), (49, 424));
+
+    let small_paper = SlimParams::SMALL.with_rule(HoistRule::Paper);
+    let (tree, report) = slim_checked(&std, &scene, &small_paper);
     assert!(matches!(
         tree.nodes[0],
         Node::Inner {
@@ -919,6 +1131,9 @@ fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
 /// one remaining triangle would be rebuilt into a single leaf (the best
 /// split, at its box's face `y = 1`, costs `15 + 20·0.8·6/14 ≈ 21.9`, more
 /// than the leaf's 20), so both hoists are cancelled and the tree stays.
+/// With the byte rule they are skipped without a rebuild: a two-leaf node
+/// with two references takes `3·8 + 2·2 = 28` bytes, no more than 8 bytes
+/// above the least a rebuilt subtree takes.
 #[test]
 fn small_disjoint_triangles_are_not_hoisted() {
     for n in 2..=4 {
@@ -931,6 +1146,7 @@ fn small_disjoint_triangles_are_not_hoisted() {
             tau_occu: 0.05,
             tau_freq: 0.5,
             max_t2rn: 4,
+            rule: HoistRule::Paper,
         };
         for p in [SlimParams::FAST, half] {
             let (tree, report) = slim_checked(&std, &scene, &p);
@@ -938,6 +1154,11 @@ fn small_disjoint_triangles_are_not_hoisted() {
             assert_eq!(report, SlimReport::default(), "{p:?}");
         }
         let (tree, report) = slim_checked(&std, &scene, &SlimParams::SMALL);
+        assert_eq!(tree, std);
+        assert_eq!((report.hoisted, report.rebuilds), (0, 0), "{report:?}");
+        assert!(report.skipped > 0);
+        let small_paper = SlimParams::SMALL.with_rule(HoistRule::Paper);
+        let (tree, report) = slim_checked(&std, &scene, &small_paper);
         assert_eq!(tree, std);
         assert_eq!(report.hoisted, 0);
         if n == 2 {
@@ -951,6 +1172,8 @@ fn small_disjoint_triangles_are_not_hoisted() {
             let expected = SlimReport {
                 hoisted: 0,
                 cancelled: 2,
+                rejected: 0,
+                skipped: 0,
                 rebuilds: 2,
                 rebuilt_refs: 2,
             };
@@ -978,7 +1201,10 @@ proptest! {
         let std = std_tree(&scene);
         let (tree, report) = slim::slim(&std, &scene, &config(), &p);
         prop_assert_eq!(report.hoisted, tree.n_t_inner());
-        prop_assert_eq!(report.rebuilds, report.hoisted + report.cancelled);
+        prop_assert_eq!(
+            report.rebuilds,
+            report.hoisted + report.cancelled + report.rejected
+        );
         prop_assert!(report.rebuilt_refs <= report.rebuilds * scene.len());
         let bytes = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap();
         let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();

@@ -11,7 +11,8 @@ use slimkd::build::{self, BuildConfig, Builder, Progress, level};
 use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
-use slimkd::slim::{self, SlimParams, SlimReport};
+use slimkd::slim::{self, HoistRule, SlimParams, SlimPhases, SlimReport};
+use slimkd::stats::bytes::ByteSplit;
 use slimkd::stats::{TreeStats, report};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
@@ -102,6 +103,10 @@ struct ReportArgs {
     /// Also run the τ_occu × τ_freq threshold sweep (Figure 5).
     #[arg(long)]
     sweep: bool,
+    /// The hoist rule of the fast, small and sweep trees (see `build
+    /// --hoist-rule`; the report writes reordered files).
+    #[arg(long, value_enum, default_value_t = HoistRuleArg::Bytes)]
+    hoist_rule: HoistRuleArg,
     /// The Markdown report; report.json and the SVG figures go beside it.
     #[arg(short = 'o', long, default_value = "report.md")]
     output: PathBuf,
@@ -131,9 +136,19 @@ struct BuildArgs {
     #[arg(long)]
     max_depth: Option<u32>,
     /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
-    /// `small` (0.5, 0.4); max_t2rn 4 (Choi et al. 2013).
+    /// `small` (0.5, 0.4); max_t2rn 4 (Choi et al. 2013), with the hoist
+    /// rule of --hoist-rule.
     #[arg(long, value_enum, default_value_t = PresetArg::Std)]
     preset: PresetArg,
+    /// When a picked triangle is hoisted. `bytes` (the presets' rule, a
+    /// deviation from the paper): only if the rebuilt subtree plus the
+    /// 8-byte T-reference is smaller than the subtree it replaces, counted
+    /// as the file stores it (2-byte leaves with the file's triangle
+    /// numbering, so --reorder matters); otherwise the node keeps its
+    /// subtree. `paper`: always (Algorithm 1 as published). With `paper`,
+    /// the file records the preset as custom.
+    #[arg(long, value_enum, default_value_t = HoistRuleArg::Bytes)]
+    hoist_rule: HoistRuleArg,
     /// Occupancy threshold (overrides the preset's; implies hoisting).
     #[arg(long)]
     tau_occu: Option<f64>,
@@ -146,6 +161,25 @@ struct BuildArgs {
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum HoistRuleArg {
+    /// Keep a hoist only if it makes the tree smaller in bytes.
+    Bytes,
+    /// Hoist every picked triangle (the paper's Algorithm 1).
+    Paper,
+}
+
+impl HoistRuleArg {
+    /// The rule, counting bytes for a file written with or without
+    /// reordering.
+    fn rule(self, reordered: bool) -> HoistRule {
+        match self {
+            HoistRuleArg::Bytes => HoistRule::Bytes { reordered },
+            HoistRuleArg::Paper => HoistRule::Paper,
+        }
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum PresetArg {
     Std,
     Fast,
@@ -154,15 +188,20 @@ enum PresetArg {
 
 impl BuildArgs {
     /// The slim parameters, if any hoisting is asked for, and the preset
-    /// recorded in the file.
-    fn slim(&self) -> (Option<SlimParams>, Preset) {
+    /// recorded in the file; `reordered`: whether the tree will be written
+    /// with reordering (for the byte rule).
+    fn slim(&self, reordered: bool) -> (Option<SlimParams>, Preset) {
         let base = match self.preset {
             PresetArg::Std => None,
             PresetArg::Fast => Some(SlimParams::FAST),
             PresetArg::Small => Some(SlimParams::SMALL),
         };
-        let custom = self.tau_occu.is_some() || self.tau_freq.is_some() || self.max_t2rn.is_some();
+        let custom = self.tau_occu.is_some()
+            || self.tau_freq.is_some()
+            || self.max_t2rn.is_some()
+            || self.hoist_rule == HoistRuleArg::Paper;
         let mut p = base.unwrap_or(SlimParams::SMALL);
+        p.rule = self.hoist_rule.rule(reordered);
         if let Some(v) = self.tau_occu {
             p.tau_occu = v;
         }
@@ -383,7 +422,7 @@ struct Built {
     seconds: f64,
     /// Seconds of the standard build alone.
     std_seconds: f64,
-    slim: Option<(SlimParams, SlimReport)>,
+    slim: Option<(SlimParams, SlimReport, SlimPhases)>,
     preset: Preset,
     level: Option<level::LevelReport>,
     builder: &'static str,
@@ -391,7 +430,14 @@ struct Built {
 
 /// Builds on a worker thread; shows a progress bar once the build has
 /// taken a second (on a terminal).
-fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Built> {
+/// `reordered`: whether the tree will be written with reordering (what the
+/// byte rule of the slim pass counts with).
+fn build_tree(
+    scene: &TriangleColumns,
+    args: &BuildArgs,
+    quiet: bool,
+    reordered: bool,
+) -> Res<Built> {
     let mut config = BuildConfig::default();
     config.sah.max_depth = args.max_depth;
     let progress = Progress::default();
@@ -468,11 +514,11 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
     .map_err(|_| "the builder panicked")?;
     let (tree, level_report) = built?;
     let std_seconds = start.elapsed().as_secs_f64();
-    let (params, preset) = args.slim();
+    let (params, preset) = args.slim(reordered);
     let (tree, slim) = match params {
         Some(p) => {
-            let (t, report) = slim::slim(&tree, scene, &config, &p);
-            (t, Some((p, report)))
+            let (t, report, phases) = slim::slim_with_phases(&tree, scene, &config, &p);
+            (t, Some((p, report, phases)))
         }
         None => (tree, None),
     };
@@ -493,7 +539,7 @@ fn build_tree(scene: &TriangleColumns, args: &BuildArgs, quiet: bool) -> Res<Bui
 }
 
 fn file_config(built: &Built, n_tris: usize) -> FileConfig {
-    let (tau_occu, tau_freq, max_t2rn) = built.slim.as_ref().map_or((0.0, 0.0, 0), |(p, _)| {
+    let (tau_occu, tau_freq, max_t2rn) = built.slim.as_ref().map_or((0.0, 0.0, 0), |(p, _, _)| {
         (p.tau_occu as f32, p.tau_freq as f32, p.max_t2rn)
     });
     FileConfig {
@@ -554,18 +600,25 @@ fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
             r.scratch.file_bytes_total as f64 / (1 << 20) as f64
         );
     }
-    if let Some((p, r)) = &built.slim {
+    if let Some((p, r, ph)) = &built.slim {
         println!(
-            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted, {} subtrees rebuilt; std build {:.3} s, slim pass {:.3} s ({:.2}×)",
+            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
             built.preset.name(),
             p.tau_occu,
             p.tau_freq,
             p.max_t2rn,
+            report::rule_name(p.rule),
             r.hoisted,
             r.rebuilds,
+            r.rejected,
+            r.cancelled,
             built.std_seconds,
             built.seconds - built.std_seconds,
             built.seconds / built.std_seconds
+        );
+        println!(
+            "           phases: {} passes; analysis {:.3} s, rebuilds {:.3} s, apply {:.3} s, assembly {:.3} s",
+            ph.passes, ph.analysis_s, ph.rebuild_s, ph.apply_s, ph.assemble_s
         );
     }
 }
@@ -616,10 +669,23 @@ fn build_json(
         })),
         // The builder's figure; `build` replaces it with the whole command's.
         "peak_rss_anon_bytes": built.level.as_ref().map_or_else(rss_anon_bytes, |r| r.peak_rss_anon_bytes),
-        "hoisted": built.slim.as_ref().map_or(0, |(_, r)| r.hoisted),
-        "tau_occu": built.slim.as_ref().map(|(p, _)| p.tau_occu),
-        "tau_freq": built.slim.as_ref().map(|(p, _)| p.tau_freq),
-        "max_t2rn": built.slim.as_ref().map(|(p, _)| p.max_t2rn),
+        "hoisted": built.slim.as_ref().map_or(0, |(_, r, _)| r.hoisted),
+        "tau_occu": built.slim.as_ref().map(|(p, _, _)| p.tau_occu),
+        "tau_freq": built.slim.as_ref().map(|(p, _, _)| p.tau_freq),
+        "max_t2rn": built.slim.as_ref().map(|(p, _, _)| p.max_t2rn),
+        "hoist_rule": built.slim.as_ref().map(|(p, _, _)| report::rule_name(p.rule)),
+        "slim": built.slim.as_ref().map(|(_, r, ph)| json!({
+            "hoisted": r.hoisted,
+            "cancelled": r.cancelled,
+            "rejected": r.rejected,
+            "rebuilds": r.rebuilds,
+            "rebuilt_refs": r.rebuilt_refs,
+            "passes": ph.passes,
+            "analysis_s": ph.analysis_s,
+            "rebuild_s": ph.rebuild_s,
+            "apply_s": ph.apply_s,
+            "assemble_s": ph.assemble_s,
+        })),
     })
 }
 
@@ -711,7 +777,7 @@ fn cmd_build(
     let watch = PeakRss::start();
     pool.install(|| {
         let loaded = load(path)?;
-        let mut built = build_tree(&loaded.scene, args, json)?;
+        let mut built = build_tree(&loaded.scene, args, json, reorder)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
         let mut written = None;
         if let Some(out) = output {
@@ -785,6 +851,7 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
     let f = file.figures();
     let c = file.config();
     let hist = file.leaf_depth_histogram();
+    let split = ByteSplit::of(&file);
     let mib = |b: u64| b as f64 / (1 << 20) as f64;
     let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
     if json {
@@ -805,6 +872,16 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
                 "tree_bytes_per_triangle": per_tri(f.tree_bytes()),
                 "max_depth": file.max_depth(),
                 "leaf_depth_histogram": hist,
+                "bytes": json!({
+                    "inner": split.inner_bytes,
+                    "t_inner": split.t_inner_bytes,
+                    "leaves": split.leaf_bytes,
+                    "empty_leaves": split.empty_leaf_bytes,
+                    "idx32": split.idx32_bytes,
+                    "idx16": split.idx16_bytes,
+                    "duplicates": split.duplicate_bytes,
+                    "hoist_bound": split.hoist_bound_bytes,
+                }),
                 "open_ms": open_ms,
             }),
         );
@@ -865,6 +942,23 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
         f.geometry_bytes(),
         per_tri(f.geometry_bytes())
     );
+    let pct = |b: u64| 100.0 * b as f64 / split.total().max(1) as f64;
+    println!(
+        "split       inner {:.1}%, t-inner + T-ref {:.1}%, leaves {:.1}%, empty leaves {:.1}%, idx32 {:.1}%, idx16 {:.1}%",
+        pct(split.inner_bytes),
+        pct(split.t_inner_bytes),
+        pct(split.leaf_bytes),
+        pct(split.empty_leaf_bytes),
+        pct(split.idx32_bytes),
+        pct(split.idx16_bytes)
+    );
+    println!(
+        "bound       with the nodes unchanged: duplicate references {} bytes ({:.1}%), hoisting saves at most {} bytes ({:.1}%)",
+        split.duplicate_bytes,
+        pct(split.duplicate_bytes),
+        split.hoist_bound_bytes,
+        pct(split.hoist_bound_bytes)
+    );
     println!("depth       max {}; leaves per depth:", file.max_depth());
     let peak = hist.iter().copied().max().unwrap_or(1).max(1);
     for (d, &n) in hist.iter().enumerate() {
@@ -921,6 +1015,7 @@ fn cmd_report(args: &ReportArgs) -> Res<()> {
         sweep: args.sweep,
         all_threads,
         sweep_grid: None,
+        rule: args.hoist_rule.rule(true),
     };
     let start = Instant::now();
     let report = report::run(&options, &mut |line| {
@@ -1015,7 +1110,8 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
             Source::File { file, columns, open_ms }
         } else {
             let loaded = load(&args.scene)?;
-            let built = build_tree(&loaded.scene, &args.build, args.json)?;
+            // Not written: bytes are counted as in a reordered file.
+            let built = build_tree(&loaded.scene, &args.build, args.json, true)?;
             let stats = TreeStats::of(&built.tree, &built.config.sah);
             Source::Built {
                 loaded,
@@ -1143,6 +1239,7 @@ fn main_job() -> Res<()> {
             tau_occu: None,
             tau_freq: None,
             max_t2rn: None,
+            hoist_rule: HoistRuleArg::Bytes,
         },
         eye: None,
         at: None,

@@ -139,7 +139,10 @@ pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Pr
 /// Builds the subtree of a node at `depth` with cell `cell` and triangle
 /// references `refs` (ascending ids, boxes inside `cell`), under the depth
 /// limit of the whole scene. The result's `bounds` is `cell`. This is how
-/// the slim post-pass rebuilds a subtree without a hoisted triangle.
+/// the literal slim algorithm rebuilds a subtree without a hoisted triangle
+/// ([`crate::slim::rebuild`]; the slim pass itself uses the level
+/// builder's [`crate::build::level::SubtreeBuilder`], which builds the
+/// same subtree).
 pub fn build_subtree(
     scene: &TriangleColumns,
     config: &BuildConfig,

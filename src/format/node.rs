@@ -71,6 +71,24 @@ pub fn encode_leaf32(count: u32, start: u32) -> u64 {
     (u64::from(start) << 32) | (u64::from(count) << 5) | (E_IDX32 << 3) | A_LEAF
 }
 
+/// Whether a leaf of `len` (file) triangle ids `ids` is stored in 2-byte
+/// mode: fewer than [`LEAF16_LIMIT`] of them, all sharing their upper 16
+/// bits.
+pub fn fits_leaf16(len: usize, ids: impl IntoIterator<Item = u32>) -> bool {
+    if len >= LEAF16_LIMIT as usize {
+        return false;
+    }
+    let mut ids = ids.into_iter();
+    let upper = ids.next().map_or(0, |t| t >> 16);
+    ids.all(|t| t >> 16 == upper)
+}
+
+/// Bytes of the index list of a leaf of `len` (file) triangle ids `ids`,
+/// as stored: 2 per index in 2-byte mode ([`fits_leaf16`]), else 4.
+pub fn leaf_index_bytes(len: usize, ids: impl IntoIterator<Item = u32>) -> u64 {
+    len as u64 * if fits_leaf16(len, ids) { 2 } else { 4 }
+}
+
 pub fn encode_leaf16(count: u32, upper: u16, start: u32) -> u64 {
     debug_assert!(count < LEAF16_LIMIT);
     (u64::from(start) << 32)

@@ -1,6 +1,6 @@
 //! Writing a tree and its geometry as a `.kd` file (layout in [`super`]).
 
-use super::node::{self, LEAF16_LIMIT, MAX_LEAF32, MAX_NODES};
+use super::node::{self, MAX_LEAF32, MAX_NODES};
 use super::{
     ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
     SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
@@ -67,41 +67,6 @@ pub struct WriteOptions {
     /// triangles of a leaf have nearby ids and most leaves fit 2-byte mode.
     pub reorder: bool,
     pub config: FileConfig,
-}
-
-/// The Morton order of triangle centroids: `perm[new] = old`.
-fn morton_order(scene: &TriangleColumns) -> Vec<u32> {
-    let b = scene.bounds();
-    let lo = b.min.as_dvec3();
-    let ext = (b.max - b.min).as_dvec3();
-    let spread = |mut v: u64| {
-        // Spread 21 bits to every third bit.
-        v &= 0x1f_ffff;
-        v = (v | (v << 32)) & 0x1f_0000_0000_ffff;
-        v = (v | (v << 16)) & 0x1f_0000_ff00_00ff;
-        v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
-        v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
-        v = (v | (v << 2)) & 0x1249_2492_4924_9249;
-        v
-    };
-    let mut keyed: Vec<(u64, u32)> = (0..scene.len() as u32)
-        .map(|i| {
-            let [a, b2, c] = scene.tri(i);
-            let centroid = (a.as_dvec3() + b2.as_dvec3() + c.as_dvec3()) / 3.0;
-            let mut code = 0;
-            for k in 0..3 {
-                let u = if ext[k] > 0.0 {
-                    ((centroid[k] - lo[k]) / ext[k]).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                };
-                code |= spread((u * f64::from((1u32 << 21) - 1)) as u64) << k;
-            }
-            (code, i)
-        })
-        .collect();
-    keyed.sort_unstable();
-    keyed.into_iter().map(|(_, i)| i).collect()
 }
 
 /// Node words per window of [`Words`] (8 MiB).
@@ -286,10 +251,8 @@ fn layout(
                 ids.clear();
                 ids.extend(list.iter().map(|&t| new_id(t)));
                 ids.sort_unstable();
-                let upper = ids.first().map_or(0, |&t| t >> 16);
-                let two_byte =
-                    (ids.len() as u32) < LEAF16_LIMIT && ids.iter().all(|&t| t >> 16 == upper);
-                let word = if two_byte {
+                let word = if node::fits_leaf16(ids.len(), ids.iter().copied()) {
+                    let upper = ids.first().map_or(0, |&t| t >> 16);
                     let first = u32::try_from(out.idx16.len())
                         .map_err(|_| too_large("idx16 over 2^32 entries"))?;
                     out.idx16.extend(ids.iter().map(|&t| t as u16));
@@ -418,7 +381,7 @@ fn write_kd<W: Read + Write + Seek>(
 ) -> Result<(), FormatError> {
     check_scene(tree, scene)?;
     let n_tris = scene.len();
-    let perm: Option<Vec<u32>> = options.reorder.then(|| morton_order(scene));
+    let perm: Option<Vec<u32>> = options.reorder.then(|| scene.morton_order());
     out.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
 
     // The node section.

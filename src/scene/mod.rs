@@ -47,6 +47,7 @@ pub use obj::{embedded_name, load_obj, load_obj_bytes};
 
 use crate::geom::{Aabb, double_area};
 use glam::Vec3;
+use rayon::prelude::*;
 use std::fmt;
 use std::path::PathBuf;
 
@@ -122,6 +123,44 @@ impl TriangleColumns {
         (0..self.len() as u32).fold(Aabb::EMPTY, |b, i| {
             b.union(&Aabb::of_triangle(&self.tri(i)))
         })
+    }
+
+    /// The Morton order of triangle centroids: `perm[new] = old` (the
+    /// order in which `format` writes a reordered file).
+    pub fn morton_order(&self) -> Vec<u32> {
+        let b = self.bounds();
+        let lo = b.min.as_dvec3();
+        let ext = (b.max - b.min).as_dvec3();
+        let spread = |mut v: u64| {
+            // Spread 21 bits to every third bit.
+            v &= 0x1f_ffff;
+            v = (v | (v << 32)) & 0x1f_0000_0000_ffff;
+            v = (v | (v << 16)) & 0x1f_0000_ff00_00ff;
+            v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
+            v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
+            v = (v | (v << 2)) & 0x1249_2492_4924_9249;
+            v
+        };
+        let mut keyed: Vec<(u64, u32)> = (0..self.len() as u32)
+            .into_par_iter()
+            .map(|i| {
+                let [a, b2, c] = self.tri(i);
+                let centroid = (a.as_dvec3() + b2.as_dvec3() + c.as_dvec3()) / 3.0;
+                let mut code = 0;
+                for k in 0..3 {
+                    let u = if ext[k] > 0.0 {
+                        ((centroid[k] - lo[k]) / ext[k]).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                    code |= spread((u * f64::from((1u32 << 21) - 1)) as u64) << k;
+                }
+                (code, i)
+            })
+            .collect();
+        // The pairs are distinct, so the order does not depend on the sort.
+        keyed.par_sort_unstable();
+        keyed.into_par_iter().map(|(_, i)| i).collect()
     }
 
     /// The geometric normal of triangle `i` (not normalised).

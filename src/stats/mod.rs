@@ -2,6 +2,7 @@
 //! cost, and the leaf-depth histogram (the figures of Choi et al. 2013,
 //! Table 3 and Figure 6, for the standard tree).
 
+pub mod bytes;
 pub mod plot;
 pub mod report;
 

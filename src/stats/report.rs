@@ -46,7 +46,7 @@ use crate::format::{
 use crate::geom::Aabb;
 use crate::render::{self, Camera, View};
 use crate::scene::TriangleColumns;
-use crate::slim::{self, SlimParams};
+use crate::slim::{self, HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
 use crate::trace::{ClosestHit, Hit, Scalar};
 use crate::tree::{Node, TreeIr};
@@ -90,6 +90,9 @@ pub struct ReportOptions {
     /// The sweep grid `(τ_occu values, τ_freq values)`; `None` uses
     /// [`SWEEP_TAU_OCCU`] × [`SWEEP_TAU_FREQ`].
     pub sweep_grid: Option<(Vec<f64>, Vec<f64>)>,
+    /// The hoist rule of the fast, small and sweep trees (the presets' is
+    /// [`HoistRule::Bytes`] for a reordered file, as the report writes).
+    pub rule: HoistRule,
 }
 
 impl Default for ReportOptions {
@@ -103,6 +106,7 @@ impl Default for ReportOptions {
             sweep: false,
             all_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             sweep_grid: None,
+            rule: SlimParams::FAST.rule,
         }
     }
 }
@@ -172,12 +176,12 @@ impl TreeKind {
         }
     }
 
-    /// The slim thresholds (`None` for std).
-    pub fn params(self) -> Option<SlimParams> {
+    /// The slim parameters with the given hoist rule (`None` for std).
+    pub fn params(self, rule: HoistRule) -> Option<SlimParams> {
         match self {
             TreeKind::Std => None,
-            TreeKind::Fast => Some(SlimParams::FAST),
-            TreeKind::Small => Some(SlimParams::SMALL),
+            TreeKind::Fast => Some(SlimParams::FAST.with_rule(rule)),
+            TreeKind::Small => Some(SlimParams::SMALL.with_rule(rule)),
         }
     }
 
@@ -439,6 +443,7 @@ pub struct Report {
     pub simd: &'static str,
     pub sweep: bool,
     pub build: BuildConfig,
+    pub rule: HoistRule,
     pub scenes: Vec<SceneReport>,
 }
 
@@ -452,6 +457,14 @@ fn percent_below(x: f64, base: f64) -> f64 {
         100.0 * (1.0 - x / base)
     } else {
         f64::NAN
+    }
+}
+
+/// The name of a hoist rule as the CLI spells it.
+pub fn rule_name(rule: HoistRule) -> &'static str {
+    match rule {
+        HoistRule::Paper => "paper",
+        HoistRule::Bytes { .. } => "bytes",
     }
 }
 
@@ -747,7 +760,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
         let mut written = Vec::new();
         let mut hoisted = [0usize; 3];
         for (k, kind) in TreeKind::ALL.into_iter().enumerate() {
-            let slimmed = match kind.params() {
+            let slimmed = match kind.params(options.rule) {
                 None => None,
                 Some(p) => {
                     progress(&format!("{name}: slim pass ({})", kind.name()));
@@ -762,7 +775,12 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
             };
             progress(&format!("{name}: writing {} file", kind.name()));
             let tree = slimmed.as_ref().unwrap_or(&std_tree);
-            let cfg = file_config(&config, scene.len(), kind.preset(), kind.params());
+            let cfg = file_config(
+                &config,
+                scene.len(),
+                kind.preset(),
+                kind.params(options.rule),
+            );
             let w = write_tree(name, kind.name(), tree, scene, cfg)?;
             times.write_s[k] = w.seconds;
             written.push(w);
@@ -790,6 +808,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
                         tau_occu,
                         tau_freq,
                         max_t2rn: SWEEP_MAX_T2RN,
+                        rule: options.rule,
                     };
                     sweep.push(sweep_point(
                         name,
@@ -824,6 +843,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
         simd: SimdLevel::detect().name(),
         sweep: options.sweep,
         build: config,
+        rule: options.rule,
         scenes,
     })
 }
@@ -904,7 +924,7 @@ impl Report {
              4×4 rays with the `{}` kernel. Host: {} with {} hardware threads. Trees are built by the \
              sweep builder (K_T {}, K_I {}, λ {}), written with Morton reordering (2-byte leaves where \
              they fit) and traced from the `.kd` bytes in memory. Presets: fast τ_occu {} τ_freq {}, \
-             small τ_occu {} τ_freq {}, max_t2rn {}. Percentages are 100·(1 − x/std): a positive \
+             small τ_occu {} τ_freq {}, max_t2rn {}, hoist rule `{}`. Percentages are 100·(1 − x/std): a positive \
              reduction is a smaller tree, a positive loss a slower frame.\n\n",
             self.reps,
             if self.reps == 1 { "" } else { "s" },
@@ -922,6 +942,7 @@ impl Report {
             SlimParams::SMALL.tau_occu,
             SlimParams::SMALL.tau_freq,
             SlimParams::FAST.max_t2rn,
+            rule_name(self.rule),
         );
 
         md += "## Table 1. Leaves per triangle (std tree)\n\n";
@@ -1216,11 +1237,12 @@ impl Report {
                 "lambda_empty": self.build.sah.lambda_empty,
                 "reorder": true,
             },
-            "presets": TreeKind::ALL.iter().filter_map(|k| k.params().map(|p| json!({
+            "presets": TreeKind::ALL.iter().filter_map(|k| k.params(self.rule).map(|p| json!({
                 "tree": k.name(),
                 "tau_occu": p.tau_occu,
                 "tau_freq": p.tau_freq,
                 "max_t2rn": p.max_t2rn,
+                "hoist_rule": rule_name(p.rule),
             }))).collect::<Vec<_>>(),
             "sweep": self.sweep,
             "scenes": scenes,

@@ -353,6 +353,66 @@ struct Builder<'a> {
     report: LevelReport,
 }
 
+/// Builds subtrees of single nodes depth-first, with the finisher the
+/// level builder uses for its small nodes (`dfs`, no heap allocation per
+/// node): the subtree is the one [`super::sweep::build_subtree`] builds for
+/// the same references, cell and depth. The slim post-pass rebuilds its
+/// subtrees with it. One per worker; its scratch is reused across builds.
+pub struct SubtreeBuilder<'a> {
+    finisher: Finisher<'a>,
+    tri: Vec<u32>,
+    boxes: Vec<Box6>,
+    ev: [Vec<u64>; 3],
+}
+
+impl<'a> SubtreeBuilder<'a> {
+    pub fn new(scene: &'a TriangleColumns, config: &'a BuildConfig) -> SubtreeBuilder<'a> {
+        let depth_limit = config.sah.depth_limit(scene.len());
+        SubtreeBuilder {
+            finisher: Finisher::new(scene, &config.sah, depth_limit, None),
+            tri: Vec::new(),
+            boxes: Vec::new(),
+            ev: Default::default(),
+        }
+    }
+
+    /// The subtree of a node at `depth` with cell `cell` and the triangle
+    /// references `refs` (ascending ids, boxes inside `cell`, fewer than
+    /// 2³⁰), under the depth limit of the whole scene. The result's
+    /// `bounds` is `cell`.
+    pub fn build(
+        &mut self,
+        refs: impl IntoIterator<Item = (TriId, Aabb)>,
+        cell: Aabb,
+        depth: u32,
+    ) -> TreeIr {
+        self.tri.clear();
+        self.boxes.clear();
+        for (t, b) in refs {
+            debug_assert!(self.tri.last().is_none_or(|&last| last < t.0));
+            self.tri.push(t.0);
+            self.boxes.push(to_box(&b));
+        }
+        assert!(self.tri.len() < MAX_REFS, "too many references");
+        for (axis, ev) in self.ev.iter_mut().enumerate() {
+            ev.clear();
+            for (r, b) in self.boxes.iter().enumerate() {
+                push_events(b, axis, r as u32, ev);
+            }
+            ev.sort_unstable();
+        }
+        let ev = [0, 1, 2].map(|k| self.ev[k].as_slice());
+        let (nodes, leaf_tris) =
+            self.finisher
+                .build(&self.tri, &self.boxes, ev, 0, cell, depth, Progress::TOTAL);
+        TreeIr {
+            bounds: cell,
+            nodes: nodes.to_vec(),
+            leaf_tris: leaf_tris.to_vec(),
+        }
+    }
+}
+
 /// Counts of a pass over one node's references, per child side.
 #[derive(Clone, Copy, Debug, Default)]
 struct SideCounts {
