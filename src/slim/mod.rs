@@ -1081,11 +1081,33 @@ fn lap(clock: &mut Instant) -> f64 {
     s
 }
 
+/// A test scene: triangle 0 is big and spans an 8×8 grid of small
+/// slanted triangles 2 apart, so the standard tree lists it in many leaves.
+#[cfg(test)]
+pub(crate) fn huge_over_grid() -> TriangleColumns {
+    use glam::Vec3;
+    let mut tris = vec![[
+        Vec3::new(-1.0, -1.0, 0.5),
+        Vec3::new(30.0, -1.0, 0.5),
+        Vec3::new(-1.0, 30.0, 0.5),
+    ]];
+    for i in 0..8 {
+        for j in 0..8 {
+            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
+            tris.push([
+                Vec3::new(x, y, 0.0),
+                Vec3::new(x + 1.0, y, 1.0),
+                Vec3::new(x, y + 1.0, 1.0),
+            ]);
+        }
+    }
+    TriangleColumns::from_triangles(&tris).unwrap()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::build::{self, Builder};
-    use glam::Vec3;
 
     #[test]
     fn huge_triangle_is_hoisted() {
@@ -1093,22 +1115,7 @@ mod tests {
         // with the paper's rule it is hoisted into the root. With the byte
         // rule it is not (the rebuilt tree cuts the empty space around the
         // small triangles and takes more nodes), and the tree never grows.
-        let mut tris = vec![[
-            Vec3::new(-1.0, -1.0, 0.5),
-            Vec3::new(30.0, -1.0, 0.5),
-            Vec3::new(-1.0, 30.0, 0.5),
-        ]];
-        for i in 0..8 {
-            for j in 0..8 {
-                let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
-                tris.push([
-                    Vec3::new(x, y, 0.0),
-                    Vec3::new(x + 1.0, y, 1.0),
-                    Vec3::new(x, y + 1.0, 1.0),
-                ]);
-            }
-        }
-        let scene = TriangleColumns::from_triangles(&tris).unwrap();
+        let scene = huge_over_grid();
         let config = BuildConfig::default();
         let std_tree = build::build(&scene, &config, Builder::Sweep, None);
         let paper = SlimParams::SMALL.with_rule(HoistRule::Paper);

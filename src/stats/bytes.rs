@@ -118,34 +118,11 @@ mod tests {
     use super::*;
     use crate::build::{self, BuildConfig, Builder};
     use crate::format::{self, WriteOptions};
-    use crate::scene::TriangleColumns;
     use crate::slim::{self, SlimParams};
-    use glam::Vec3;
-
-    /// A big triangle over a grid of small ones, so that references are
-    /// duplicated.
-    fn scene() -> TriangleColumns {
-        let mut tris = vec![[
-            Vec3::new(-1.0, -1.0, 0.5),
-            Vec3::new(30.0, -1.0, 0.5),
-            Vec3::new(-1.0, 30.0, 0.5),
-        ]];
-        for i in 0..8 {
-            for j in 0..8 {
-                let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
-                tris.push([
-                    Vec3::new(x, y, 0.0),
-                    Vec3::new(x + 1.0, y, 1.0),
-                    Vec3::new(x, y + 1.0, 1.0),
-                ]);
-            }
-        }
-        TriangleColumns::from_triangles(&tris).unwrap()
-    }
 
     #[test]
     fn split_adds_up_to_the_tree_bytes() {
-        let scene = scene();
+        let scene = slim::huge_over_grid();
         let config = BuildConfig::default();
         let std_tree = build::build(&scene, &config, Builder::Sweep, None);
         let (slim_tree, _) = slim::slim(&std_tree, &scene, &config, &SlimParams::SMALL);
