@@ -14,18 +14,24 @@ use glam::Vec3;
 /// Sutherland–Hodgman on a triangle and six planes yields at most 9 vertices.
 const MAX_POLY: usize = 9;
 
+/// The polygon's storage: one slot more than it can hold, because the
+/// clipping loop writes every candidate vertex and only advances past the
+/// ones it keeps (no data-dependent branch).
+const CAP: usize = MAX_POLY + 1;
+
 #[derive(Clone, Copy)]
 struct Polygon {
-    v: [[f64; 3]; MAX_POLY],
+    v: [[f64; 3]; CAP],
     n: usize,
 }
 
 impl Polygon {
     const EMPTY: Polygon = Polygon {
-        v: [[0.0; 3]; MAX_POLY],
+        v: [[0.0; 3]; CAP],
         n: 0,
     };
 
+    #[inline]
     fn triangle(tri: &[Vec3; 3]) -> Polygon {
         let mut poly = Polygon::EMPTY;
         for (i, p) in tri.iter().enumerate() {
@@ -35,65 +41,77 @@ impl Polygon {
         poly
     }
 
-    /// Writes into `out` the part with `p[axis] >= plane` (`keep_above`)
-    /// or `p[axis] <= plane`.
-    #[inline]
-    fn clip_into(&self, axis: usize, plane: f64, keep_above: bool, out: &mut Polygon) {
+    /// Writes into `out` the part with `p[AXIS] >= plane` (`ABOVE`) or
+    /// `p[AXIS] <= plane`: Sutherland–Hodgman, walking the edges
+    /// `v[i] → v[i + 1]` (the last one closing the loop) and keeping each
+    /// inside start point and each crossing.
+    ///
+    /// Branch-free: every edge's start point and crossing are written at
+    /// the output cursor, which advances only past the kept ones (the
+    /// crossing of an edge that does not cross is computed and dropped).
+    /// A polygon that would exceed [`MAX_POLY`] vertices keeps its first
+    /// ones (it cannot happen for a triangle and six planes; the cap keeps
+    /// the writes in bounds regardless).
+    #[inline(always)]
+    fn clip_into<const AXIS: usize, const ABOVE: bool>(&self, plane: f64, out: &mut Polygon) {
         let inside = |p: &[f64; 3]| {
-            if keep_above {
-                p[axis] >= plane
+            if ABOVE {
+                p[AXIS] >= plane
             } else {
-                p[axis] <= plane
+                p[AXIS] <= plane
             }
         };
-        out.n = 0;
-        if self.n == 0 {
-            return;
-        }
-        // Edges (v[i], v[i + 1]), the last one closing the loop.
-        let mut a = self.v[0];
-        let mut ina = inside(&a);
-        for i in 0..self.n {
-            let b = self.v[if i + 1 == self.n { 0 } else { i + 1 }];
-            let inb = inside(&b);
-            if ina {
-                out.push(a);
+        let n = self.n.min(MAX_POLY);
+        let mut k = 0;
+        if n > 0 {
+            let mut a = self.v[0];
+            let mut ina = inside(&a);
+            for i in 0..n {
+                let b = self.v[if i + 1 == n { 0 } else { i + 1 }];
+                let inb = inside(&b);
+                out.v[k] = a;
+                k = (k + usize::from(ina)).min(MAX_POLY);
+                out.v[k] = crossing(&a, &b, AXIS, plane);
+                k = (k + usize::from(ina != inb)).min(MAX_POLY);
+                a = b;
+                ina = inb;
             }
-            if ina != inb {
-                out.push(crossing(&a, &b, axis, plane));
-            }
-            a = b;
-            ina = inb;
         }
+        out.n = k;
     }
 
     /// Clips to the planes of `bx` that `tb` (the polygon's bounds) crosses,
-    /// in the order x min, x max, y min, y max, z min, z max.
-    fn clip_to_box(mut self, tb: &Aabb, bx: &Aabb) -> Polygon {
-        let mut tmp = Polygon::EMPTY;
-        for axis in 0..3 {
-            if tb.min[axis] < bx.min[axis] {
-                self.clip_into(axis, f64::from(bx.min[axis]), true, &mut tmp);
-                std::mem::swap(&mut self, &mut tmp);
-            }
-            if tb.max[axis] > bx.max[axis] {
-                self.clip_into(axis, f64::from(bx.max[axis]), false, &mut tmp);
-                std::mem::swap(&mut self, &mut tmp);
-            }
-            if self.n == 0 {
-                break;
-            }
+    /// in the order x min, x max, y min, y max, z min, z max. `scratch` is
+    /// working storage; the result is in `self`.
+    #[inline]
+    fn clip_to_box(&mut self, tb: &Aabb, bx: &Aabb, scratch: &mut Polygon) {
+        let mut src = self;
+        let mut dst = scratch;
+        let mut swapped = false;
+        macro_rules! plane {
+            ($axis:literal) => {
+                if tb.min[$axis] < bx.min[$axis] {
+                    src.clip_into::<$axis, true>(f64::from(bx.min[$axis]), dst);
+                    std::mem::swap(&mut src, &mut dst);
+                    swapped = !swapped;
+                }
+                if tb.max[$axis] > bx.max[$axis] {
+                    src.clip_into::<$axis, false>(f64::from(bx.max[$axis]), dst);
+                    std::mem::swap(&mut src, &mut dst);
+                    swapped = !swapped;
+                }
+            };
         }
-        self
-    }
-
-    fn push(&mut self, p: [f64; 3]) {
-        // A convex polygon clipped by one plane gains at most one vertex, so
-        // six clips of a triangle never exceed MAX_POLY.
-        debug_assert!(self.n < MAX_POLY);
-        if self.n < MAX_POLY {
-            self.v[self.n] = p;
-            self.n += 1;
+        plane!(0);
+        if src.n > 0 {
+            plane!(1);
+        }
+        if src.n > 0 {
+            plane!(2);
+        }
+        if swapped {
+            // `src` is the scratch polygon and `dst` is `self`.
+            *dst = *src;
         }
     }
 }
@@ -101,7 +119,7 @@ impl Polygon {
 /// The point of edge `a → b` on the plane `p[axis] = plane` (the edge
 /// crosses it): the coordinate on `axis` is the plane exactly, the others
 /// are interpolated from `a`.
-#[inline]
+#[inline(always)]
 fn crossing(a: &[f64; 3], b: &[f64; 3], axis: usize, plane: f64) -> [f64; 3] {
     let t = (plane - a[axis]) / (b[axis] - a[axis]);
     let mut p = [0.0; 3];
@@ -133,30 +151,47 @@ impl Bounds64 {
         }
     }
 
+    /// Adds `p` when `keep`, without a branch on `keep`. The comparisons
+    /// ignore the sign of zero, which [`Bounds64::finish`] drops anyway,
+    /// so the bounds do not depend on the order points are added in.
+    #[inline(always)]
+    fn add_if(&mut self, p: &[f64; 3], keep: bool) {
+        for (k, &x) in p.iter().enumerate() {
+            let lo = if keep { x } else { f64::INFINITY };
+            let hi = if keep { x } else { f64::NEG_INFINITY };
+            self.lo[k] = if lo < self.lo[k] { lo } else { self.lo[k] };
+            self.hi[k] = if hi > self.hi[k] { hi } else { self.hi[k] };
+        }
+    }
+
     /// Rounded outward to `f32`, intersected with `bx` and `tb`; `None`
     /// when empty. `-0.0` bounds become `+0.0`, so that equal planes have
     /// equal bits in every builder.
+    #[inline(always)]
     fn finish(&self, bx: &Aabb, tb: &Aabb) -> Option<Aabb> {
+        // Nothing was added (no NaN reaches here: scenes are validated).
         if self.lo[0] > self.hi[0] {
             return None;
         }
-        let rounded = Aabb::new(
-            Vec3::new(
-                f32_round_down(self.lo[0]),
-                f32_round_down(self.lo[1]),
-                f32_round_down(self.lo[2]),
-            ),
-            Vec3::new(
-                f32_round_up(self.hi[0]),
-                f32_round_up(self.hi[1]),
-                f32_round_up(self.hi[2]),
-            ),
-        );
-        let clipped = rounded.intersection(bx).intersection(tb);
-        if clipped.is_empty() {
+        let (mut min, mut max) = ([0.0f32; 3], [0.0f32; 3]);
+        let mut empty = false;
+        for k in 0..3 {
+            // `max`/`min` by comparison: exact, and the sign of a zero is
+            // dropped below.
+            let lo = f32_round_down(self.lo[k]);
+            let lo = if bx.min[k] > lo { bx.min[k] } else { lo };
+            let lo = if tb.min[k] > lo { tb.min[k] } else { lo };
+            let hi = f32_round_up(self.hi[k]);
+            let hi = if bx.max[k] < hi { bx.max[k] } else { hi };
+            let hi = if tb.max[k] < hi { tb.max[k] } else { hi };
+            empty |= lo > hi;
+            min[k] = lo + 0.0;
+            max[k] = hi + 0.0;
+        }
+        if empty {
             None
         } else {
-            Some(Aabb::new(clipped.min + 0.0, clipped.max + 0.0))
+            Some(Aabb::new(Vec3::from(min), Vec3::from(max)))
         }
     }
 }
@@ -173,7 +208,9 @@ pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
     if !bx.overlaps(&tb) {
         return None;
     }
-    let poly = Polygon::triangle(tri).clip_to_box(&tb, bx);
+    let mut poly = Polygon::triangle(tri);
+    let mut scratch = Polygon::EMPTY;
+    poly.clip_to_box(&tb, bx, &mut scratch);
     let mut b = Bounds64::EMPTY;
     for p in &poly.v[..poly.n] {
         b.add(p);
@@ -193,41 +230,176 @@ pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
 /// rounding of the `f64` arithmetic, which both round outward: both are
 /// conservative and nest inside their box.
 pub fn clip_split(tri: &[Vec3; 3], cell: &Aabb, axis: usize, pos: f32) -> [Option<Aabb>; 2] {
+    match axis {
+        0 => clip_split_axis::<0>(tri, cell, pos),
+        1 => clip_split_axis::<1>(tri, cell, pos),
+        _ => clip_split_axis::<2>(tri, cell, pos),
+    }
+}
+
+#[inline(always)]
+fn clip_split_axis<const AXIS: usize>(tri: &[Vec3; 3], cell: &Aabb, pos: f32) -> [Option<Aabb>; 2] {
     let tb = Aabb::of_triangle(tri);
     if !cell.overlaps(&tb) {
         return [None, None];
     }
-    let poly = Polygon::triangle(tri).clip_to_box(&tb, cell);
-    let (left, right) = cell.split(axis, pos);
+    let mut poly = Polygon::triangle(tri);
+    let mut scratch = Polygon::EMPTY;
+    poly.clip_to_box(&tb, cell, &mut scratch);
+    let (left, right) = cell.split(AXIS, pos);
     let plane = f64::from(pos);
     let mut side = [Bounds64::EMPTY; 2];
-    if poly.n > 0 {
-        let mut a = poly.v[poly.n - 1];
-        for i in 0..poly.n {
-            // Edge a → b as Sutherland–Hodgman walks it (from v[n-1] to v[0]
-            // first), so crossings are computed from the same end.
+    let n = poly.n.min(MAX_POLY);
+    if n > 0 {
+        // Edge a → b as Sutherland–Hodgman walks it (from v[n-1] to v[0]
+        // first), so crossings are computed from the same end. Branch-free
+        // like `clip_into`: each side adds the start point or the crossing
+        // when it keeps it, else +∞/−∞ bounds that change nothing.
+        let mut a = poly.v[n - 1];
+        for i in 0..n {
             let b = poly.v[i];
-            let (al, ar) = (a[axis] <= plane, a[axis] >= plane);
-            let (bl, br) = (b[axis] <= plane, b[axis] >= plane);
-            if al {
-                side[0].add(&a);
-            }
-            if ar {
-                side[1].add(&a);
-            }
-            if al != bl || ar != br {
-                let q = crossing(&a, &b, axis, plane);
-                if al != bl {
-                    side[0].add(&q);
-                }
-                if ar != br {
-                    side[1].add(&q);
-                }
-            }
+            let (al, ar) = (a[AXIS] <= plane, a[AXIS] >= plane);
+            let (bl, br) = (b[AXIS] <= plane, b[AXIS] >= plane);
+            let q = crossing(&a, &b, AXIS, plane);
+            side[0].add_if(&a, al);
+            side[1].add_if(&a, ar);
+            side[0].add_if(&q, al != bl);
+            side[1].add_if(&q, ar != br);
             a = b;
         }
     }
     [side[0].finish(&left, &tb), side[1].finish(&right, &tb)]
+}
+
+/// The textbook form of the clip, kept as the reference the branch-free
+/// code above must match bit for bit: Sutherland–Hodgman with branches, a
+/// fresh polygon per plane, bounds by `f64::min`/`max`, and `clip_split`
+/// as clip-to-cell followed by one split pass.
+#[cfg(test)]
+mod reference {
+    use super::{Aabb, MAX_POLY, crossing};
+    use crate::geom::{f32_round_down, f32_round_up};
+    use glam::Vec3;
+
+    #[derive(Clone, Copy)]
+    struct Poly {
+        v: [[f64; 3]; MAX_POLY],
+        n: usize,
+    }
+
+    impl Poly {
+        fn push(&mut self, p: [f64; 3]) {
+            if self.n < MAX_POLY {
+                self.v[self.n] = p;
+                self.n += 1;
+            }
+        }
+
+        fn clip(&self, axis: usize, plane: f64, above: bool) -> Poly {
+            let inside = |p: &[f64; 3]| {
+                if above {
+                    p[axis] >= plane
+                } else {
+                    p[axis] <= plane
+                }
+            };
+            let mut out = Poly {
+                v: [[0.0; 3]; MAX_POLY],
+                n: 0,
+            };
+            for i in 0..self.n {
+                let (a, b) = (self.v[i], self.v[(i + 1) % self.n]);
+                if inside(&a) {
+                    out.push(a);
+                }
+                if inside(&a) != inside(&b) {
+                    out.push(crossing(&a, &b, axis, plane));
+                }
+            }
+            out
+        }
+    }
+
+    fn to_cell(tri: &[Vec3; 3], tb: &Aabb, bx: &Aabb) -> Poly {
+        let mut p = Poly {
+            v: [[0.0; 3]; MAX_POLY],
+            n: 3,
+        };
+        for (i, q) in tri.iter().enumerate() {
+            p.v[i] = [f64::from(q.x), f64::from(q.y), f64::from(q.z)];
+        }
+        for axis in 0..3 {
+            if tb.min[axis] < bx.min[axis] {
+                p = p.clip(axis, f64::from(bx.min[axis]), true);
+            }
+            if tb.max[axis] > bx.max[axis] {
+                p = p.clip(axis, f64::from(bx.max[axis]), false);
+            }
+        }
+        p
+    }
+
+    fn finish(pts: &[[f64; 3]], bx: &Aabb, tb: &Aabb) -> Option<Aabb> {
+        if pts.is_empty() {
+            return None;
+        }
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in pts {
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        let r = Aabb::new(
+            Vec3::from(lo.map(f32_round_down)),
+            Vec3::from(hi.map(f32_round_up)),
+        );
+        let c = r.intersection(bx).intersection(tb);
+        (!c.is_empty()).then(|| Aabb::new(c.min + 0.0, c.max + 0.0))
+    }
+
+    pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
+        let tb = Aabb::of_triangle(tri);
+        if bx.contains(&tb) {
+            return Some(tb);
+        }
+        if !bx.overlaps(&tb) {
+            return None;
+        }
+        let p = to_cell(tri, &tb, bx);
+        finish(&p.v[..p.n], bx, &tb)
+    }
+
+    pub fn clip_split(tri: &[Vec3; 3], cell: &Aabb, axis: usize, pos: f32) -> [Option<Aabb>; 2] {
+        let tb = Aabb::of_triangle(tri);
+        if !cell.overlaps(&tb) {
+            return [None, None];
+        }
+        let p = to_cell(tri, &tb, cell);
+        let plane = f64::from(pos);
+        let mut pts: [Vec<[f64; 3]>; 2] = Default::default();
+        for i in 0..p.n {
+            let a = p.v[(i + p.n - 1) % p.n];
+            let b = p.v[i];
+            let (al, ar) = (a[axis] <= plane, a[axis] >= plane);
+            let (bl, br) = (b[axis] <= plane, b[axis] >= plane);
+            if al {
+                pts[0].push(a);
+            }
+            if ar {
+                pts[1].push(a);
+            }
+            if al != bl {
+                pts[0].push(crossing(&a, &b, axis, plane));
+            }
+            if ar != br {
+                pts[1].push(crossing(&a, &b, axis, plane));
+            }
+        }
+        let (l, r) = cell.split(axis, pos);
+        [finish(&pts[0], &l, &tb), finish(&pts[1], &r, &tb)]
+    }
 }
 
 #[cfg(test)]
@@ -377,5 +549,39 @@ mod tests {
             }
         }
         assert!(compared > 100, "{compared}");
+    }
+
+    /// Coordinates from a small grid (so that vertices often lie exactly on
+    /// cell faces and planes, and triangles are often axis-aligned) or
+    /// arbitrary.
+    fn coord() -> impl proptest::strategy::Strategy<Value = f32> {
+        use proptest::prelude::*;
+        prop_oneof![(-4i32..=4).prop_map(|i| i as f32 * 0.25), -1.5f32..1.5f32]
+    }
+
+    fn point() -> impl proptest::strategy::Strategy<Value = Vec3> {
+        use proptest::prelude::*;
+        (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z))
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(20_000))]
+        /// The branch-free clip equals the textbook one bit for bit.
+        #[test]
+        fn branch_free_equals_reference(
+            a in point(), b in point(), c in point(),
+            p in point(), q in point(),
+            axis in 0usize..3, t in 0.0f32..=1.0,
+        ) {
+            let tri = [a, b, c];
+            let cell = Aabb::new(p.min(q), p.max(q));
+            let pos = cell.min[axis] + (cell.max[axis] - cell.min[axis]) * t;
+            let pos = pos.clamp(cell.min[axis], cell.max[axis]) + 0.0;
+            proptest::prop_assert_eq!(clip_triangle(&tri, &cell), reference::clip_triangle(&tri, &cell));
+            proptest::prop_assert_eq!(
+                clip_split(&tri, &cell, axis, pos),
+                reference::clip_split(&tri, &cell, axis, pos)
+            );
+        }
     }
 }

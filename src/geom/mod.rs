@@ -126,13 +126,17 @@ impl Ray {
 /// Rounds an `f64` down to the nearest `f32` that is `<=` it.
 pub fn f32_round_down(x: f64) -> f32 {
     let f = x as f32;
-    if f64::from(f) > x { f.next_down() } else { f }
+    // Both candidates, then a select: the comparison is a coin flip for
+    // interpolated points, so a branch would mispredict half the time.
+    let below = f.next_down();
+    if f64::from(f) > x { below } else { f }
 }
 
 /// Rounds an `f64` up to the nearest `f32` that is `>=` it.
 pub fn f32_round_up(x: f64) -> f32 {
     let f = x as f32;
-    if f64::from(f) < x { f.next_up() } else { f }
+    let above = f.next_up();
+    if f64::from(f) < x { above } else { f }
 }
 
 /// Twice the area of a triangle, in `f64` (exactly zero for collinear or
