@@ -43,12 +43,18 @@ pub struct Finisher<'a> {
     params: &'a SahParams,
     depth_limit: u32,
     progress: Option<&'a Progress>,
-    /// Reference stacks: each open node's references are a range.
+    /// Reference stacks: each open node's references are a range below
+    /// `ref_top`. The vectors only grow (to the deepest path's needs), so
+    /// pushing a node's children writes into memory that is already there
+    /// instead of resizing (and zero-filling) for every node.
     tri: Vec<u32>,
     boxes: Vec<Box6>,
-    /// Event stacks, one per axis; an event's reference is its index
-    /// relative to the first reference of its node.
+    ref_top: usize,
+    /// Event stacks, one per axis, used like the reference stacks; an
+    /// event's reference is its index relative to the first reference of
+    /// its node.
     ev: [Vec<u64>; 3],
+    ev_top: [usize; 3],
     /// Per reference of the node being split: its placement code.
     place: Vec<u8>,
     /// Per one-sided reference of the node being split: its index in its
@@ -80,7 +86,9 @@ impl<'a> Finisher<'a> {
             progress,
             tri: Vec::new(),
             boxes: Vec::new(),
+            ref_top: 0,
             ev: Default::default(),
+            ev_top: [0; 3],
             place: Vec::new(),
             new_idx: Vec::new(),
             clipped: Vec::new(),
@@ -114,15 +122,19 @@ impl<'a> Finisher<'a> {
     ) -> (&[Node], &[TriId]) {
         self.nodes.clear();
         self.leaf_tris.clear();
-        self.tri.clear();
-        self.tri.extend_from_slice(tri);
-        self.boxes.clear();
-        self.boxes.extend_from_slice(boxes);
-        for (stack, src) in self.ev.iter_mut().zip(ev) {
-            stack.clear();
-            stack.extend(src.iter().map(|&e| with_ref(e, ev_ref(e) - ref_base)));
+        grow(&mut self.tri, tri.len());
+        self.tri[..tri.len()].copy_from_slice(tri);
+        grow(&mut self.boxes, boxes.len());
+        self.boxes[..boxes.len()].copy_from_slice(boxes);
+        self.ref_top = tri.len();
+        for ((stack, src), top) in self.ev.iter_mut().zip(ev).zip(&mut self.ev_top) {
+            grow(stack, src.len());
+            for (d, &e) in stack.iter_mut().zip(src) {
+                *d = with_ref(e, ev_ref(e) - ref_base);
+            }
+            *top = src.len();
         }
-        let nev = [0, 1, 2].map(|k| self.ev[k].len());
+        let nev = [0, 1, 2].map(|k| ev[k].len());
         self.node(0, tri.len(), [0; 3], nev, cell, depth, weight);
         (&self.nodes, &self.leaf_tris)
     }
@@ -199,13 +211,16 @@ impl<'a> Finisher<'a> {
         }
 
         // Child references: left at [c0[0], c0[1]), right at [c0[1], end).
-        let l0 = self.tri.len();
+        let l0 = self.ref_top;
         let c0 = [l0, l0 + c.n[0]];
         let end = c0[1] + c.n[1];
-        self.tri.resize(end, 0);
-        self.boxes.resize(end, [0.0; 6]);
-        self.new_idx.clear();
-        self.new_idx.resize(n, 0);
+        grow(&mut self.tri, end);
+        grow(&mut self.boxes, end);
+        self.ref_top = end;
+        // Written for every one-sided reference before it is read; the
+        // partition also reads the (stale) entries of straddlers, for
+        // events it drops.
+        grow(&mut self.new_idx, n);
         self.copies.clear();
         let mut at = c0;
         let mut straddler = 0;
@@ -251,7 +266,7 @@ impl<'a> Finisher<'a> {
                 }
             }
             let stack = &mut self.ev[axis];
-            let base = stack.len();
+            let base = self.ev_top[axis];
             let nl = c.inherited[0][axis] + c.new[0][axis];
             let nr = c.inherited[1][axis] + c.new[1][axis];
             ce0[0][axis] = base;
@@ -262,7 +277,8 @@ impl<'a> Finisher<'a> {
             // which are dropped: the partition writes every event somewhere
             // and only advances the cursor of a side that keeps it, so it
             // has no data-dependent branch.
-            stack.resize(base + nl + nr + 1, 0);
+            grow(stack, base + nl + nr + 1);
+            self.ev_top[axis] = base + nl + nr;
             let (src, dst) = stack.split_at_mut(base);
             let mut at = [0, nl, nl + nr];
             for &e in &src[e0[axis]..e0[axis] + ne[axis]] {
@@ -273,7 +289,6 @@ impl<'a> Finisher<'a> {
             }
             debug_assert_eq!(at[0], c.inherited[0][axis]);
             debug_assert_eq!(at[1], nl + c.inherited[1][axis]);
-            stack.truncate(base + nl + nr);
             // Each side's sorted new events merge in from the back: only the
             // inherited events above the smallest new one move.
             for (side, start) in [(0, base), (1, base + nl)] {
@@ -296,11 +311,8 @@ impl<'a> Finisher<'a> {
             *right = next;
         }
         self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1, wr);
-        self.tri.truncate(l0);
-        self.boxes.truncate(l0);
-        for (stack, &base) in self.ev.iter_mut().zip(&ce0[0]) {
-            stack.truncate(base);
-        }
+        self.ref_top = l0;
+        self.ev_top = ce0[0];
     }
 
     /// Fills `place` and `clipped` for the node's references; returns the
@@ -325,5 +337,14 @@ impl<'a> Finisher<'a> {
             self.place.push(code);
         }
         c
+    }
+}
+
+/// Makes `v` at least `len` long (new entries are zero; existing ones are
+/// kept, stale or not).
+#[inline]
+fn grow<T: Copy + Default>(v: &mut Vec<T>, len: usize) {
+    if v.len() < len {
+        v.resize(len.max(v.len() * 2), T::default());
     }
 }

@@ -1338,17 +1338,20 @@ fn radix_sort_by_position_and_kind(a: &mut [u64], b: &mut [u64]) -> bool {
 /// `seg` holds sorted events followed by `new.len()` free slots; merges the
 /// sorted `new` in, from the back, so no element is overwritten before it
 /// is read.
+///
+/// Branch-free: each step writes the larger of the two candidates and
+/// advances the cursor it came from, so the outcome of the comparison,
+/// which is a coin flip, is never a jump.
 fn merge_back(seg: &mut [u64], new: &[u64]) {
     let (mut i, mut j) = (seg.len() - new.len(), new.len());
     let mut w = seg.len();
     while j > 0 {
-        if i > 0 && seg[i - 1] > new[j - 1] {
-            seg[w - 1] = seg[i - 1];
-            i -= 1;
-        } else {
-            seg[w - 1] = new[j - 1];
-            j -= 1;
-        }
+        let a = seg[i.saturating_sub(1)];
+        let b = new[j - 1];
+        let take_a = i > 0 && a > b;
+        seg[w - 1] = if take_a { a } else { b };
+        i -= usize::from(take_a);
+        j -= usize::from(!take_a);
         w -= 1;
     }
 }
