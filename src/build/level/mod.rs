@@ -22,7 +22,12 @@
 //!    on the same flat encoding, without an allocation per node), in
 //!    parallel across nodes (the paper's "small node stage", §4.3, which
 //!    there uses a different algorithm; here it is the same SAH, so the
-//!    tree is unchanged).
+//!    tree is unchanged). This runs alongside steps 2–5 (`rayon::join`):
+//!    both only read level `d`, and work stealing lets each fill the
+//!    other's idle time (the passes have sequential stretches, and a
+//!    level's last small subtrees would otherwise finish on one core).
+//!    The phase times of the report are each phase's own wall time, so
+//!    with more than one thread they overlap.
 //! 2. **SAH**: every axis's events are cut into pieces (`pieces`) and
 //!    swept in parallel; a piece that continues a node starts from counts
 //!    carried over the node's earlier pieces (a segmented prefix count).
@@ -61,7 +66,10 @@
 //! count as much as per-event work. Profile (perf, 1 thread): sweeps about
 //! 25%, clipping ([`clip_straddler`], in `f64`, one parent clip and one
 //! split pass per straddler since `clip_split`) about 18%, partitions and
-//! merges about 25%. The threshold was tuned there (256 to 131072
+//! merges about 25%. Session 3 made the clip branch-free (bit-identical,
+//! [`crate::geom::clip_split`]), kept the finisher's stacks allocated
+//! (no zero-fill per node), merged new events without branches, and
+//! overlapped small nodes with the passes (step 1). The threshold was tuned there (256 to 131072
 //! references); 2048 was fastest on 2 threads, with 1024 to 32768 within
 //! the noise. Tried and dropped: pricing blocks of 8 events with one
 //! bound (callgrind: 0.5% more instructions; the per-plane bound already
@@ -359,6 +367,65 @@ struct Builder<'a> {
     report: LevelReport,
 }
 
+/// What finishing small nodes needs of the builder (copied out, so that it
+/// runs alongside the passes that change the builder).
+struct Finish<'a> {
+    scene: &'a TriangleColumns,
+    params: sah::SahParams,
+    depth_limit: u32,
+    progress: Option<&'a Progress>,
+    chunk_words: usize,
+    mode: NewEvents,
+}
+
+impl Finish<'_> {
+    /// Finishes the small nodes depth-first, in parallel across nodes.
+    /// Their subtrees are packed into runs, in the level's node order:
+    /// each fold of rayon's covers a run of consecutive nodes, returned
+    /// with the index in `small` of its first node.
+    fn runs(
+        &self,
+        l: &Level<'_>,
+        small: &[usize],
+        depth: u32,
+    ) -> Vec<(usize, Result<SubStream, ColumnsError>)> {
+        small
+            .par_iter()
+            .enumerate()
+            .fold(
+                || {
+                    (
+                        usize::MAX,
+                        Finisher::new(self.scene, &self.params, self.depth_limit, self.progress)
+                            .with_new_events(self.mode),
+                        Ok(SubStream::new(self.chunk_words)),
+                    )
+                },
+                |(first, mut fin, out), (k, &j)| {
+                    let out = out.and_then(|mut out| {
+                        let nd = &l.nodes[j];
+                        let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
+                        let (nodes, leaf_tris) = fin.build(
+                            &l.tri[nd.refs..nd.refs + nd.n],
+                            &l.bounds[nd.refs..nd.refs + nd.n],
+                            ev,
+                            nd.refs as u32,
+                            nd.cell,
+                            depth,
+                            nd.weight,
+                        );
+                        out.push(nd.rec, nodes, leaf_tris)?;
+                        Ok(out)
+                    });
+                    (first.min(k), fin, out)
+                },
+            )
+            .map(|(first, _, out)| (first, out))
+            .filter(|(first, _)| *first != usize::MAX)
+            .collect()
+    }
+}
+
 /// Builds subtrees of single nodes depth-first, with the finisher the
 /// level builder uses for its small nodes (`dfs`, no heap allocation per
 /// node): the subtree is the one [`super::sweep::build_subtree`] builds for
@@ -612,7 +679,7 @@ impl<'a> Builder<'a> {
     /// Processes level `depth`; returns the next one, or `None` when no
     /// node is left open.
     fn level(&mut self, l: Level<'a>, depth: u32) -> Result<Option<Level<'a>>, ColumnsError> {
-        let mut clock = Instant::now();
+        let clock = Instant::now();
         let threshold = self.options.small_threshold;
         let (small, big): (Vec<usize>, Vec<usize>) =
             (0..l.nodes.len()).partition(|&j| l.nodes[j].n < threshold);
@@ -627,18 +694,49 @@ impl<'a> Builder<'a> {
             self.report.levels += 1;
         }
 
-        // 1. Small nodes, depth-first.
-        if !small.is_empty() {
-            self.finish_small(&l, &small, depth)?;
-            self.report.phases.small_s += lap(&mut clock);
-            self.sample_rss();
-        }
+        // 1. Small nodes, depth-first, while the big ones go through the
+        // passes below: the two are independent (both only read the
+        // level), and rayon's work stealing lets each fill the other's
+        // idle time (the passes have sequential stretches, and the last
+        // small subtrees of a level would otherwise finish on one core).
+        let finish = Finish {
+            scene: self.scene,
+            params: self.config.sah,
+            depth_limit: self.depth_limit,
+            progress: self.progress,
+            chunk_words: self.subs.chunk_words(),
+            mode: self.options.new_events,
+        };
+        let (runs, next) = rayon::join(
+            || {
+                let start = Instant::now();
+                let runs = finish.runs(&l, &small, depth);
+                (runs, start.elapsed().as_secs_f64())
+            },
+            || self.split_big(&l, &big, depth, clock),
+        );
+        let (runs, small_s) = runs;
+        self.store_runs(&l, &small, depth, runs)?;
+        self.report.phases.small_s += small_s;
+        self.sample_rss();
+        next
+    }
+
+    /// The passes over the big nodes of a level (steps 2 to 5 of the module
+    /// docs); returns the next level.
+    fn split_big(
+        &mut self,
+        l: &Level<'a>,
+        big: &[usize],
+        depth: u32,
+        mut clock: Instant,
+    ) -> Result<Option<Level<'a>>, ColumnsError> {
         if big.is_empty() {
             return Ok(None);
         }
 
         // 2. SAH.
-        let best = self.best_splits(&l, &big);
+        let best = self.best_splits(l, big);
         self.report.phases.sah_s += lap(&mut clock);
 
         // 3. Leaves out; splits kept.
@@ -776,7 +874,6 @@ impl<'a> Builder<'a> {
         );
         self.report.phases.events_s += lap(&mut clock);
         self.sample_rss();
-        drop(l);
         Ok(Some(Level {
             depth: depth + 1,
             nodes: next_nodes,
@@ -786,53 +883,15 @@ impl<'a> Builder<'a> {
         }))
     }
 
-    /// Finishes the small nodes depth-first, in parallel across nodes.
-    /// Their subtrees go packed into the level's stream of `subs`, in the
-    /// level's node order: each fold of rayon's covers a run of
-    /// consecutive nodes, and the runs are appended in order.
-    fn finish_small(
+    /// Files the subtrees of a level's small nodes ([`Finish::runs`]) into
+    /// the level's stream of `subs`.
+    fn store_runs(
         &mut self,
         l: &Level<'a>,
         small: &[usize],
         depth: u32,
+        runs: Vec<(usize, Result<SubStream, ColumnsError>)>,
     ) -> Result<(), ColumnsError> {
-        let (scene, params, progress) = (self.scene, &self.config.sah, self.progress);
-        let depth_limit = self.depth_limit;
-        let chunk_words = self.subs.chunk_words();
-        let mode = self.options.new_events;
-        let runs: Vec<(usize, Result<SubStream, ColumnsError>)> = small
-            .par_iter()
-            .enumerate()
-            .fold(
-                || {
-                    (
-                        usize::MAX,
-                        Finisher::new(scene, params, depth_limit, progress).with_new_events(mode),
-                        Ok(SubStream::new(chunk_words)),
-                    )
-                },
-                |(first, mut fin, out), (k, &j)| {
-                    let out = out.and_then(|mut out| {
-                        let nd = &l.nodes[j];
-                        let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
-                        let (nodes, leaf_tris) = fin.build(
-                            &l.tri[nd.refs..nd.refs + nd.n],
-                            &l.bounds[nd.refs..nd.refs + nd.n],
-                            ev,
-                            nd.refs as u32,
-                            nd.cell,
-                            depth,
-                            nd.weight,
-                        );
-                        out.push(nd.rec, nodes, leaf_tris)?;
-                        Ok(out)
-                    });
-                    (first.min(k), fin, out)
-                },
-            )
-            .map(|(first, _, out)| (first, out))
-            .filter(|(first, _)| *first != usize::MAX)
-            .collect();
         let mut next = 0;
         for (first, run) in runs {
             let run = run?;
