@@ -679,7 +679,6 @@ impl<'a> Builder<'a> {
     /// Processes level `depth`; returns the next one, or `None` when no
     /// node is left open.
     fn level(&mut self, l: Level<'a>, depth: u32) -> Result<Option<Level<'a>>, ColumnsError> {
-        let clock = Instant::now();
         let threshold = self.options.small_threshold;
         let (small, big): (Vec<usize>, Vec<usize>) =
             (0..l.nodes.len()).partition(|&j| l.nodes[j].n < threshold);
@@ -713,7 +712,7 @@ impl<'a> Builder<'a> {
                 let runs = finish.runs(&l, &small, depth);
                 (runs, start.elapsed().as_secs_f64())
             },
-            || self.split_big(&l, &big, depth, clock),
+            || self.split_big(&l, &big, depth),
         );
         let (runs, small_s) = runs;
         self.store_runs(&l, &small, depth, runs)?;
@@ -729,11 +728,11 @@ impl<'a> Builder<'a> {
         l: &Level<'a>,
         big: &[usize],
         depth: u32,
-        mut clock: Instant,
     ) -> Result<Option<Level<'a>>, ColumnsError> {
         if big.is_empty() {
             return Ok(None);
         }
+        let mut clock = Instant::now();
 
         // 2. SAH.
         let best = self.best_splits(l, big);
