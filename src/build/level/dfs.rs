@@ -21,21 +21,12 @@
 //! one after the other, and popped.
 
 use super::event::{Box6, ev_ref, push_events, to_box, with_ref};
-use super::{CLIPPED, NewEvents, SideCounts, TO_LEFT, TO_RIGHT, classify_ref, sweep_events};
+use super::{CLIPPED, NewEvents, SLOT, SideCounts, TO_RIGHT, classify_ref, sweep_events};
 use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TriId};
-
-/// The partition slot of a placement code: 0 left, 1 right, 2 dropped
-/// (a clipped straddler, whose events are made anew).
-const SLOT: [usize; 8] = {
-    let mut t = [2; 8];
-    t[TO_LEFT as usize] = 0;
-    t[TO_RIGHT as usize] = 1;
-    t
-};
 
 /// A worker's scratch for finishing small nodes.
 pub struct Finisher<'a> {
