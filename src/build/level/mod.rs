@@ -787,7 +787,7 @@ impl<'a> Builder<'a> {
             .collect();
         let rpieces = pieces(&rsegs, PIECE, |_| true);
         let mut place = self.scratch.column::<u8>("place", l.tri.len())?;
-        let classified = self.classify_pass(&l, &splits, &rsegs, &rpieces, &mut place);
+        let classified = self.classify_pass(l, &splits, &rsegs, &rpieces, &mut place);
         self.report.clipped += classified
             .iter()
             .map(|c| c.clipped.len() as u64)
@@ -849,7 +849,7 @@ impl<'a> Builder<'a> {
         let mut boxes = self.scratch.column::<Box6>("bounds", refs_at)?;
         let mut new_idx = self.scratch.column::<u32>("new-idx", l.tri.len())?;
         let copies = write_children(
-            &l,
+            l,
             &place,
             &rsegs,
             &rpieces,
@@ -870,7 +870,7 @@ impl<'a> Builder<'a> {
             ev.push(self.scratch.column::<u64>("ev", len)?);
         }
         let mut ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
-        partition_events(&l, &splits, &place, &new_idx, &next_nodes, &mut ev);
+        partition_events(l, &splits, &place, &new_idx, &next_nodes, &mut ev);
         drop(place);
         drop(new_idx);
         merge_new_events(
