@@ -1060,7 +1060,8 @@ fn sweep_events(
     mut n_r: usize,
     best: &mut Option<Split>,
 ) {
-    let pricer = Pricer::new(params, cell, sa, axis);
+    let exact = sah::AxisPricer::new(cell, sa, axis);
+    let pricer = Pricer::new(params, &exact, cell, sa, axis);
     let mut best_cost = best.map_or(f64::INFINITY, |b| b.cost);
     let len = events.len();
     let mut i = 0;
@@ -1087,7 +1088,7 @@ fn sweep_events(
                 right: n_r,
                 planar,
             };
-            sah::split_cost(params, cell, sa, axis, pos, counts).keep_best(best);
+            exact.cost(params, pos, counts).keep_best(best);
             best_cost = best.map_or(f64::INFINITY, |b| b.cost);
         }
         n_l += starts + planar;
@@ -1122,8 +1123,14 @@ struct Pricer {
 
 impl Pricer {
     #[inline]
-    fn new(params: &sah::SahParams, cell: &Aabb, sa: f64, axis: usize) -> Pricer {
-        let d = [0, 1, 2].map(|k| f64::from(cell.max[k]) - f64::from(cell.min[k]));
+    fn new(
+        params: &sah::SahParams,
+        exact: &sah::AxisPricer,
+        cell: &Aabb,
+        sa: f64,
+        axis: usize,
+    ) -> Pricer {
+        let d = exact.extents();
         let (u, v) = (d[(axis + 1) % 3], d[(axis + 2) % 3]);
         let inv = 1.0 / sa;
         let valid = params.k_t >= 0.0
