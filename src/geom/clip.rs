@@ -82,23 +82,26 @@ impl Polygon {
 
     /// Clips to the planes of `bx` that `tb` (the polygon's bounds) crosses,
     /// in the order x min, x max, y min, y max, z min, z max. `scratch` is
-    /// working storage; the result is in `self`.
+    /// working storage; the result is in `self` or in `scratch`, whichever
+    /// is returned (no copy back).
     #[inline]
-    fn clip_to_box(&mut self, tb: &Aabb, bx: &Aabb, scratch: &mut Polygon) {
+    fn clip_to_box<'p>(
+        &'p mut self,
+        tb: &Aabb,
+        bx: &Aabb,
+        scratch: &'p mut Polygon,
+    ) -> &'p Polygon {
         let mut src = self;
         let mut dst = scratch;
-        let mut swapped = false;
         macro_rules! plane {
             ($axis:literal) => {
                 if tb.min[$axis] < bx.min[$axis] {
                     src.clip_into::<$axis, true>(f64::from(bx.min[$axis]), dst);
                     std::mem::swap(&mut src, &mut dst);
-                    swapped = !swapped;
                 }
                 if tb.max[$axis] > bx.max[$axis] {
                     src.clip_into::<$axis, false>(f64::from(bx.max[$axis]), dst);
                     std::mem::swap(&mut src, &mut dst);
-                    swapped = !swapped;
                 }
             };
         }
@@ -109,10 +112,7 @@ impl Polygon {
         if src.n > 0 {
             plane!(2);
         }
-        if swapped {
-            // `src` is the scratch polygon and `dst` is `self`.
-            *dst = *src;
-        }
+        src
     }
 }
 
@@ -210,7 +210,7 @@ pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
     }
     let mut poly = Polygon::triangle(tri);
     let mut scratch = Polygon::EMPTY;
-    poly.clip_to_box(&tb, bx, &mut scratch);
+    let poly = poly.clip_to_box(&tb, bx, &mut scratch);
     let mut b = Bounds64::EMPTY;
     for p in &poly.v[..poly.n] {
         b.add(p);
@@ -245,7 +245,7 @@ fn clip_split_axis<const AXIS: usize>(tri: &[Vec3; 3], cell: &Aabb, pos: f32) ->
     }
     let mut poly = Polygon::triangle(tri);
     let mut scratch = Polygon::EMPTY;
-    poly.clip_to_box(&tb, cell, &mut scratch);
+    let poly = poly.clip_to_box(&tb, cell, &mut scratch);
     let (left, right) = cell.split(AXIS, pos);
     let plane = f64::from(pos);
     let mut side = [Bounds64::EMPTY; 2];
