@@ -148,7 +148,8 @@ impl<'a> Finisher<'a> {
         if n > 0 && sa > 0.0 && depth < self.depth_limit {
             for (axis, ev) in self.ev.iter().enumerate() {
                 let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
-                sweep_events(self.params, &cell, sa, axis, ev, 0, n, &mut best);
+                let cap = self.params.leaf_cost(n);
+                sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
             }
         }
         if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {

@@ -982,6 +982,7 @@ impl<'a> Builder<'a> {
                         &l.ev[*axis][p.range(seg)],
                         n_l,
                         n_r,
+                        sah.leaf_cost(nd.n),
                         &mut best,
                     );
                     if let Some(s) = best {
@@ -1046,7 +1047,11 @@ impl<'a> Builder<'a> {
 /// skipped only when a lower bound of its cost ([`Pricer`]) exceeds the
 /// best cost found so far: then its exact cost does too, it would lose the
 /// comparison of [`Split::cmp_order`] on cost alone, and the result is the
-/// same as pricing it. (An optimisation the paper does not have; it halves
+/// same as pricing it. Or when the bound exceeds `cap`, the node's leaf
+/// cost: a split that costs at least that much never matters, since if
+/// the best split does, [`sah::is_leaf`] makes the node a leaf whatever
+/// the split (so `best` may stay `None` where pricing every plane would
+/// have found a split, only for nodes that become leaves either way). (An optimisation the paper does not have; it halves
 /// the sweep on large scenes, where most planes are far from the best.)
 #[allow(clippy::too_many_arguments)]
 #[inline]
@@ -1058,11 +1063,12 @@ fn sweep_events(
     events: &[u64],
     mut n_l: usize,
     mut n_r: usize,
+    cap: f64,
     best: &mut Option<Split>,
 ) {
     let exact = sah::AxisPricer::new(cell, sa, axis);
     let pricer = Pricer::new(params, &exact, cell, sa, axis);
-    let mut best_cost = best.map_or(f64::INFINITY, |b| b.cost);
+    let mut best_cost = best.map_or(f64::INFINITY, |b| b.cost).min(cap);
     let len = events.len();
     let mut i = 0;
     while i < len {
@@ -1089,7 +1095,7 @@ fn sweep_events(
                 planar,
             };
             exact.cost(params, pos, counts).keep_best(best);
-            best_cost = best.map_or(f64::INFINITY, |b| b.cost);
+            best_cost = best.map_or(f64::INFINITY, |b| b.cost).min(cap);
         }
         n_l += starts + planar;
     }
