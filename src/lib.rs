@@ -38,6 +38,7 @@
 pub mod build;
 pub mod columns;
 pub mod format;
+pub mod fsio;
 pub mod geom;
 pub mod render;
 pub mod scene;

@@ -161,3 +161,67 @@ fn verify_rejects_corrupt_and_truncated_files() {
     assert!(!missing.exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `convert` writes a scene cache; building from it gives the same file,
+/// byte for byte, as building from the OBJ; a bad output name, a truncated
+/// cache and a corrupted one are clear errors naming the file.
+#[test]
+fn scene_cache_builds_the_same_tree() {
+    let dir = tmp_dir("kds");
+    let scene = manifest("scenes/bunny_npm.obj");
+    let kds = dir.join("bunny.kds");
+    let kds_s = kds.to_str().unwrap();
+    let out = slimkd(&["convert", &scene, "-o", kds_s]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let from_obj = dir.join("obj.kd");
+    let from_kds = dir.join("kds.kd");
+    let a = json(&slimkd(&[
+        "build",
+        &scene,
+        "-o",
+        from_obj.to_str().unwrap(),
+        "--json",
+    ]));
+    let b = json(&slimkd(&[
+        "build",
+        kds_s,
+        "-o",
+        from_kds.to_str().unwrap(),
+        "--json",
+    ]));
+    assert_eq!(a["triangles"], b["triangles"]);
+    assert_eq!(a["dropped_degenerate"], b["dropped_degenerate"]);
+    assert_eq!(
+        std::fs::read(&from_obj).unwrap(),
+        std::fs::read(&from_kds).unwrap()
+    );
+
+    let wrong = dir.join("bunny.bin");
+    let out = slimkd(&["convert", &scene, "-o", wrong.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains(".kds"));
+    assert!(!wrong.exists());
+
+    let bytes = std::fs::read(&kds).unwrap();
+    let bad = dir.join("bad.kds");
+    for damaged in [bytes[..bytes.len() / 2].to_vec(), {
+        let mut b = bytes.clone();
+        let i = b.len() / 3;
+        b[i] ^= 0x40;
+        b
+    }] {
+        std::fs::write(&bad, &damaged).unwrap();
+        let out = slimkd(&["build", bad.to_str().unwrap()]);
+        assert_eq!(out.status.code(), Some(1));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            err.contains("bad.kds") && err.contains("not a valid scene cache"),
+            "{err}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

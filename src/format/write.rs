@@ -9,7 +9,6 @@ use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The build preset recorded in the header.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -557,16 +556,13 @@ pub fn write_to_vec(
     Ok(out.into_inner())
 }
 
-/// Distinguishes the temporary files of concurrent writes in one process.
-static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
-/// Writes a `.kd` file atomically: a temporary file in the same directory
-/// (a fresh name per call, so concurrent writes to one path never share
-/// it), fsync, rename, then a best-effort fsync of the directory. A failed
-/// or killed write leaves no file at `path` (and never a half-written one
-/// that could pass for valid); a failed write removes its temporary file.
-/// The bytes are those of [`write_to_vec`], streamed to the file rather
-/// than built in memory (see `write_kd`).
+/// Writes a `.kd` file atomically ([`crate::fsio::write_atomically`]: a
+/// temporary file in the same directory, fsync, rename, a best-effort fsync
+/// of the directory). A failed or killed write leaves no file at `path`
+/// (and never a half-written one that could pass for valid); a failed
+/// write removes its temporary file. The bytes are those of
+/// [`write_to_vec`], streamed to the file rather than built in memory (see
+/// `write_kd`).
 pub fn write_file(
     path: &Path,
     tree: &TreeIr,
@@ -579,53 +575,9 @@ pub fn write_file(
         path: path.to_path_buf(),
         source,
     };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .ok_or_else(|| io(std::io::Error::other("not a file name")))?;
-    // A name left behind by a killed writer is skipped, never reused.
-    let mut attempt = 0;
-    let (tmp, f) = loop {
-        let tmp = dir.join(format!(
-            ".{}.tmp.{}.{}",
-            name.to_string_lossy(),
-            std::process::id(),
-            TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-        ));
-        match std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create_new(true)
-            .open(&tmp)
-        {
-            Ok(f) => break (tmp, f),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && attempt < 100 => {
-                attempt += 1;
-            }
-            Err(e) => return Err(io(e)),
-        }
-    };
-    let result = (|| {
-        // `write_kd` writes in pieces of about a MiB, except for the
-        // header and the padding.
-        let mut f = f;
-        write_kd(&mut f, tree, scene, options, &io, WINDOW)?;
-        f.sync_all().map_err(io)?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(io)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e);
-    }
-    // Make the rename durable; not every platform can open a directory.
-    if let Ok(d) = std::fs::File::open(&dir) {
-        let _ = d.sync_all();
-    }
-    Ok(())
+    // `write_kd` writes in pieces of about a MiB, except for the header and
+    // the padding.
+    crate::fsio::write_atomically(path, io, |f| write_kd(f, tree, scene, options, &io, WINDOW))
 }
 
 #[cfg(test)]

@@ -87,38 +87,30 @@ fn check_frame(path: &Path, frame: &Frame) -> Result<usize, ImageError> {
     Ok(pixels)
 }
 
-/// Runs `f` on a temporary file next to `path`, then syncs it and renames it onto `path`.
-/// On any error the temporary file is removed and the target is left untouched.
+/// Runs `f` on a temporary file next to `path`, then syncs it and renames it onto `path`
+/// ([`crate::fsio::write_atomically`]). On any error the temporary file is removed and the
+/// target is left untouched.
 fn write_atomically(
     path: &Path,
-    f: impl FnOnce(&mut BufWriter<File>) -> Result<(), ImageError>,
+    f: impl FnOnce(&mut BufWriter<&mut File>) -> Result<(), ImageError>,
 ) -> Result<(), ImageError> {
-    let file_name = path
-        .file_name()
-        .ok_or_else(|| ImageError::UnknownExtension {
+    if path.file_name().is_none() {
+        return Err(ImageError::UnknownExtension {
             path: path.to_path_buf(),
-        })?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(file_name);
-    tmp_name.push(format!(".tmp.{}", std::process::id()));
-    let tmp_path = path.with_file_name(tmp_name);
-
-    let file = File::create(&tmp_path).map_err(|e| io_err(path, e))?;
-    let result = (|| {
-        let mut writer = BufWriter::new(file);
-        f(&mut writer)?;
-        let file = writer
-            .into_inner()
-            .map_err(|e| io_err(path, e.into_error()))?;
-        file.sync_all().map_err(|e| io_err(path, e))?;
-        drop(file);
-        std::fs::rename(&tmp_path, path).map_err(|e| io_err(path, e))
-    })();
-    if result.is_err() {
-        // The original error is more useful than a failure to clean up, so this one is ignored.
-        let _ = std::fs::remove_file(&tmp_path);
+        });
     }
-    result
+    crate::fsio::write_atomically(
+        path,
+        |e| io_err(path, e),
+        |file| {
+            let mut writer = BufWriter::new(file);
+            f(&mut writer)?;
+            writer
+                .into_inner()
+                .map_err(|e| io_err(path, e.into_error()))?;
+            Ok(())
+        },
+    )
 }
 
 /// Converts one linear value to an 8-bit sRGB code value.

@@ -1,6 +1,8 @@
 //! Scenes: loading triangle meshes into structure-of-arrays columns.
 //!
-//! Consumes Wavefront OBJ files (through `tobj`). Produces
+//! Consumes Wavefront OBJ files (through `tobj`), or the binary scene cache
+//! (`.kds`, `cache`) that `slimkd convert` makes of one so that a huge
+//! scene is parsed once ([`load`] picks by the file name). Produces
 //! [`TriangleColumns`]: one column of vertex positions and one column of
 //! vertex-index triples, in file order.
 //!
@@ -41,8 +43,10 @@
 //! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
 //! as `tobj` returns them (no welding).
 
+mod cache;
 mod obj;
 
+pub use cache::{is_scene_cache, load_scene_cache, write_scene_cache};
 pub use obj::{embedded_name, load_obj, load_obj_bytes};
 
 use crate::geom::{Aabb, double_area};
@@ -237,6 +241,16 @@ impl fmt::Display for SceneError {
             }
             SceneError::Invalid { path, message } => write!(f, "{}: {message}", path.display()),
         }
+    }
+}
+
+/// Loads a scene file: a scene cache when its name ends in `.kds`
+/// ([`load_scene_cache`]), else an OBJ file ([`load_obj`]).
+pub fn load(path: &std::path::Path) -> Result<(TriangleColumns, LoadSummary), SceneError> {
+    if is_scene_cache(path) {
+        load_scene_cache(path)
+    } else {
+        load_obj(path)
     }
 }
 
