@@ -171,11 +171,6 @@ impl AxisPricer {
     /// The cost of the plane at `pos` (see [`split_cost`]).
     #[inline]
     pub fn cost(&self, params: &SahParams, pos: f32, counts: PlaneCounts) -> Split {
-        let PlaneCounts {
-            left: n_l,
-            right: n_r,
-            planar: n_p,
-        } = counts;
         let x = f64::from(pos);
         let (mut dl, mut dr) = (self.d, self.d);
         dl[self.axis] = x - self.lo;
@@ -183,27 +178,47 @@ impl AxisPricer {
         let p_l = Self::area(dl) / self.sa;
         let p_r = Self::area(dr) / self.sa;
         let on_face = pos == self.lo32 || pos == self.hi32;
-        let cost = |nl: usize, nr: usize| {
-            let lambda = if (nl == 0 || nr == 0) && !on_face {
-                params.lambda_empty
-            } else {
-                1.0
-            };
-            params.k_t + params.k_i * lambda * (p_l * nl as f64 + p_r * nr as f64)
-        };
-        let c_left = cost(n_l + n_p, n_r);
-        let c_right = cost(n_l, n_r + n_p);
-        let (cost, planar) = if c_left <= c_right {
-            (c_left, Side::Left)
+        priced(params, self.axis, pos, [p_l, p_r], on_face, counts)
+    }
+}
+
+/// The split at `axis = pos` with the children's surface-area ratios
+/// `p = [P_L, P_R]`: `λ`, the cost of each planar assignment and the
+/// cheaper one.
+#[inline(always)]
+fn priced(
+    params: &SahParams,
+    axis: usize,
+    pos: f32,
+    p: [f64; 2],
+    on_face: bool,
+    counts: PlaneCounts,
+) -> Split {
+    let PlaneCounts {
+        left: n_l,
+        right: n_r,
+        planar: n_p,
+    } = counts;
+    let cost = |nl: usize, nr: usize| {
+        let lambda = if (nl == 0 || nr == 0) && !on_face {
+            params.lambda_empty
         } else {
-            (c_right, Side::Right)
+            1.0
         };
-        Split {
-            cost,
-            axis: self.axis as u8,
-            pos,
-            planar,
-        }
+        params.k_t + params.k_i * lambda * (p[0] * nl as f64 + p[1] * nr as f64)
+    };
+    let c_left = cost(n_l + n_p, n_r);
+    let c_right = cost(n_l, n_r + n_p);
+    let (cost, planar) = if c_left <= c_right {
+        (c_left, Side::Left)
+    } else {
+        (c_right, Side::Right)
+    };
+    Split {
+        cost,
+        axis: axis as u8,
+        pos,
+        planar,
     }
 }
 
@@ -342,28 +357,12 @@ mod tests {
                 (next() % 3) as usize,
             );
             let (l, r) = cell.split(axis, pos);
-            let (p_l, p_r) = (l.surface_area() / sa, r.surface_area() / sa);
+            let p = [l.surface_area() / sa, r.surface_area() / sa];
             let on_face = pos == cell.min[axis] || pos == cell.max[axis];
-            let cost = |nl: usize, nr: usize| {
-                let lambda = if (nl == 0 || nr == 0) && !on_face {
-                    params.lambda_empty
-                } else {
-                    1.0
-                };
-                params.k_t + params.k_i * lambda * (p_l * nl as f64 + p_r * nr as f64)
-            };
-            let (c_l, c_r) = (
-                cost(counts.left + counts.planar, counts.right),
-                cost(counts.left, counts.right + counts.planar),
-            );
-            let want = if c_l <= c_r {
-                (c_l, Side::Left)
-            } else {
-                (c_r, Side::Right)
-            };
+            let want = priced(&params, axis, pos, p, on_face, counts);
             let got = AxisPricer::new(&cell, sa, axis).cost(&params, pos, counts);
-            assert_eq!(got.cost.to_bits(), want.0.to_bits());
-            assert_eq!(got.planar, want.1);
+            assert_eq!(got.cost.to_bits(), want.cost.to_bits());
+            assert_eq!(got.planar, want.planar);
         }
     }
 }
