@@ -59,21 +59,40 @@
 //! breadth-first records, leaf lists and depth-first subtrees.
 //!
 //! **Where the time goes** (stk_black_forest, 1.09 M triangles, 1 thread):
-//! about 80% in the depth-first finishing of small nodes, which is the
+//! about 75% in the depth-first finishing of small nodes, which is the
 //! bulk of the work because black_forest's references grow to 7.8 per
 //! triangle at the leaves. The finisher visits 4.3 M nodes averaging 11.5
 //! references (1.6 M of them with fewer than 4), so per-node constants
-//! count as much as per-event work. Profile (perf, 1 thread): sweeps about
-//! 25%, clipping ([`clip_straddler`], in `f64`, one parent clip and one
-//! split pass per straddler since `clip_split`) about 18%, partitions and
-//! merges about 25%. Session 3 made the clip branch-free (bit-identical,
-//! [`crate::geom::clip_split`]), kept the finisher's stacks allocated
-//! (no zero-fill per node), merged new events without branches, and
-//! overlapped small nodes with the passes (step 1). The threshold was tuned there (256 to 131072
-//! references); 2048 was fastest on 2 threads, with 1024 to 32768 within
-//! the noise. Tried and dropped: pricing blocks of 8 events with one
-//! bound (callgrind: 0.5% more instructions; the per-plane bound already
-//! prunes cheaply).
+//! count as much as per-event work; 32% of the events it sweeps lie on a
+//! face of their node's cell. Profile (perf, 1 thread, session 3): sweeps
+//! and pricing about 23%, the finisher's partitions and merges about 22%,
+//! clipping ([`clip_straddler`]: one parent clip and one split pass per
+//! straddler, in `f64`) about 13%. The threshold was tuned there (256 to
+//! 131072 references); 2048 was fastest on 2 threads, with 1024 to 32768
+//! within the noise (re-checked in session 3 with the overlap of step 1:
+//! 2048, 8192 and 32768 are within the noise).
+//!
+//! Session 3, every change keeping the tree bit for bit (callgrind,
+//! stk_ravenbridge_mansion, 1 thread, whole level build: 16.86 G
+//! instructions, 2.61 G branches, 136 M mispredicted (its model) before;
+//! 16.22 G, 2.25 G and 96 M after):
+//! - the clip without data-dependent branches
+//!   ([`crate::geom::clip_split`]; its mispredictions halved);
+//! - the finisher's stacks stay allocated (no zero-fill per node), new
+//!   events merge without branches, partitions count sides by slot;
+//! - planes whose cost bound reaches the node's leaf cost are not priced
+//!   (62% fewer exact pricings), and pricing converts the cell once per
+//!   sweep ([`sah::AxisPricer`]);
+//! - small nodes overlap the big-node passes (step 1).
+//!
+//! Tried and dropped (measured slower): pricing blocks of 8 events with
+//! one bound (callgrind: 0.5% more instructions; the per-plane bound
+//! already prunes cheaply); a blocked sweep that writes every plane's
+//! counts, then bounds all planes without branches, then prices (36% more
+//! instructions in the sweep, which outweighed the 45% fewer
+//! mispredictions). Estimated and not built: dropping the events that lie
+//! on a cell face from the finisher's lists (the per-reference bookkeeping
+//! to count them costs about what it saves).
 //!
 //! **Memory.** The level columns obey `mem_budget`. The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled, and so
