@@ -11,7 +11,7 @@
 //!    Wu, Zhao & Liu (2011) over [`columns`] that may live in scratch
 //!    files; all three produce the same tree.
 //! 3. [`slim::slim`] hoists duplicated triangles into inner nodes (Choi,
-//!    Chang & Ihm 2013); [`format`] writes the tree and its geometry as a
+//!    Chang & Ihm 2013); [`format`](mod@format) writes the tree and its geometry as a
 //!    `.kd` file that [`format::KdFile`] maps and validates.
 //! 4. [`trace`] finds closest hits: scalar front-to-back traversal, 4×4
 //!    SIMD packets, or brute force for reference.

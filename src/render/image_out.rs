@@ -13,7 +13,7 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-/// A rendered frame: row-major, y = 0 is the TOP row. `rgb` are linear colours in [0,1] (may exceed),
+/// A rendered frame: row-major, y = 0 is the TOP row. `rgb` are linear colours in \[0,1\] (may exceed),
 /// `depth` is the hit distance per pixel, f32::INFINITY for a miss.
 pub struct Frame {
     pub width: u32,
@@ -125,7 +125,7 @@ fn linear_to_srgb8(v: f32) -> u8 {
     (s * 255.0).round() as u8
 }
 
-/// Writes 8-bit sRGB PNG (RGB, apply the sRGB transfer function to linear values, clamp to [0,1], round).
+/// Writes 8-bit sRGB PNG (RGB, apply the sRGB transfer function to linear values, clamp to \[0,1\], round).
 pub fn write_png(path: &Path, frame: &Frame) -> Result<(), ImageError> {
     check_frame(path, frame)?;
     let data: Vec<u8> = frame

@@ -161,13 +161,13 @@ pub struct LevelOptions {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum NewEvents {
     /// Sort the new events, then merge them in from the back of the
-    /// child's segment, one comparison per moved event ([`merge_back`]).
+    /// child's segment, one comparison per moved event (`merge_back`).
     #[default]
     SortMerge,
     /// The bucket sort of Wu et al.: the child's inherited events are the
     /// buckets. The new events are sorted; each one's bucket is found by a
     /// binary search among the inherited events, and the inherited events
-    /// between two buckets move up as one block ([`bucket_merge`]).
+    /// between two buckets move up as one block (`bucket_merge`).
     Bucket,
 }
 
