@@ -602,6 +602,11 @@ fn classify_ref(
     }
 }
 
+/// `new_idx` of a clipped straddler, whose events are not inherited. A
+/// one-sided reference's entry is its index in the next level (below
+/// [`MAX_REFS`], so bit 31 is free) with bit 31 set when it goes right.
+const DROPPED: u32 = u32::MAX;
+
 /// The partition slot of a placement code: 0 left, 1 right, 2 dropped (a
 /// clipped straddler, whose events are made anew).
 const SLOT: [usize; 8] = {
@@ -1208,8 +1213,9 @@ impl Pricer {
 }
 
 /// Writes the child references (kept boxes and clipped boxes) into the
-/// next level's columns and each one-sided reference's new index into
-/// `new_idx`. Returns the clipped copies as `(child node << 32) | new
+/// next level's columns, and into `new_idx` each one-sided reference's new
+/// index and side and each straddler's [`DROPPED`] (so that the event
+/// partition needs one lookup per event). Returns the clipped copies as `(child node << 32) | new
 /// reference`, whose events are not inherited.
 #[allow(clippy::too_many_arguments)]
 fn write_children(
@@ -1256,9 +1262,11 @@ fn write_children(
                         unsafe {
                             tri.write(d, l.tri[i]);
                             boxes.write(d, l.bounds[i]);
-                            new_idx.write(i, d as u32);
+                            new_idx.write(i, d as u32 | (side as u32) << 31);
                         }
                     } else {
+                        // SAFETY: as above.
+                        unsafe { new_idx.write(i, DROPPED) };
                         let &(ci, lb, rb) = clipped.next().expect("one entry per straddler");
                         debug_assert_eq!(ci as usize, i);
                         for (side, cb) in [lb, rb].into_iter().enumerate() {
@@ -1345,15 +1353,16 @@ fn partition_events(
                 next[2 * si + 1].ev[axis] + carry.0[1],
             ];
             for &e in &src[p.range(seg)] {
-                let r = ev_ref(e) as usize;
-                let code = place[r];
-                if code & CLIPPED == 0 {
-                    let side = usize::from(code == TO_RIGHT);
+                // One lookup per event: `new_idx` carries the side too
+                // (`write_children`).
+                let dest = new_idx[ev_ref(e) as usize];
+                if dest != DROPPED {
+                    let side = (dest >> 31) as usize;
                     // SAFETY: `at[side]` is the event's rank among the
                     // node's events going to `side` (carried over the
                     // node's earlier pieces), offset by the child's
                     // segment start: distinct for every event.
-                    unsafe { dst.write(at[side], with_ref(e, new_idx[r])) };
+                    unsafe { dst.write(at[side], with_ref(e, dest & !(1 << 31))) };
                     at[side] += 1;
                 }
             }
