@@ -54,7 +54,6 @@ pub fn write_scene_cache(
         path: path.to_path_buf(),
         source,
     };
-    let positions: Vec<[f32; 3]> = scene.positions.iter().map(|p| p.to_array()).collect();
     let mut header = Vec::with_capacity(HEADER);
     header.extend_from_slice(&MAGIC);
     header.extend_from_slice(&VERSION.to_le_bytes());
@@ -75,25 +74,29 @@ pub fn write_scene_cache(
             w.write_all(bytes)
         };
         put(&header).map_err(io)?;
-        for chunk in positions.chunks(1 << 16) {
-            put(&le_bytes(chunk)).map_err(io)?;
+        let mut buf = Vec::with_capacity(12 << 16);
+        for chunk in scene.positions.chunks(1 << 16) {
+            le_words(
+                chunk.iter().flat_map(|p| p.to_array().map(f32::to_bits)),
+                &mut buf,
+            );
+            put(&buf).map_err(io)?;
         }
         for chunk in scene.indices.chunks(1 << 16) {
-            put(&le_bytes(chunk)).map_err(io)?;
+            le_words(chunk.iter().flatten().copied(), &mut buf);
+            put(&buf).map_err(io)?;
         }
         w.write_all(&crc.finalize().to_le_bytes()).map_err(io)?;
         w.flush().map_err(io)
     })
 }
 
-/// The little-endian bytes of a run of 4-byte triples.
-fn le_bytes<T: bytemuck::Pod>(items: &[[T; 3]]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(items.len() * 12);
-    for word in bytemuck::cast_slice::<[T; 3], [u8; 4]>(items) {
-        let v = u32::from_ne_bytes(*word);
-        out.extend_from_slice(&v.to_le_bytes());
+/// Replaces `out` with the little-endian bytes of `words`.
+fn le_words(words: impl Iterator<Item = u32>, out: &mut Vec<u8>) {
+    out.clear();
+    for w in words {
+        out.extend_from_slice(&w.to_le_bytes());
     }
-    out
 }
 
 /// Reads a scene cache.
@@ -191,6 +194,13 @@ pub fn is_scene_cache(path: &Path) -> bool {
 mod tests {
     use super::*;
 
+    /// A fresh directory for one test.
+    fn tmp(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("slimkd-kds-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
     fn scene() -> (TriangleColumns, LoadSummary) {
         let text = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 2 2 2\nf 1 2 3\nf 1 2 4\nf 1 1 5\n";
         super::super::load_obj_bytes(Path::new("t.obj"), text).unwrap()
@@ -198,8 +208,7 @@ mod tests {
 
     #[test]
     fn round_trip_is_exact() {
-        let dir = std::env::temp_dir().join(format!("slimkd-kds-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = tmp("rt");
         let path = dir.join("a.kds");
         let (s, m) = scene();
         assert_eq!(m.dropped_degenerate, 1);
@@ -212,8 +221,7 @@ mod tests {
 
     #[test]
     fn every_truncation_and_bit_flip_is_an_error() {
-        let dir = std::env::temp_dir().join(format!("slimkd-kds-bad-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = tmp("bad");
         let good = dir.join("good.kds");
         let (s, m) = scene();
         write_scene_cache(&good, &s, &m).unwrap();
@@ -239,8 +247,7 @@ mod tests {
 
     #[test]
     fn a_valid_checksum_does_not_admit_bad_geometry() {
-        let dir = std::env::temp_dir().join(format!("slimkd-kds-geo-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = tmp("geo");
         let path = dir.join("nan.kds");
         let (mut s, m) = scene();
         // Written through the writer, so the checksum is right.

@@ -146,9 +146,9 @@ impl<'a> Finisher<'a> {
         // At the depth limit the node is a leaf whatever its best split
         // ([`sah::is_leaf`]), so the sweep is skipped.
         if n > 0 && sa > 0.0 && depth < self.depth_limit {
+            let cap = self.params.leaf_cost(n);
             for (axis, ev) in self.ev.iter().enumerate() {
                 let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
-                let cap = self.params.leaf_cost(n);
                 sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
             }
         }
