@@ -305,6 +305,10 @@ fn main() {
             Ok("merge") | Err(_) => NewEvents::SortMerge,
             Ok(v) => panic!("SLIMKD_NEW_EVENTS: {v:?} is not bucket or merge"),
         },
+        tiny_threshold: std::env::var("SLIMKD_TINY")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(level::DEFAULT_TINY_THRESHOLD),
         ..LevelOptions::default()
     };
     if mem_budget != u64::MAX {

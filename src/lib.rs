@@ -42,6 +42,7 @@ pub mod fsio;
 pub mod geom;
 pub mod render;
 pub mod scene;
+pub mod simd;
 pub mod slim;
 pub mod stats;
 pub mod trace;

@@ -2,7 +2,7 @@
 //! tree as the sweep and naive builders: on random grid-snapped scenes, on
 //! the degenerate shapes, with every small-node threshold (0 and 1 keep
 //! everything breadth-first, `usize::MAX` hands everything to the sweep
-//! builder), with the memory budget forced to 0 so that every level column
+//! builder) and tiny-node thresholds (the finisher's event-free sweep), with the memory budget forced to 0 so that every level column
 //! is a mapped scratch file, and with 1 and 2 threads. Scratch failures are
 //! clear errors that leave nothing behind.
 
@@ -69,6 +69,10 @@ fn check_with(scene: &TriangleColumns, config: &BuildConfig, options: &LevelOpti
 /// mix (2, 5, 16) and the depth-first path alone.
 const THRESHOLDS: [usize; 6] = [0, 1, 2, 5, 16, usize::MAX];
 
+/// Tiny-node thresholds of the depth-first finisher: events everywhere
+/// (0), a mix, and the event-free sweep for every node it can take (64).
+const TINY: [usize; 4] = [0, 3, 16, 64];
+
 proptest! {
     #![proptest_config(cases(256))]
 
@@ -78,12 +82,17 @@ proptest! {
         t in 0..THRESHOLDS.len(),
         tiny_budget in any::<bool>(),
         bucket in any::<bool>(),
+        tiny in 0..TINY.len(),
     ) {
         let scene = columns(&tris);
         let dir = scratch_dir("prop");
         let budget = if tiny_budget { 0 } else { u64::MAX };
         let new_events = if bucket { NewEvents::Bucket } else { NewEvents::SortMerge };
-        let options = LevelOptions { new_events, ..opts(THRESHOLDS[t], budget, &dir) };
+        let options = LevelOptions {
+            new_events,
+            tiny_threshold: TINY[tiny],
+            ..opts(THRESHOLDS[t], budget, &dir)
+        };
         check_with(&scene, &BuildConfig::default(), &options);
         std::fs::remove_dir_all(dir).unwrap();
     }
@@ -95,13 +104,18 @@ proptest! {
         k_t in 1.0f64..40.0,
         k_i in 1.0f64..40.0,
         t in 0..THRESHOLDS.len(),
+        tiny in 0..TINY.len(),
     ) {
         let scene = columns(&tris);
         let config = BuildConfig {
             sah: SahParams { max_depth: Some(depth), k_t, k_i, ..SahParams::default() },
         };
         let dir = scratch_dir("prop-depth");
-        check_with(&scene, &config, &opts(THRESHOLDS[t], u64::MAX, &dir));
+        let options = LevelOptions {
+            tiny_threshold: TINY[tiny],
+            ..opts(THRESHOLDS[t], u64::MAX, &dir)
+        };
+        check_with(&scene, &config, &options);
         std::fs::remove_dir_all(dir).unwrap();
     }
 
@@ -136,10 +150,12 @@ proptest! {
     fn level_equals_sweep_on_float_scenes(
         tris in prop::collection::vec(float_triangle(), 1..80),
         t in 0..THRESHOLDS.len(),
+        tiny in 0..TINY.len(),
     ) {
         let scene = columns(&tris);
         let dir = scratch_dir("float");
-        check_with(&scene, &BuildConfig::default(), &opts(THRESHOLDS[t], 0, &dir));
+        let options = LevelOptions { tiny_threshold: TINY[tiny], ..opts(THRESHOLDS[t], 0, &dir) };
+        check_with(&scene, &BuildConfig::default(), &options);
         std::fs::remove_dir_all(dir).unwrap();
     }
 }
@@ -223,11 +239,18 @@ fn degenerate_scenes_build_the_same_tree() {
     let dir = scratch_dir("degenerate");
     for (name, tris) in degenerate_scenes() {
         let scene = columns(&tris);
+        let want = build_checked(&scene, &BuildConfig::default());
         for &t in &THRESHOLDS {
-            for budget in [0, u64::MAX] {
-                let want = build_checked(&scene, &BuildConfig::default());
-                let (got, _) = level_build(&scene, &BuildConfig::default(), &opts(t, budget, &dir));
-                assert_eq!(got, want, "{name}: threshold {t}, budget {budget}");
+            for (budget, tiny) in [(0, 0), (u64::MAX, 16), (u64::MAX, 64)] {
+                let options = LevelOptions {
+                    tiny_threshold: tiny,
+                    ..opts(t, budget, &dir)
+                };
+                let (got, _) = level_build(&scene, &BuildConfig::default(), &options);
+                assert_eq!(
+                    got, want,
+                    "{name}: threshold {t}, budget {budget}, tiny {tiny}"
+                );
                 assert!(is_empty_dir(&dir), "{name}: scratch files left behind");
             }
         }

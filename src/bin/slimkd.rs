@@ -140,6 +140,12 @@ struct BuildArgs {
     /// child's sorted list (the same tree either way; for measurements).
     #[arg(long, value_enum, default_value_t = NewEventsArg::Merge)]
     new_events: NewEventsArg,
+    /// Level builder: the depth-first finisher sweeps nodes of at most this
+    /// many references without event lists (0 to 64; the same tree either
+    /// way; for measurements).
+    #[arg(long, default_value_t = level::DEFAULT_TINY_THRESHOLD as u8,
+          value_parser = clap::value_parser!(u8).range(0..=64))]
+    tiny: u8,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -461,6 +467,7 @@ fn build_tree(
             NewEventsArg::Merge => level::NewEvents::SortMerge,
             NewEventsArg::Bucket => level::NewEvents::Bucket,
         },
+        tiny_threshold: usize::from(args.tiny),
         ..level::LevelOptions::default()
     };
     if let Some(b) = args.mem_budget {
@@ -1269,6 +1276,7 @@ fn main_job() -> Res<()> {
             mem_budget: None,
             scratch: None,
             new_events: NewEventsArg::Merge,
+            tiny: level::DEFAULT_TINY_THRESHOLD as u8,
             threads: None,
             max_depth: None,
             preset: PresetArg::Std,

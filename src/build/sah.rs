@@ -171,55 +171,75 @@ impl AxisPricer {
     /// The cost of the plane at `pos` (see [`split_cost`]).
     #[inline]
     pub fn cost(&self, params: &SahParams, pos: f32, counts: PlaneCounts) -> Split {
+        let (p, on_face) = match self.axis {
+            0 => self.ratios_on::<0>(pos),
+            1 => self.ratios_on::<1>(pos),
+            _ => self.ratios_on::<2>(pos),
+        };
+        let PlaneCounts {
+            left,
+            right,
+            planar,
+        } = counts;
+        let (cost, planar_right) =
+            plane_cost(params, p, on_face, left as f64, right as f64, planar as f64);
+        Split {
+            cost,
+            axis: self.axis as u8,
+            pos,
+            planar: if planar_right {
+                Side::Right
+            } else {
+                Side::Left
+            },
+        }
+    }
+
+    /// The children's surface-area ratios `[P_L, P_R]` of the plane at
+    /// `pos` on axis `AXIS` (which must be this pricer's axis) and whether
+    /// the plane lies on a face of the cell. Generic over the axis so that
+    /// a loop over many planes vectorizes (`build::level::tiny`).
+    #[inline(always)]
+    pub fn ratios_on<const AXIS: usize>(&self, pos: f32) -> ([f64; 2], bool) {
+        debug_assert_eq!(AXIS, self.axis);
         let x = f64::from(pos);
         let (mut dl, mut dr) = (self.d, self.d);
-        dl[self.axis] = x - self.lo;
-        dr[self.axis] = self.hi - x;
+        dl[AXIS] = x - self.lo;
+        dr[AXIS] = self.hi - x;
         let p_l = Self::area(dl) / self.sa;
         let p_r = Self::area(dr) / self.sa;
         let on_face = pos == self.lo32 || pos == self.hi32;
-        priced(params, self.axis, pos, [p_l, p_r], on_face, counts)
+        ([p_l, p_r], on_face)
     }
 }
 
-/// The split at `axis = pos` with the children's surface-area ratios
-/// `p = [P_L, P_R]`: `λ`, the cost of each planar assignment and the
-/// cheaper one.
+/// The cost of a split with the children's surface-area ratios
+/// `p = [P_L, P_R]` and `n_l`, `n_r`, `n_p` triangles left, right and in
+/// the plane (whole numbers, as `f64`): `λ`, the cost of each planar
+/// assignment, and the cheaper one, as `(cost, planar triangles go
+/// right)`. Branch-free in effect (selects only), so that a loop over
+/// many planes vectorizes; every builder's pricing ends here.
 #[inline(always)]
-fn priced(
+pub fn plane_cost(
     params: &SahParams,
-    axis: usize,
-    pos: f32,
     p: [f64; 2],
     on_face: bool,
-    counts: PlaneCounts,
-) -> Split {
-    let PlaneCounts {
-        left: n_l,
-        right: n_r,
-        planar: n_p,
-    } = counts;
-    let cost = |nl: usize, nr: usize| {
-        let lambda = if (nl == 0 || nr == 0) && !on_face {
+    n_l: f64,
+    n_r: f64,
+    n_p: f64,
+) -> (f64, bool) {
+    let cost = |nl: f64, nr: f64| {
+        let lambda = if (nl == 0.0 || nr == 0.0) && !on_face {
             params.lambda_empty
         } else {
             1.0
         };
-        params.k_t + params.k_i * lambda * (p[0] * nl as f64 + p[1] * nr as f64)
+        params.k_t + params.k_i * lambda * (p[0] * nl + p[1] * nr)
     };
     let c_left = cost(n_l + n_p, n_r);
     let c_right = cost(n_l, n_r + n_p);
-    let (cost, planar) = if c_left <= c_right {
-        (c_left, Side::Left)
-    } else {
-        (c_right, Side::Right)
-    };
-    Split {
-        cost,
-        axis: axis as u8,
-        pos,
-        planar,
-    }
+    let left = c_left <= c_right;
+    (if left { c_left } else { c_right }, !left)
 }
 
 /// Whether a node becomes a leaf, given its best split.
@@ -320,6 +340,47 @@ mod tests {
     }
 
     /// `AxisPricer` against the definition spelled out with
+    /// The module docs' formula as written there, with the ratios given:
+    /// the oracle of `AxisPricer::cost` (and so of `plane_cost`).
+    fn priced_textbook(
+        params: &SahParams,
+        axis: usize,
+        pos: f32,
+        p: [f64; 2],
+        on_face: bool,
+        counts: PlaneCounts,
+    ) -> Split {
+        let PlaneCounts {
+            left: n_l,
+            right: n_r,
+            planar: n_p,
+        } = counts;
+        let cost = |nl: usize, nr: usize| {
+            let lambda = if (nl == 0 || nr == 0) && !on_face {
+                params.lambda_empty
+            } else {
+                1.0
+            };
+            params.k_t + params.k_i * lambda * (p[0] * nl as f64 + p[1] * nr as f64)
+        };
+        let (c_left, c_right) = (cost(n_l + n_p, n_r), cost(n_l, n_r + n_p));
+        if c_left <= c_right {
+            Split {
+                cost: c_left,
+                axis: axis as u8,
+                pos,
+                planar: Side::Left,
+            }
+        } else {
+            Split {
+                cost: c_right,
+                axis: axis as u8,
+                pos,
+                planar: Side::Right,
+            }
+        }
+    }
+
     /// `Aabb::split` and `Aabb::surface_area`, bit for bit, on cells and
     /// planes from a small grid (faces, flat cells) and arbitrary ones.
     #[test]
@@ -359,7 +420,7 @@ mod tests {
             let (l, r) = cell.split(axis, pos);
             let p = [l.surface_area() / sa, r.surface_area() / sa];
             let on_face = pos == cell.min[axis] || pos == cell.max[axis];
-            let want = priced(&params, axis, pos, p, on_face, counts);
+            let want = priced_textbook(&params, axis, pos, p, on_face, counts);
             let got = AxisPricer::new(&cell, sa, axis).cost(&params, pos, counts);
             assert_eq!(got.cost.to_bits(), want.cost.to_bits());
             assert_eq!(got.planar, want.planar);

@@ -154,47 +154,7 @@ fn kernel_body(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best)
     need_fallback
 }
 
-/// The instruction set the packet kernel uses on this CPU.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SimdLevel {
-    Avx512,
-    Avx2,
-    /// SSE2 on x86-64, whatever the target offers elsewhere.
-    Baseline,
-}
-
-impl SimdLevel {
-    /// The best level this CPU supports.
-    pub fn detect() -> SimdLevel {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                return SimdLevel::Avx512;
-            }
-            if std::arch::is_x86_feature_detected!("avx2") {
-                return SimdLevel::Avx2;
-            }
-        }
-        SimdLevel::Baseline
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            SimdLevel::Avx512 => "avx512",
-            SimdLevel::Avx2 => "avx2",
-            SimdLevel::Baseline => "baseline",
-        }
-    }
-
-    /// Every level this CPU can run (for tests).
-    pub fn available() -> Vec<SimdLevel> {
-        let best = SimdLevel::detect();
-        [SimdLevel::Avx512, SimdLevel::Avx2, SimdLevel::Baseline]
-            .into_iter()
-            .filter(|l| *l as u8 >= best as u8)
-            .collect()
-    }
-}
+pub use crate::simd::SimdLevel;
 
 /// Packet traversal of any source; also answers single rays (scalar).
 pub struct PacketTracer<'a, S> {

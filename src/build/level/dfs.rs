@@ -21,11 +21,13 @@
 //! one after the other, and popped.
 
 use super::event::{Box6, ev_ref, push_events, to_box, with_ref};
-use super::{CLIPPED, NewEvents, SLOT, SideCounts, TO_RIGHT, classify_ref, sweep_events};
+use super::tiny::{self, MAX_TINY};
+use super::{CLIPPED, DROPPED, NewEvents, SideCounts, TO_RIGHT, classify_ref, sweep_events};
 use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
+use crate::simd::SimdLevel;
 use crate::tree::{Node, NodeId, TriId};
 
 /// A worker's scratch for finishing small nodes.
@@ -61,6 +63,10 @@ pub struct Finisher<'a> {
     nodes: Vec<Node>,
     leaf_tris: Vec<TriId>,
     new_events: NewEvents,
+    /// Nodes of at most this many references are swept without events
+    /// ([`super::tiny`]).
+    tiny: usize,
+    simd: SimdLevel,
 }
 
 impl<'a> Finisher<'a> {
@@ -88,7 +94,16 @@ impl<'a> Finisher<'a> {
             nodes: Vec::new(),
             leaf_tris: Vec::new(),
             new_events: NewEvents::default(),
+            tiny: 0,
+            simd: SimdLevel::detect(),
         }
+    }
+
+    /// Nodes of at most `tiny` references (clamped to [`MAX_TINY`]) are
+    /// swept without events, and get none from their parent.
+    pub fn with_tiny(mut self, tiny: usize) -> Self {
+        self.tiny = tiny.min(MAX_TINY);
+        self
     }
 
     /// How clipped references' events join their child's list.
@@ -146,10 +161,15 @@ impl<'a> Finisher<'a> {
         // At the depth limit the node is a leaf whatever its best split
         // ([`sah::is_leaf`]), so the sweep is skipped.
         if n > 0 && sa > 0.0 && depth < self.depth_limit {
-            let cap = self.params.leaf_cost(n);
-            for (axis, ev) in self.ev.iter().enumerate() {
-                let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
-                sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
+            if n <= self.tiny {
+                let boxes = &self.boxes[r0..r0 + n];
+                tiny::best_split(self.simd, self.params, &cell, sa, boxes, &mut best);
+            } else {
+                let cap = self.params.leaf_cost(n);
+                for (axis, ev) in self.ev.iter().enumerate() {
+                    let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
+                    sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
+                }
             }
         }
         if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
@@ -209,9 +229,12 @@ impl<'a> Finisher<'a> {
         grow(&mut self.tri, end);
         grow(&mut self.boxes, end);
         self.ref_top = end;
-        // Written for every one-sided reference before it is read; the
-        // partition also reads the (stale) entries of straddlers, for
-        // events it drops.
+        // Which children need events: tiny ones are swept without.
+        let need = [0, 1].map(|side| c.n[side] > self.tiny);
+        // Per reference: its index in its child with the side in bit 31,
+        // or `DROPPED` for a straddler (whose events are made anew) and a
+        // reference of a child that needs no events, so that the partition
+        // needs one lookup per event.
         grow(&mut self.new_idx, n);
         self.copies.clear();
         let mut at = c0;
@@ -224,8 +247,13 @@ impl<'a> Finisher<'a> {
                 at[side] += 1;
                 self.tri[d] = self.tri[r0 + i];
                 self.boxes[d] = self.boxes[r0 + i];
-                self.new_idx[i] = (d - c0[side]) as u32;
+                self.new_idx[i] = if need[side] {
+                    (d - c0[side]) as u32 | (side as u32) << 31
+                } else {
+                    DROPPED
+                };
             } else {
+                self.new_idx[i] = DROPPED;
                 let (lb, rb) = self.clipped[straddler];
                 straddler += 1;
                 for (side, cb) in [lb, rb].into_iter().enumerate() {
@@ -234,20 +262,29 @@ impl<'a> Finisher<'a> {
                         at[side] += 1;
                         self.tri[d] = self.tri[r0 + i];
                         self.boxes[d] = to_box(&cb);
-                        self.copies.push((side as u8, (d - c0[side]) as u32));
+                        if need[side] {
+                            self.copies.push((side as u8, (d - c0[side]) as u32));
+                        }
                     }
                 }
             }
         }
 
         // Child events: inherited by a stable partition, then each side's
-        // sorted new events merged in.
-        let mut ce0 = [[0usize; 3]; 2];
+        // sorted new events merged in. Tiny children get none.
+        let mut ce0 = [self.ev_top; 2];
         let mut cne = [[0usize; 3]; 2];
-        for axis in 0..3 {
+        for axis in (0..3).filter(|_| need[0] || need[1]) {
+            let inherited = [0, 1].map(|side| {
+                if need[side] {
+                    c.inherited[side][axis]
+                } else {
+                    0
+                }
+            });
             for (side, new) in self.new_ev.iter_mut().enumerate() {
                 new.clear();
-                if c.new[side][axis] > 0 {
+                if need[side] && c.new[side][axis] > 0 {
                     for &(s, r) in &self.copies {
                         if s as usize == side {
                             let b = &self.boxes[c0[side] + r as usize];
@@ -259,8 +296,8 @@ impl<'a> Finisher<'a> {
             }
             let stack = &mut self.ev[axis];
             let base = self.ev_top[axis];
-            let nl = c.inherited[0][axis] + c.new[0][axis];
-            let nr = c.inherited[1][axis] + c.new[1][axis];
+            let nl = inherited[0] + self.new_ev[0].len();
+            let nr = inherited[1] + self.new_ev[1].len();
             ce0[0][axis] = base;
             ce0[1][axis] = base + nl;
             cne[0][axis] = nl;
@@ -271,21 +308,29 @@ impl<'a> Finisher<'a> {
             // has no data-dependent branch.
             grow(stack, base + nl + nr + 1);
             self.ev_top[axis] = base + nl + nr;
+            // The cursors stay in registers: the destination is a select,
+            // not an index into an array of cursors (whose store and reload
+            // per event made a chain through memory).
             let (src, dst) = stack.split_at_mut(base);
-            let mut at = [0, nl, nl + nr];
+            let dst = &mut dst[..nl + nr + 1];
+            let (mut at_l, mut at_r, sink) = (0, nl, nl + nr);
             for &e in &src[e0[axis]..e0[axis] + ne[axis]] {
-                let r = ev_ref(e) as usize;
-                let slot = SLOT[usize::from(self.place[r])];
-                dst[at[slot]] = with_ref(e, self.new_idx[r]);
-                at[slot] += usize::from(slot < 2);
+                let v = self.new_idx[ev_ref(e) as usize];
+                let keep = v != DROPPED;
+                let right = keep & (v >> 31 != 0);
+                let at = if right { at_r } else { at_l };
+                let at = if keep { at } else { sink };
+                dst[at] = with_ref(e, v & !(1 << 31));
+                at_l += usize::from(keep & !right);
+                at_r += usize::from(right);
             }
-            debug_assert_eq!(at[0], c.inherited[0][axis]);
-            debug_assert_eq!(at[1], nl + c.inherited[1][axis]);
+            debug_assert_eq!(at_l, inherited[0]);
+            debug_assert_eq!(at_r, nl + inherited[1]);
             // Each side's sorted new events merge in from the back: only the
             // inherited events above the smallest new one move.
             for (side, start) in [(0, base), (1, base + nl)] {
                 let new = &self.new_ev[side];
-                let len = c.inherited[side][axis] + new.len();
+                let len = inherited[side] + new.len();
                 self.new_events.merge(&mut stack[start..start + len], new);
             }
         }

@@ -1,0 +1,300 @@
+//! The best split of a tiny node without events: every candidate plane is
+//! counted and priced directly from the references' boxes, many planes at
+//! once in vector lanes.
+//!
+//! A node's candidate planes on an axis are the positions of its events:
+//! the `min` and `max` of every reference's box there. The sweep
+//! ([`super::sweep_events`]) walks them in sorted order, keeping running
+//! counts; the counts at plane `p` are, by definition,
+//!
+//! - `N_L(p)`: references whose box starts before `p` (`min < p`),
+//! - `N_R(p)`: references whose box ends after `p` (`max > p`),
+//! - `N_P(p)`: flat references lying in `p` (`min == max == p`),
+//!
+//! and these are counted for [`LANES`] planes at once by comparing each
+//! box with a vector of positions: `n · ⌈2n / LANES⌉` vector steps per
+//! axis for `n` references, with no sort, no event list to keep in order
+//! for the children, and no data-dependent branch. Every plane is then
+//! priced in the lanes too, by the functions [`sah::AxisPricer::cost`] is
+//! made of ([`sah::AxisPricer::ratios_on`], [`sah::plane_cost`]) inlined
+//! into the loop over lanes (IEEE operations give the same bits in a lane
+//! as in a scalar register, and Rust never fuses a multiply and an add),
+//! so the costs are bit for bit [`sah::split_cost`]'s; a test holds the
+//! best split equal to one found plane by plane on every instruction set
+//! this CPU has.
+//!
+//! The best split is the same as the three sweeps': [`Split::keep_best`]
+//! is a total order, so the order the planes are offered in does not
+//! matter, nor does offering a plane shared by several boxes more than
+//! once. The sweep does not price a plane whose cost bound exceeds the
+//! node's leaf cost; here every plane is priced, which can only change the
+//! best split of a node whose every split costs more than its leaf, and
+//! [`sah::is_leaf`] makes that node a leaf either way.
+//!
+//! The work grows as `n²`, so [`super::dfs::Finisher`] uses this only for
+//! nodes of at most [`super::LevelOptions::tiny_threshold`] references
+//! (at most [`MAX_TINY`]), and builds no events for children that are
+//! tiny.
+
+use super::event::Box6;
+use crate::build::sah::{self, SahParams, Side, Split};
+use crate::geom::Aabb;
+use crate::simd::SimdLevel;
+
+/// Planes counted and priced at once.
+pub const LANES: usize = 16;
+
+/// The largest node the counting sweep takes.
+pub const MAX_TINY: usize = 64;
+
+/// Keeps in `best` the best split of the node whose references have boxes
+/// `boxes` (at most [`MAX_TINY`]) in `cell` (surface area `sa > 0`); see
+/// the module docs for why it is the sweeps' best split.
+pub fn best_split(
+    simd: SimdLevel,
+    params: &SahParams,
+    cell: &Aabb,
+    sa: f64,
+    boxes: &[Box6],
+    best: &mut Option<Split>,
+) {
+    assert!(
+        boxes.len() <= MAX_TINY,
+        "a tiny node has at most {MAX_TINY} references"
+    );
+    match simd {
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx512 => {
+            // SAFETY: `SimdLevel::Avx512` is only made by `SimdLevel::detect`
+            // (or chosen from `SimdLevel::available`) when the CPU reports
+            // avx512f.
+            unsafe { best_split_avx512(params, cell, sa, boxes, best) }
+        }
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx2 => {
+            // SAFETY: as above, the CPU reported avx2.
+            unsafe { best_split_avx2(params, cell, sa, boxes, best) }
+        }
+        _ => best_split_lanes(params, cell, sa, boxes, best),
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn best_split_avx512(
+    params: &SahParams,
+    cell: &Aabb,
+    sa: f64,
+    boxes: &[Box6],
+    best: &mut Option<Split>,
+) {
+    best_split_lanes(params, cell, sa, boxes, best)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn best_split_avx2(
+    params: &SahParams,
+    cell: &Aabb,
+    sa: f64,
+    boxes: &[Box6],
+    best: &mut Option<Split>,
+) {
+    best_split_lanes(params, cell, sa, boxes, best)
+}
+
+#[inline(always)]
+fn best_split_lanes(
+    params: &SahParams,
+    cell: &Aabb,
+    sa: f64,
+    boxes: &[Box6],
+    best: &mut Option<Split>,
+) {
+    let n = boxes.len();
+    let mut lo = [0f32; MAX_TINY];
+    let mut hi = [0f32; MAX_TINY];
+    let mut flat = [0f32; MAX_TINY];
+    let mut cand = [f32::NAN; 2 * MAX_TINY + LANES];
+    for axis in 0..3 {
+        // The candidates: every box's min, and its max unless the box is
+        // flat there (then it is the same plane).
+        let mut nc = 0;
+        for (i, b) in boxes.iter().enumerate() {
+            let (l, h) = (b[axis], b[axis + 3]);
+            lo[i] = l;
+            hi[i] = h;
+            flat[i] = if l == h { l } else { f32::NAN };
+            cand[nc] = l;
+            cand[nc + 1] = h;
+            nc += 1 + usize::from(l != h);
+        }
+        let pricer = LanePricer::new(params, cell, sa, axis);
+        let mut best_cost = best.map_or(f64::INFINITY, |b| b.cost);
+        for c0 in (0..nc).step_by(LANES) {
+            let pos: &[f32; LANES] = cand[c0..c0 + LANES].try_into().expect("LANES long");
+            let counts = count_lanes(&lo[..n], &hi[..n], &flat[..n], pos);
+            let (cost, right) = match axis {
+                0 => pricer.price::<0>(pos, &counts),
+                1 => pricer.price::<1>(pos, &counts),
+                _ => pricer.price::<2>(pos, &counts),
+            };
+            // Only the cheapest lanes can win: find their cost in the lanes,
+            // then offer each lane of that cost (ties are broken by
+            // `keep_best`'s order).
+            let valid = LANES.min(nc - c0);
+            let mut least = f64::INFINITY;
+            for (c, &v) in cost.iter().enumerate() {
+                let v = if c < valid { v } else { f64::INFINITY };
+                least = if v < least { v } else { least };
+            }
+            if least > best_cost {
+                continue;
+            }
+            for c in 0..valid {
+                if cost[c] == least {
+                    let planar = if right[c] { Side::Right } else { Side::Left };
+                    Split {
+                        cost: cost[c],
+                        axis: axis as u8,
+                        pos: pos[c],
+                        planar,
+                    }
+                    .keep_best(best);
+                    best_cost = best.map_or(f64::INFINITY, |b| b.cost);
+                }
+            }
+        }
+    }
+}
+
+/// The counts ([`PlaneCounts`]: left, right, planar) of the planes `pos`
+/// against boxes whose bounds on the axis are `lo`, `hi` and, for a box
+/// flat there, `flat` (its position; NaN for other boxes, so that it
+/// equals no plane). NaN lanes of `pos` count nothing.
+#[inline(always)]
+fn count_lanes(lo: &[f32], hi: &[f32], flat: &[f32], pos: &[f32; LANES]) -> [[u32; LANES]; 3] {
+    let mut n_l = [0u32; LANES];
+    let mut n_r = [0u32; LANES];
+    let mut n_p = [0u32; LANES];
+    for ((&l, &h), &f) in lo.iter().zip(hi).zip(flat) {
+        for c in 0..LANES {
+            n_l[c] += u32::from(l < pos[c]);
+            n_r[c] += u32::from(h > pos[c]);
+            n_p[c] += u32::from(f == pos[c]);
+        }
+    }
+    [n_l, n_r, n_p]
+}
+
+/// [`sah::AxisPricer::cost`] for a vector of planes of one cell and axis:
+/// the same two functions ([`sah::AxisPricer::ratios_on`],
+/// [`sah::plane_cost`]), inlined into a loop over lanes.
+struct LanePricer<'a> {
+    params: &'a SahParams,
+    exact: sah::AxisPricer,
+}
+
+impl<'a> LanePricer<'a> {
+    #[inline(always)]
+    fn new(params: &'a SahParams, cell: &Aabb, sa: f64, axis: usize) -> LanePricer<'a> {
+        LanePricer {
+            params,
+            exact: sah::AxisPricer::new(cell, sa, axis),
+        }
+    }
+
+    /// Each plane's cost and whether its planar triangles go right.
+    #[inline(always)]
+    fn price<const AXIS: usize>(
+        &self,
+        pos: &[f32; LANES],
+        counts: &[[u32; LANES]; 3],
+    ) -> ([f64; LANES], [bool; LANES]) {
+        let mut cost = [0f64; LANES];
+        let mut right = [false; LANES];
+        for c in 0..LANES {
+            let (p, on_face) = self.exact.ratios_on::<AXIS>(pos[c]);
+            let [n_l, n_r, n_p] = [0, 1, 2].map(|k| f64::from(counts[k][c]));
+            (cost[c], right[c]) = sah::plane_cost(self.params, p, on_face, n_l, n_r, n_p);
+        }
+        (cost, right)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::sah::{PlaneCounts, split_cost};
+    use glam::Vec3;
+    use proptest::prelude::*;
+
+    /// Boxes on a coarse grid inside `cell`, so that planes coincide, boxes
+    /// are flat and lie on the cell's faces often.
+    fn grid_boxes(cell: &Aabb, raw: &[[u8; 6]]) -> Vec<Box6> {
+        raw.iter()
+            .map(|r| {
+                let mut b = [0f32; 6];
+                for k in 0..3 {
+                    let at = |g: u8| {
+                        let t = f32::from(g % 5) / 4.0;
+                        cell.min[k] + (cell.max[k] - cell.min[k]) * t
+                    };
+                    let (a, z) = (at(r[k]), at(r[k + 3]));
+                    b[k] = a.min(z);
+                    b[k + 3] = a.max(z);
+                }
+                b
+            })
+            .collect()
+    }
+
+    /// The best split by the definition: every candidate plane counted one
+    /// reference at a time and priced by `split_cost`.
+    fn reference(params: &SahParams, cell: &Aabb, boxes: &[Box6]) -> Option<Split> {
+        let sa = cell.surface_area();
+        let mut best = None;
+        for axis in 0..3 {
+            for b in boxes {
+                for pos in [b[axis], b[axis + 3]] {
+                    let counts = PlaneCounts {
+                        left: boxes.iter().filter(|o| o[axis] < pos).count(),
+                        right: boxes.iter().filter(|o| o[axis + 3] > pos).count(),
+                        planar: boxes
+                            .iter()
+                            .filter(|o| o[axis] == pos && o[axis + 3] == pos)
+                            .count(),
+                    };
+                    split_cost(params, cell, sa, axis, pos, counts).keep_best(&mut best);
+                }
+            }
+        }
+        best
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(2000))]
+
+        #[test]
+        fn lanes_price_every_plane_as_split_cost(
+            lo in prop::array::uniform3(-8.0f32..8.0),
+            ext in prop::array::uniform3(prop_oneof![1 => Just(0.0f32), 4 => 0.001f32..10.0]),
+            raw in prop::collection::vec(any::<[u8; 6]>(), 1..=MAX_TINY),
+            k_t in 0.5f64..40.0,
+            k_i in 0.5f64..40.0,
+            lambda_empty in 0.1f64..1.5,
+        ) {
+            let cell = Aabb::new(Vec3::from(lo), Vec3::from(lo) + Vec3::from(ext));
+            let sa = cell.surface_area();
+            prop_assume!(sa > 0.0);
+            let params = SahParams { k_t, k_i, lambda_empty, ..SahParams::default() };
+            let boxes = grid_boxes(&cell, &raw);
+            let want = reference(&params, &cell, &boxes);
+            for simd in SimdLevel::available() {
+                let mut got = None;
+                best_split(simd, &params, &cell, sa, &boxes, &mut got);
+                prop_assert_eq!(got, want, "{}", simd.name());
+            }
+        }
+    }
+}
