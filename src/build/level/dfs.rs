@@ -67,6 +67,7 @@ pub struct Finisher<'a> {
     /// ([`super::tiny`]).
     tiny: usize,
     simd: SimdLevel,
+    tiny_scratch: Box<tiny::Scratch>,
 }
 
 impl<'a> Finisher<'a> {
@@ -96,6 +97,7 @@ impl<'a> Finisher<'a> {
             new_events: NewEvents::default(),
             tiny: 0,
             simd: SimdLevel::detect(),
+            tiny_scratch: Box::default(),
         }
     }
 
@@ -141,7 +143,11 @@ impl<'a> Finisher<'a> {
             *top = src.len();
         }
         let nev = [0, 1, 2].map(|k| ev[k].len());
-        self.node(0, tri.len(), [0; 3], nev, cell, depth, weight);
+        self.node(0, tri.len(), [0; 3], nev, cell, depth);
+        // The whole subtree's share at once: its leaves' shares sum to it,
+        // and one shared counter updated per leaf by every worker cost
+        // more than it showed.
+        Progress::add(self.progress, weight);
         (&self.nodes, &self.leaf_tris)
     }
 
@@ -154,7 +160,6 @@ impl<'a> Finisher<'a> {
         ne: [usize; 3],
         cell: Aabb,
         depth: u32,
-        weight: u64,
     ) {
         let sa = cell.surface_area();
         let mut best = None;
@@ -163,7 +168,8 @@ impl<'a> Finisher<'a> {
         if n > 0 && sa > 0.0 && depth < self.depth_limit {
             if n <= self.tiny {
                 let boxes = &self.boxes[r0..r0 + n];
-                tiny::best_split(self.simd, self.params, &cell, sa, boxes, &mut best);
+                let scratch = &mut self.tiny_scratch;
+                tiny::best_split(self.simd, self.params, &cell, sa, boxes, scratch, &mut best);
             } else {
                 let cap = self.params.leaf_cost(n);
                 for (axis, ev) in self.ev.iter().enumerate() {
@@ -180,13 +186,11 @@ impl<'a> Finisher<'a> {
                 start,
                 count: n as u32,
             });
-            Progress::add(self.progress, weight);
             return;
         }
         let split: Split = best.expect("a split exists when the node is not a leaf");
         let (lc, rc) = cell.split(split.axis as usize, split.pos);
         let c = self.classify(r0, n, &split, &lc, &rc);
-        let (wl, wr) = Progress::share(weight, c.n[0], c.n[1]);
         if depth + 1 >= self.depth_limit {
             // Both children lie at the depth limit, so they are leaves: they
             // need their triangle lists (the clipping above decided which
@@ -197,7 +201,7 @@ impl<'a> Finisher<'a> {
                 right: NodeId(self.nodes.len() as u32 + 2),
                 t_ref: None,
             });
-            for (side, w) in [(0, wl), (1, wr)] {
+            for side in 0..2 {
                 let start = self.leaf_tris.len() as u32;
                 let mut straddler = 0;
                 for i in 0..n {
@@ -217,7 +221,6 @@ impl<'a> Finisher<'a> {
                     start,
                     count: self.leaf_tris.len() as u32 - start,
                 });
-                Progress::add(self.progress, w);
             }
             return;
         }
@@ -342,12 +345,12 @@ impl<'a> Finisher<'a> {
             right: NodeId(u32::MAX),
             t_ref: None,
         });
-        self.node(c0[0], c.n[0], ce0[0], cne[0], lc, depth + 1, wl);
+        self.node(c0[0], c.n[0], ce0[0], cne[0], lc, depth + 1);
         let next = NodeId(self.nodes.len() as u32);
         if let Node::Inner { right, .. } = &mut self.nodes[me] {
             *right = next;
         }
-        self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1, wr);
+        self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1);
         self.ref_top = l0;
         self.ev_top = ce0[0];
     }

@@ -47,6 +47,28 @@ pub const LANES: usize = 16;
 /// The largest node the counting sweep takes.
 pub const MAX_TINY: usize = 64;
 
+/// A finisher's working storage for [`best_split`] (kept, so that no call
+/// fills fresh arrays).
+pub struct Scratch {
+    lo: [f32; MAX_TINY],
+    hi: [f32; MAX_TINY],
+    flat: [f32; MAX_TINY],
+    /// Candidate planes (at most two per box, or the faces), then NaN
+    /// padding to a whole number of lanes.
+    cand: [f32; 2 * MAX_TINY + 2 + LANES],
+}
+
+impl Default for Scratch {
+    fn default() -> Scratch {
+        Scratch {
+            lo: [0.0; MAX_TINY],
+            hi: [0.0; MAX_TINY],
+            flat: [0.0; MAX_TINY],
+            cand: [f32::NAN; 2 * MAX_TINY + 2 + LANES],
+        }
+    }
+}
+
 /// Keeps in `best` the best split of the node whose references have boxes
 /// `boxes` (at most [`MAX_TINY`]) in `cell` (surface area `sa > 0`); see
 /// the module docs for why it is the sweeps' best split.
@@ -56,6 +78,7 @@ pub fn best_split(
     cell: &Aabb,
     sa: f64,
     boxes: &[Box6],
+    scratch: &mut Scratch,
     best: &mut Option<Split>,
 ) {
     assert!(
@@ -68,14 +91,14 @@ pub fn best_split(
             // SAFETY: `SimdLevel::Avx512` is only made by `SimdLevel::detect`
             // (or chosen from `SimdLevel::available`) when the CPU reports
             // avx512f.
-            unsafe { best_split_avx512(params, cell, sa, boxes, best) }
+            unsafe { best_split_avx512(params, cell, sa, boxes, scratch, best) }
         }
         #[cfg(target_arch = "x86_64")]
         SimdLevel::Avx2 => {
             // SAFETY: as above, the CPU reported avx2.
-            unsafe { best_split_avx2(params, cell, sa, boxes, best) }
+            unsafe { best_split_avx2(params, cell, sa, boxes, scratch, best) }
         }
-        _ => best_split_lanes(params, cell, sa, boxes, best),
+        _ => best_split_lanes(params, cell, sa, boxes, scratch, best),
     }
 }
 
@@ -86,9 +109,10 @@ fn best_split_avx512(
     cell: &Aabb,
     sa: f64,
     boxes: &[Box6],
+    scratch: &mut Scratch,
     best: &mut Option<Split>,
 ) {
-    best_split_lanes(params, cell, sa, boxes, best)
+    best_split_lanes(params, cell, sa, boxes, scratch, best)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -98,9 +122,10 @@ fn best_split_avx2(
     cell: &Aabb,
     sa: f64,
     boxes: &[Box6],
+    scratch: &mut Scratch,
     best: &mut Option<Split>,
 ) {
-    best_split_lanes(params, cell, sa, boxes, best)
+    best_split_lanes(params, cell, sa, boxes, scratch, best)
 }
 
 #[inline(always)]
@@ -109,26 +134,37 @@ fn best_split_lanes(
     cell: &Aabb,
     sa: f64,
     boxes: &[Box6],
+    scratch: &mut Scratch,
     best: &mut Option<Split>,
 ) {
     let n = boxes.len();
-    let mut lo = [0f32; MAX_TINY];
-    let mut hi = [0f32; MAX_TINY];
-    let mut flat = [0f32; MAX_TINY];
-    let mut cand = [f32::NAN; 2 * MAX_TINY + LANES];
+    let Scratch { lo, hi, flat, cand } = scratch;
     for axis in 0..3 {
         // The candidates: every box's min, and its max unless the box is
-        // flat there (then it is the same plane).
+        // flat there (then it is the same plane). Deep in the tree many
+        // boxes are clipped to the cell, so a face of the cell is a
+        // candidate once, if any box has an event there, rather than once
+        // per such box (the same set of planes, fewer lanes).
+        let (face_lo, face_hi) = (cell.min[axis], cell.max[axis]);
+        let mut on_face = [false; 2];
         let mut nc = 0;
-        for (i, b) in boxes.iter().enumerate() {
+        for (i, b) in boxes.iter().enumerate().take(MAX_TINY) {
             let (l, h) = (b[axis], b[axis + 3]);
             lo[i] = l;
             hi[i] = h;
             flat[i] = if l == h { l } else { f32::NAN };
             cand[nc] = l;
-            cand[nc + 1] = h;
-            nc += 1 + usize::from(l != h);
+            nc += usize::from(l != face_lo);
+            cand[nc] = h;
+            nc += usize::from(l != h && h != face_hi);
+            on_face[0] |= l == face_lo;
+            on_face[1] |= h == face_hi;
         }
+        cand[nc] = face_lo;
+        nc += usize::from(on_face[0]);
+        cand[nc] = face_hi;
+        nc += usize::from(on_face[1]);
+        cand[nc..nc + LANES].fill(f32::NAN);
         let pricer = LanePricer::new(params, cell, sa, axis);
         let mut best_cost = best.map_or(f64::INFINITY, |b| b.cost);
         for c0 in (0..nc).step_by(LANES) {
@@ -173,15 +209,15 @@ fn best_split_lanes(
 /// flat there, `flat` (its position; NaN for other boxes, so that it
 /// equals no plane). NaN lanes of `pos` count nothing.
 #[inline(always)]
-fn count_lanes(lo: &[f32], hi: &[f32], flat: &[f32], pos: &[f32; LANES]) -> [[u32; LANES]; 3] {
-    let mut n_l = [0u32; LANES];
-    let mut n_r = [0u32; LANES];
-    let mut n_p = [0u32; LANES];
+fn count_lanes(lo: &[f32], hi: &[f32], flat: &[f32], pos: &[f32; LANES]) -> [[i32; LANES]; 3] {
+    let mut n_l = [0i32; LANES];
+    let mut n_r = [0i32; LANES];
+    let mut n_p = [0i32; LANES];
     for ((&l, &h), &f) in lo.iter().zip(hi).zip(flat) {
         for c in 0..LANES {
-            n_l[c] += u32::from(l < pos[c]);
-            n_r[c] += u32::from(h > pos[c]);
-            n_p[c] += u32::from(f == pos[c]);
+            n_l[c] += i32::from(l < pos[c]);
+            n_r[c] += i32::from(h > pos[c]);
+            n_p[c] += i32::from(f == pos[c]);
         }
     }
     [n_l, n_r, n_p]
@@ -209,7 +245,7 @@ impl<'a> LanePricer<'a> {
     fn price<const AXIS: usize>(
         &self,
         pos: &[f32; LANES],
-        counts: &[[u32; LANES]; 3],
+        counts: &[[i32; LANES]; 3],
     ) -> ([f64; LANES], [bool; LANES]) {
         let mut cost = [0f64; LANES];
         let mut right = [false; LANES];
@@ -292,7 +328,7 @@ mod tests {
             let want = reference(&params, &cell, &boxes);
             for simd in SimdLevel::available() {
                 let mut got = None;
-                best_split(simd, &params, &cell, sa, &boxes, &mut got);
+                best_split(simd, &params, &cell, sa, &boxes, &mut Scratch::default(), &mut got);
                 prop_assert_eq!(got, want, "{}", simd.name());
             }
         }
