@@ -15,6 +15,11 @@
 //! children inheriting their events by stable partition with the clipped
 //! references' events sorted and merged in.
 //!
+//! Nodes of at most [`Finisher::with_tiny`] references find the same
+//! split without events ([`super::tiny`]: every candidate plane counted
+//! and priced in vector lanes), and a child that small gets no event
+//! lists from its parent.
+//!
 //! A [`Finisher`] is a worker's scratch: references and events live on
 //! stacks that grow to the deepest path's needs once and are reused for
 //! every node it finishes. A node's children are pushed above it, built
