@@ -25,11 +25,11 @@
 //! every node it finishes. A node's children are pushed above it, built
 //! one after the other, and popped.
 
-use super::event::{Box6, ev_ref, push_events, to_box, with_ref};
+use super::event::{Box6, ev_ref, push_events, to_aabb, to_box, with_ref};
 use super::tiny::{self, MAX_TINY};
 use super::{CLIPPED, DROPPED, NewEvents, SideCounts, TO_RIGHT, classify_ref, sweep_events};
-use crate::build::Progress;
 use crate::build::sah::{self, SahParams, Split};
+use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::simd::SimdLevel;
@@ -73,6 +73,10 @@ pub struct Finisher<'a> {
     tiny: usize,
     simd: SimdLevel,
     tiny_scratch: Box<tiny::Scratch>,
+    /// A tiny node's right child's references while its left child's are
+    /// written.
+    right_tri: Vec<u32>,
+    right_boxes: Vec<Box6>,
 }
 
 impl<'a> Finisher<'a> {
@@ -103,6 +107,8 @@ impl<'a> Finisher<'a> {
             tiny: 0,
             simd: SimdLevel::detect(),
             tiny_scratch: Box::default(),
+            right_tri: Vec::new(),
+            right_boxes: Vec::new(),
         }
     }
 
@@ -166,31 +172,23 @@ impl<'a> Finisher<'a> {
         cell: Aabb,
         depth: u32,
     ) {
+        if n <= self.tiny {
+            self.tiny_node(r0, n, cell, depth);
+            return;
+        }
         let sa = cell.surface_area();
         let mut best = None;
         // At the depth limit the node is a leaf whatever its best split
         // ([`sah::is_leaf`]), so the sweep is skipped.
-        if n > 0 && sa > 0.0 && depth < self.depth_limit {
-            if n <= self.tiny {
-                let boxes = &self.boxes[r0..r0 + n];
-                let scratch = &mut self.tiny_scratch;
-                tiny::best_split(self.simd, self.params, &cell, sa, boxes, scratch, &mut best);
-            } else {
-                let cap = self.params.leaf_cost(n);
-                for (axis, ev) in self.ev.iter().enumerate() {
-                    let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
-                    sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
-                }
+        if sa > 0.0 && depth < self.depth_limit {
+            let cap = self.params.leaf_cost(n);
+            for (axis, ev) in self.ev.iter().enumerate() {
+                let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
+                sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
             }
         }
         if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
-            let start = self.leaf_tris.len() as u32;
-            self.leaf_tris
-                .extend(self.tri[r0..r0 + n].iter().map(|&t| TriId(t)));
-            self.nodes.push(Node::Leaf {
-                start,
-                count: n as u32,
-            });
+            self.leaf(r0, n);
             return;
         }
         let split: Split = best.expect("a split exists when the node is not a leaf");
@@ -358,6 +356,89 @@ impl<'a> Finisher<'a> {
         self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1);
         self.ref_top = l0;
         self.ev_top = ce0[0];
+    }
+
+    /// A leaf of the references `r0..r0 + n`.
+    fn leaf(&mut self, r0: usize, n: usize) {
+        let start = self.leaf_tris.len() as u32;
+        self.leaf_tris
+            .extend(self.tri[r0..r0 + n].iter().map(|&t| TriId(t)));
+        self.nodes.push(Node::Leaf {
+            start,
+            count: n as u32,
+        });
+    }
+
+    /// [`Finisher::node`] for a node of at most `tiny` references, whose
+    /// subtree has no events: the split from [`tiny::best_split`], then one
+    /// pass that classifies, clips and writes the children's references
+    /// (the left child's in place above the node, the right child's
+    /// through `right_tri`/`right_boxes`), in the same order as `node`.
+    fn tiny_node(&mut self, r0: usize, n: usize, cell: Aabb, depth: u32) {
+        let sa = cell.surface_area();
+        let mut best = None;
+        if n > 0 && sa > 0.0 && depth < self.depth_limit {
+            let boxes = &self.boxes[r0..r0 + n];
+            let scratch = &mut self.tiny_scratch;
+            tiny::best_split(self.simd, self.params, &cell, sa, boxes, scratch, &mut best);
+        }
+        if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
+            self.leaf(r0, n);
+            return;
+        }
+        let split: Split = best.expect("a split exists when the node is not a leaf");
+        let (lc, rc) = cell.split(split.axis as usize, split.pos);
+        let l0 = self.ref_top;
+        grow(&mut self.tri, l0 + 2 * n);
+        grow(&mut self.boxes, l0 + 2 * n);
+        grow(&mut self.right_tri, n);
+        grow(&mut self.right_boxes, n);
+        let (mut n_l, mut n_r) = (0, 0);
+        for i in r0..r0 + n {
+            let (t, b) = (self.tri[i], self.boxes[i]);
+            let bx = to_aabb(&b);
+            let (to_left, to_right) = match classify(&bx, &split) {
+                Placement::Left => (Some(b), None),
+                Placement::Right => (None, Some(b)),
+                Placement::Both => {
+                    let r = TriRef {
+                        tri: TriId(t),
+                        bounds: bx,
+                    };
+                    let (lb, rb) = clip_straddler(self.scene, &r, &split, &lc, &rc);
+                    (lb.map(|b| to_box(&b)), rb.map(|b| to_box(&b)))
+                }
+            };
+            if let Some(b) = to_left {
+                self.tri[l0 + n_l] = t;
+                self.boxes[l0 + n_l] = b;
+                n_l += 1;
+            }
+            if let Some(b) = to_right {
+                self.right_tri[n_r] = t;
+                self.right_boxes[n_r] = b;
+                n_r += 1;
+            }
+        }
+        let r1 = l0 + n_l;
+        self.tri[r1..r1 + n_r].copy_from_slice(&self.right_tri[..n_r]);
+        self.boxes[r1..r1 + n_r].copy_from_slice(&self.right_boxes[..n_r]);
+        self.ref_top = r1 + n_r;
+
+        let me = self.nodes.len();
+        self.nodes.push(Node::Inner {
+            axis: split.axis,
+            pos: split.pos,
+            right: NodeId(u32::MAX),
+            t_ref: None,
+        });
+        self.tiny_node(l0, n_l, lc, depth + 1);
+        let next = NodeId(self.nodes.len() as u32);
+        if let Node::Inner { right, .. } = &mut self.nodes[me] {
+            *right = next;
+        }
+        self.tiny_node(r1, n_r, rc, depth + 1);
+        self.ref_top = l0;
     }
 
     /// Fills `place` and `clipped` for the node's references; returns the

@@ -1379,22 +1379,25 @@ fn partition_events(
             } else {
                 Pair::default()
             };
-            let mut at = [
-                next[2 * si].ev[axis] + carry.0[0],
-                next[2 * si + 1].ev[axis] + carry.0[1],
-            ];
+            // The two cursors stay in registers (a select, not an array
+            // indexed by the side, whose store and reload per event made a
+            // chain through memory).
+            let mut at_l = next[2 * si].ev[axis] + carry.0[0];
+            let mut at_r = next[2 * si + 1].ev[axis] + carry.0[1];
             for &e in &src[p.range(seg)] {
                 // One lookup per event: `new_idx` carries the side too
                 // (`write_children`).
                 let dest = new_idx[ev_ref(e) as usize];
                 if dest != DROPPED {
-                    let side = (dest >> 31) as usize;
-                    // SAFETY: `at[side]` is the event's rank among the
-                    // node's events going to `side` (carried over the
-                    // node's earlier pieces), offset by the child's
-                    // segment start: distinct for every event.
-                    unsafe { dst.write(at[side], with_ref(e, dest & !(1 << 31))) };
-                    at[side] += 1;
+                    let right = dest >> 31 != 0;
+                    let at = if right { at_r } else { at_l };
+                    // SAFETY: `at` is the event's rank among the node's
+                    // events going to its side (carried over the node's
+                    // earlier pieces), offset by the child's segment
+                    // start: distinct for every event.
+                    unsafe { dst.write(at, with_ref(e, dest & !(1 << 31))) };
+                    at_l += usize::from(!right);
+                    at_r += usize::from(right);
                 }
             }
         }
