@@ -89,18 +89,23 @@
 //!   sweep ([`sah::AxisPricer`]);
 //! - small nodes overlap the big-node passes (step 1).
 //!
-//! Session 4: tiny nodes (at most 32 references by default; 2.6 M of the
-//! 3.3 M nodes black_forest's finisher sweeps have under 16) are swept
-//! without events (`tiny`), and the finisher's partition keeps its
-//! cursors in registers. The tiny sweep counts every candidate plane
-//! against every box (`n · ⌈2n/16⌉` vector steps per axis) and prices all
-//! of them in `f64` lanes, so it needs no sort, no partition and no merge
-//! of events for tiny children. stk_black_forest, 5 (2 threads) and 3 (1
-//! thread) alternating runs against the session's start: medians 4.67 →
-//! 4.12 s on 2 threads, 8.78 → 8.08 s on 1; callgrind, ravenbridge, 1
-//! thread, whole command: 17.04 G → 15.66 G instructions, 2.38 G → 1.86 G
-//! branches, 105 M → 90 M mispredicted. Thresholds 16 to 48 were within
-//! the noise of each other; 32 had the best minimum.
+//! Session 4: tiny nodes (at most 48 references by default; 2.6 M of the
+//! 3.3 M nodes black_forest's finisher sweeps have under 16) have no
+//! events (`tiny`): every candidate plane is counted against every box
+//! (`n · ⌈2n/16⌉` vector steps per axis) and priced in `f64` lanes, and
+//! one pass classifies, clips and writes the children, so they need no
+//! sort, partition or merge of events and no placement bookkeeping. Each
+//! cell face is one candidate however many boxes touch it. The
+//! finisher's partition keeps its cursors in registers. Against the
+//! session's start, alternating runs, medians: stk_black_forest 5.27 →
+//! 4.39 s on 2 threads (5 runs each), 8.77 → 7.89 s on 1 (3 runs);
+//! `tools/icount.sh` on ravenbridge (the build alone, 1 thread): 16.18 G
+//! → 13.87 G instructions, 2.24 G → 1.64 G branches, 95 M → 74 M
+//! mispredicted. Tiny thresholds 32, 48 and 64 are within a few percent
+//! (48 and 64 ahead of 32 in two batches); 48 keeps the `n²` work small.
+//! Tried and dropped: a count without the planar comparison for axes
+//! without flat boxes (two inlined variants; the small-node phase got
+//! 10–15% slower, consistently in two batches).
 //!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (callgrind: 0.5% more instructions; the per-plane bound
@@ -151,7 +156,7 @@ pub const DEFAULT_SMALL_THRESHOLD: usize = 2048;
 
 /// The finisher sweeps nodes of at most this many references without
 /// events by default (see [`LevelOptions::tiny_threshold`]).
-pub const DEFAULT_TINY_THRESHOLD: usize = 32;
+pub const DEFAULT_TINY_THRESHOLD: usize = 48;
 
 /// Elements per work piece: large enough that a piece's fixed costs vanish,
 /// small enough that the top levels split into many pieces per thread.
