@@ -9,7 +9,7 @@
 //! depth and progress weight. Produces the node's subtree as nodes and
 //! leaf lists of its own (indices from 0), borrowed from the finisher
 //! until its next node, equal to
-//! what [`crate::build::sweep::Subtrees`] builds for the same node: the
+//! what [`crate::build::sweep::build_subtree`] builds for the same node: the
 //! same sweep ([`super::sweep_events`], pricing through
 //! [`crate::build::sah`]), the same [`classify`] and [`clip_straddler`],
 //! children inheriting their events by stable partition with the clipped

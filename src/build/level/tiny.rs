@@ -204,7 +204,7 @@ fn best_split_lanes(
     }
 }
 
-/// The counts ([`PlaneCounts`]: left, right, planar) of the planes `pos`
+/// The counts ([`sah::PlaneCounts`]: left, right, planar) of the planes `pos`
 /// against boxes whose bounds on the axis are `lo`, `hi` and, for a box
 /// flat there, `flat` (its position; NaN for other boxes, so that it
 /// equals no plane). NaN lanes of `pos` count nothing.
