@@ -225,3 +225,29 @@ fn scene_cache_builds_the_same_tree() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--tiny` changes how the finisher finds splits, never the tree: 0
+/// (events everywhere), the default and 64 write the same file, byte for
+/// byte. A value above 64 is a usage error (exit 2) that writes nothing.
+#[test]
+fn tiny_threshold_writes_the_same_file() {
+    let dir = tmp_dir("tiny");
+    let scene = manifest("scenes/nexuiz_dieselpower.obj");
+    let build = |name: &str, extra: &[&str]| {
+        let out = dir.join(name);
+        let mut args = vec!["build", &scene, "-o", out.to_str().unwrap(), "--json"];
+        args.extend_from_slice(extra);
+        json(&slimkd(&args));
+        std::fs::read(&out).unwrap()
+    };
+    let default = build("default.kd", &[]);
+    assert!(default == build("events.kd", &["--tiny", "0"]), "--tiny 0");
+    assert!(default == build("all.kd", &["--tiny", "64"]), "--tiny 64");
+
+    let bad = dir.join("bad.kd");
+    let out = slimkd(&["build", &scene, "-o", bad.to_str().unwrap(), "--tiny", "65"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--tiny"));
+    assert!(!bad.exists());
+    std::fs::remove_dir_all(dir).unwrap();
+}
