@@ -162,7 +162,6 @@ impl<'a> Finisher<'a> {
         (&self.nodes, &self.leaf_tris)
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn node(
         &mut self,
         r0: usize,
