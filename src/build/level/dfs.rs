@@ -146,6 +146,12 @@ impl<'a> Finisher<'a> {
         grow(&mut self.boxes, boxes.len());
         self.boxes[..boxes.len()].copy_from_slice(boxes);
         self.ref_top = tri.len();
+        // A node the tiny path takes needs no events (nor do its children).
+        let ev = if tri.len() <= self.tiny {
+            [&[][..]; 3]
+        } else {
+            ev
+        };
         for ((stack, src), top) in self.ev.iter_mut().zip(ev).zip(&mut self.ev_top) {
             grow(stack, src.len());
             for (d, &e) in stack.iter_mut().zip(src) {
@@ -340,21 +346,33 @@ impl<'a> Finisher<'a> {
             }
         }
 
-        let me = self.nodes.len();
+        let me = self.open_inner(&split);
+        self.node(c0[0], c.n[0], ce0[0], cne[0], lc, depth + 1);
+        self.right_child_next(me);
+        self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1);
+        self.ref_top = l0;
+        self.ev_top = ce0[0];
+    }
+
+    /// Appends an inner node for `split` whose right child is not placed
+    /// yet; returns its index (for [`Finisher::right_child_next`]).
+    fn open_inner(&mut self, split: &Split) -> usize {
         self.nodes.push(Node::Inner {
             axis: split.axis,
             pos: split.pos,
             right: NodeId(u32::MAX),
             t_ref: None,
         });
-        self.node(c0[0], c.n[0], ce0[0], cne[0], lc, depth + 1);
+        self.nodes.len() - 1
+    }
+
+    /// The inner node `me`'s right child is the next node appended (its
+    /// left subtree is complete).
+    fn right_child_next(&mut self, me: usize) {
         let next = NodeId(self.nodes.len() as u32);
         if let Node::Inner { right, .. } = &mut self.nodes[me] {
             *right = next;
         }
-        self.node(c0[1], c.n[1], ce0[1], cne[1], rc, depth + 1);
-        self.ref_top = l0;
-        self.ev_top = ce0[0];
     }
 
     /// A leaf of the references `r0..r0 + n`.
@@ -424,18 +442,9 @@ impl<'a> Finisher<'a> {
         self.boxes[r1..r1 + n_r].copy_from_slice(&self.right_boxes[..n_r]);
         self.ref_top = r1 + n_r;
 
-        let me = self.nodes.len();
-        self.nodes.push(Node::Inner {
-            axis: split.axis,
-            pos: split.pos,
-            right: NodeId(u32::MAX),
-            t_ref: None,
-        });
+        let me = self.open_inner(&split);
         self.tiny_node(l0, n_l, lc, depth + 1);
-        let next = NodeId(self.nodes.len() as u32);
-        if let Node::Inner { right, .. } = &mut self.nodes[me] {
-            *right = next;
-        }
+        self.right_child_next(me);
         self.tiny_node(r1, n_r, rc, depth + 1);
         self.ref_top = l0;
     }
