@@ -124,19 +124,45 @@ impl Ray {
 }
 
 /// Rounds an `f64` down to the nearest `f32` that is `<=` it.
+#[inline]
 pub fn f32_round_down(x: f64) -> f32 {
     let f = x as f32;
     // Both candidates, then a select: the comparison is a coin flip for
     // interpolated points, so a branch would mispredict half the time.
-    let below = f.next_down();
+    let below = f32_step(f, false);
     if f64::from(f) > x { below } else { f }
 }
 
 /// Rounds an `f64` up to the nearest `f32` that is `>=` it.
+#[inline]
 pub fn f32_round_up(x: f64) -> f32 {
     let f = x as f32;
-    let above = f.next_up();
+    let above = f32_step(f, true);
     if f64::from(f) < x { above } else { f }
+}
+
+/// [`f32::next_up`] (`up`) or [`f32::next_down`] of `f`, by selects on the
+/// bits, without the library's branches for NaN and the infinities. Equal
+/// to the library's for every `f` but NaN and the infinity it steps away
+/// from, which the two roundings above never select: there the comparison
+/// with `x` is false.
+#[inline(always)]
+fn f32_step(f: f32, up: bool) -> f32 {
+    let b = f.to_bits();
+    // A positive `f` moves away from zero going up, a negative one toward
+    // it; from either zero the step is to the smallest subnormal.
+    let away = (b >> 31 == 0) == up;
+    let stepped = if away {
+        b.wrapping_add(1)
+    } else {
+        b.wrapping_sub(1)
+    };
+    let from_zero = if up { 0x0000_0001 } else { 0x8000_0001 };
+    f32::from_bits(if b & 0x7fff_ffff == 0 {
+        from_zero
+    } else {
+        stepped
+    })
 }
 
 /// Twice the area of a triangle, in `f64` (exactly zero for collinear or
@@ -160,6 +186,52 @@ mod tests {
         assert_eq!(f32_round_up(1.0), 1.0);
         assert_eq!(f32_round_down(1.0), 1.0);
         assert!(f32_round_up(x) > f32_round_down(x));
+    }
+
+    /// The step by bits is the library's `next_up`/`next_down` wherever
+    /// the roundings can select it, and the roundings are the nearest
+    /// `f32` on their side.
+    #[test]
+    fn rounding_steps_as_the_library_does() {
+        let mut specials = vec![
+            0.0f32,
+            -0.0,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+            f32::from_bits(1),
+            f32::from_bits(0x8000_0001),
+            f32::MAX,
+            f32::MIN,
+            1.0,
+            -1.0,
+        ];
+        // A deterministic spread of bit patterns (a 32-bit LCG).
+        let mut s = 0x1234_5678u32;
+        for _ in 0..100_000 {
+            s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            specials.push(f32::from_bits(s));
+        }
+        for f in specials.into_iter().filter(|f| f.is_finite()) {
+            assert_eq!(f32_step(f, true).to_bits(), f.next_up().to_bits(), "{f:e}");
+            assert_eq!(
+                f32_step(f, false).to_bits(),
+                f.next_down().to_bits(),
+                "{f:e}"
+            );
+            let x = f64::from(f);
+            for x in [
+                x,
+                x * (1.0 + 1e-12),
+                x * (1.0 - 1e-12),
+                x + 1e-300,
+                x - 1e-300,
+            ] {
+                let (d, u) = (f32_round_down(x), f32_round_up(x));
+                assert!(f64::from(d) <= x && f64::from(u) >= x, "{x:e}");
+                assert!(f64::from(d.next_up()) > x || d == u, "{x:e}");
+                assert!(f64::from(u.next_down()) < x || d == u, "{x:e}");
+            }
+        }
     }
 
     #[test]

@@ -44,6 +44,9 @@ use crate::simd::SimdLevel;
 /// Planes counted and priced at once.
 pub const LANES: usize = 16;
 
+/// Planes priced at once: one 512-bit vector of `f64`.
+const PRICE_LANES: usize = 8;
+
 /// The largest node the counting sweep takes.
 pub const MAX_TINY: usize = 64;
 
@@ -156,7 +159,7 @@ fn best_split_lanes(
             cand[nc] = l;
             nc += usize::from(l != face_lo);
             cand[nc] = h;
-            nc += usize::from(l != h && h != face_hi);
+            nc += usize::from((l != h) & (h != face_hi));
             on_face[0] |= l == face_lo;
             on_face[1] |= h == face_hi;
         }
@@ -170,38 +173,69 @@ fn best_split_lanes(
         for c0 in (0..nc).step_by(LANES) {
             let pos: &[f32; LANES] = cand[c0..c0 + LANES].try_into().expect("LANES long");
             let counts = count_lanes(&lo[..n], &hi[..n], &flat[..n], pos);
-            let (cost, right) = match axis {
-                0 => pricer.price::<0>(pos, &counts),
-                1 => pricer.price::<1>(pos, &counts),
-                _ => pricer.price::<2>(pos, &counts),
-            };
-            // Only the cheapest lanes can win: find their cost in the lanes,
-            // then offer each lane of that cost (ties are broken by
-            // `keep_best`'s order).
+            // Priced [`PRICE_LANES`] at a time, so that a node with few
+            // candidates does not price a whole vector of padding.
             let valid = LANES.min(nc - c0);
-            let mut least = f64::INFINITY;
-            for (c, &v) in cost.iter().enumerate() {
-                let v = if c < valid { v } else { f64::INFINITY };
-                least = if v < least { v } else { least };
-            }
-            if least > best_cost {
-                continue;
-            }
-            for c in 0..valid {
-                if cost[c] == least {
-                    let planar = if right[c] { Side::Right } else { Side::Left };
-                    Split {
-                        cost: cost[c],
-                        axis: axis as u8,
-                        pos: pos[c],
-                        planar,
+            for h0 in (0..valid).step_by(PRICE_LANES) {
+                let at = |k: usize| -> [i32; PRICE_LANES] {
+                    counts[k][h0..h0 + PRICE_LANES]
+                        .try_into()
+                        .expect("PRICE_LANES long")
+                };
+                let counts = [at(0), at(1), at(2)];
+                let pos: &[f32; PRICE_LANES] = pos[h0..h0 + PRICE_LANES]
+                    .try_into()
+                    .expect("PRICE_LANES long");
+                let (cost, right) = match axis {
+                    0 => pricer.price::<0>(pos, &counts),
+                    1 => pricer.price::<1>(pos, &counts),
+                    _ => pricer.price::<2>(pos, &counts),
+                };
+                // Only the cheapest lanes can win: find their cost in the
+                // lanes, then offer each lane of that cost (ties are broken
+                // by `keep_best`'s order).
+                let valid = PRICE_LANES.min(valid - h0);
+                let least = least_valid(&cost, valid);
+                if least > best_cost {
+                    continue;
+                }
+                for c in 0..valid {
+                    if cost[c] == least {
+                        let planar = if right[c] { Side::Right } else { Side::Left };
+                        Split {
+                            cost: cost[c],
+                            axis: axis as u8,
+                            pos: pos[c],
+                            planar,
+                        }
+                        .keep_best(best);
+                        best_cost = best.map_or(f64::INFINITY, |b| b.cost);
                     }
-                    .keep_best(best);
-                    best_cost = best.map_or(f64::INFINITY, |b| b.cost);
                 }
             }
         }
     }
+}
+
+/// The least of the first `valid` costs (+∞ when there are none), as a
+/// tree of pairwise minima, which vectorizes where a running minimum is a
+/// chain of dependent selects. The costs are sums of non-negative terms
+/// (never NaN, never −0), so the order of the comparisons does not change
+/// the result.
+#[inline(always)]
+fn least_valid(cost: &[f64; PRICE_LANES], valid: usize) -> f64 {
+    let mut m = [0f64; PRICE_LANES];
+    for (c, (m, &v)) in m.iter_mut().zip(cost).enumerate() {
+        *m = if c < valid { v } else { f64::INFINITY };
+    }
+    let mut w = PRICE_LANES / 2;
+    while w > 0 {
+        for c in 0..w {
+            m[c] = if m[c + w] < m[c] { m[c + w] } else { m[c] };
+        }
+        w /= 2;
+    }
+    m[0]
 }
 
 /// The counts ([`sah::PlaneCounts`]: left, right, planar) of the planes `pos`
@@ -244,12 +278,12 @@ impl<'a> LanePricer<'a> {
     #[inline(always)]
     fn price<const AXIS: usize>(
         &self,
-        pos: &[f32; LANES],
-        counts: &[[i32; LANES]; 3],
-    ) -> ([f64; LANES], [bool; LANES]) {
-        let mut cost = [0f64; LANES];
-        let mut right = [false; LANES];
-        for c in 0..LANES {
+        pos: &[f32; PRICE_LANES],
+        counts: &[[i32; PRICE_LANES]; 3],
+    ) -> ([f64; PRICE_LANES], [bool; PRICE_LANES]) {
+        let mut cost = [0f64; PRICE_LANES];
+        let mut right = [false; PRICE_LANES];
+        for c in 0..PRICE_LANES {
             let (p, on_face) = self.exact.ratios_on::<AXIS>(pos[c]);
             let [n_l, n_r, n_p] = [0, 1, 2].map(|k| f64::from(counts[k][c]));
             (cost[c], right[c]) = sah::plane_cost(self.params, p, on_face, n_l, n_r, n_p);
