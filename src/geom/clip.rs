@@ -16,7 +16,8 @@ const MAX_POLY: usize = 9;
 
 /// The polygon's storage: one slot more than it can hold, because the
 /// clipping loop writes every candidate vertex and only advances past the
-/// ones it keeps (no data-dependent branch).
+/// ones it keeps (no data-dependent branch), and repeats the first vertex
+/// after the last.
 const CAP: usize = MAX_POLY + 1;
 
 #[derive(Clone, Copy)]
@@ -53,7 +54,7 @@ impl Polygon {
     /// ones (it cannot happen for a triangle and six planes; the cap keeps
     /// the writes in bounds regardless).
     #[inline(always)]
-    fn clip_into<const AXIS: usize, const ABOVE: bool>(&self, plane: f64, out: &mut Polygon) {
+    fn clip_into<const AXIS: usize, const ABOVE: bool>(&mut self, plane: f64, out: &mut Polygon) {
         let inside = |p: &[f64; 3]| {
             if ABOVE {
                 p[AXIS] >= plane
@@ -64,10 +65,13 @@ impl Polygon {
         let n = self.n.min(MAX_POLY);
         let mut k = 0;
         if n > 0 {
+            // The first vertex again after the last (the spare slot), so
+            // the closing edge needs no wrap-around index.
+            self.v[n] = self.v[0];
             let mut a = self.v[0];
             let mut ina = inside(&a);
             for i in 0..n {
-                let b = self.v[if i + 1 == n { 0 } else { i + 1 }];
+                let b = self.v[i + 1];
                 let inb = inside(&b);
                 out.v[k] = a;
                 k = (k + usize::from(ina)).min(MAX_POLY);
