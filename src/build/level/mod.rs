@@ -1494,9 +1494,21 @@ fn radix_sort_by_position_and_kind(a: &mut [u64], b: &mut [u64]) -> bool {
 /// Branch-free: each step writes the larger of the two candidates and
 /// advances the cursor it came from, so the outcome of the comparison,
 /// which is a coin flip, is never a jump.
+///
+/// The inherited events above the largest new one are moved up as one
+/// block first (found by a binary search): for the child whose cell starts
+/// at the split plane, the clipped copies' events on the split axis lie
+/// at its lower face, and the element loop would otherwise walk its whole
+/// segment.
 fn merge_back(seg: &mut [u64], new: &[u64]) {
-    let (mut i, mut j) = (seg.len() - new.len(), new.len());
-    let mut w = seg.len();
+    let Some(&largest) = new.last() else {
+        return;
+    };
+    let m = seg.len() - new.len();
+    let top = seg[..m].partition_point(|&x| x <= largest);
+    seg.copy_within(top..m, top + new.len());
+    let (mut i, mut j) = (top, new.len());
+    let mut w = top + new.len();
     while j > 0 {
         let a = seg[i.saturating_sub(1)];
         let b = new[j - 1];
