@@ -1564,27 +1564,39 @@ fn radix_sort_by_position_and_kind(a: &mut [u64], b: &mut [u64]) -> bool {
 /// sorted `new` in, from the back, so no element is overwritten before it
 /// is read.
 ///
-/// Branch-free: each step writes the larger of the two candidates and
-/// advances the cursor it came from, so the outcome of the comparison,
-/// which is a coin flip, is never a jump.
-///
-/// The inherited events above the largest new one are moved up as one
-/// block first (found by a binary search): for the child whose cell starts
-/// at the split plane, the clipped copies' events on the split axis lie
-/// at its lower face, and the element loop would otherwise walk its whole
-/// segment.
+/// Each step writes the larger of the two candidates and advances the
+/// cursor it came from, without a branch on the comparison (a coin flip
+/// where the two lists interleave). Where at least [`GALLOP`] inherited
+/// events lie above the next new one, which is most of the list when the
+/// new events are few (the clipped copies' events on the other axes) or
+/// bunched (on the split axis, at the child's face by the plane), the
+/// block of them is found by a binary search and moved at once.
 fn merge_back(seg: &mut [u64], new: &[u64]) {
-    let Some(&largest) = new.last() else {
-        return;
-    };
-    let m = seg.len() - new.len();
-    let top = seg[..m].partition_point(|&x| x <= largest);
-    seg.copy_within(top..m, top + new.len());
-    let (mut i, mut j) = (top, new.len());
-    let mut w = top + new.len();
+    let (mut i, mut j) = (seg.len() - new.len(), new.len());
+    let mut w = seg.len();
     while j > 0 {
-        let a = seg[i.saturating_sub(1)];
         let b = new[j - 1];
+        if i >= GALLOP && seg[i - GALLOP] > b {
+            // `seg[hi..i]` are all above `b`. Steps doubling downwards
+            // find a `lo` at or below `b` (or the start), then a binary
+            // search between: the probes stay near `i`, where a search of
+            // the whole list would miss the cache on a long segment.
+            let (mut lo, mut hi, mut step) = (0, i - GALLOP, GALLOP);
+            while hi > step {
+                let probe = hi - step;
+                if seg[probe] <= b {
+                    lo = probe;
+                    break;
+                }
+                hi = probe;
+                step *= 2;
+            }
+            let p = lo + seg[lo..hi].partition_point(|&x| x <= b);
+            seg.copy_within(p..i, p + j);
+            w = p + j;
+            i = p;
+        }
+        let a = seg[i.saturating_sub(1)];
         let take_a = i > 0 && a > b;
         seg[w - 1] = if take_a { a } else { b };
         i -= usize::from(take_a);
@@ -1592,6 +1604,10 @@ fn merge_back(seg: &mut [u64], new: &[u64]) {
         w -= 1;
     }
 }
+
+/// Inherited events above a new one from which [`merge_back`] moves them
+/// as a block.
+const GALLOP: usize = 16;
 
 /// [`merge_back`]'s result by Wu et al.'s buckets: for each new event,
 /// last first, the binary search of its bucket among the inherited events
@@ -1649,7 +1665,7 @@ mod tests {
             x
         };
         for case in 0..500 {
-            let (h, m) = ((next() % 40) as usize, (next() % 12) as usize);
+            let (h, m) = ((next() % 200) as usize, (next() % 12) as usize);
             let range = 1 + next() % if case % 2 == 0 { 8 } else { 1000 };
             let mut old: Vec<u64> = (0..h).map(|_| next() % range).collect();
             let mut new: Vec<u64> = (0..m).map(|_| next() % range).collect();
