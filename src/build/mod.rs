@@ -114,7 +114,9 @@ pub fn classify(bounds: &Aabb, split: &Split) -> Placement {
 /// The boxes of a straddler in the two children (see the module docs):
 /// `left_cell` and `right_cell` are the parent's cell split by `split`.
 /// The triangle is clipped to the parent's cell once and the polygon split
-/// by the plane ([`clip_split`]).
+/// by the plane ([`clip_split`]), with the reference's box as the known
+/// bounds of `triangle ∩ cell`, so only the faces it reaches are clipped.
+/// Every builder clips through here, so all make the same boxes.
 pub fn clip_straddler(
     scene: &TriangleColumns,
     r: &TriRef,
@@ -124,7 +126,7 @@ pub fn clip_straddler(
 ) -> (Option<Aabb>, Option<Aabb>) {
     let tri = scene.tri(r.tri.0);
     let cell = Aabb::new(left_cell.min, right_cell.max);
-    let [l, r2] = clip_split(&tri, &cell, split.axis as usize, split.pos);
+    let [l, r2] = clip_split(&tri, &cell, &r.bounds, split.axis as usize, split.pos);
     let keep = |b: Option<Aabb>| {
         b.map(|b| b.intersection(&r.bounds))
             .filter(|b| !b.is_empty())
