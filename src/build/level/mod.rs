@@ -57,7 +57,9 @@
 //!    1.59 s bucket, whole build user time 10.3 s vs 11.5 s; a binary search
 //!    per new event and a block move per bucket cost more than one
 //!    predictable comparison per moved event), so sort + merge is the
-//!    default.
+//!    default. Since session 5 the merge takes the best of both: it moves
+//!    long runs of inherited events as blocks, found by a galloping search
+//!    from the merge position, and merges element by element elsewhere.
 //!
 //! The tree is assembled in pre-order at the end (`assemble`), from the
 //! breadth-first records, leaf lists and depth-first subtrees.
@@ -115,9 +117,39 @@
 //! level partition 16 events ahead (events phase 3% faster, not worth an
 //! `unsafe` block).
 //!
+//! Session 5: the sweep passes over blocks of 16 events, adding up their
+//! counts, when one lower bound for all their planes (left count at the
+//! block's start, right count at its end, `λ = 1` when both are
+//! occupied) exceeds the best cost (`sweep_events`): 61% of the 229 M
+//! events black_forest sweeps, and the level passes' SAH phase went from
+//! 0.78 to 0.59 s on 1 thread (minima of 3 alternating runs). The merge of clipped copies' events gallops
+//! (doubling steps, then a binary search; a search of the whole list
+//! missed the cache) past runs of 16 or more inherited events, as one
+//! block move. `clip_split` clips only to the cell faces the reference's
+//! box reaches (the others provably cut nothing; all builders change
+//! together, so the trees still agree; aneurysm's tree lost 4 of 355 K
+//! nodes). Tiny nodes price 8 planes at a time (one 512-bit vector) and
+//! skip the second half when it is padding; the `f32` outward rounding
+//! steps by bits. Against the session's start (`tools/icount.sh`,
+//! ravenbridge): 13.87 G → 12.40 G instructions, 1.64 G → 1.41 G
+//! branches, 74 M → 68 M mispredicted; black_forest on 2 threads, two
+//! batches of 5 alternating runs, medians 3.82 → 3.61 s and 4.58 → 4.12 s
+//! (minima 3.71 → 3.21 s and 3.92 → 3.42 s); on 1 thread 6.62 → 6.17 s
+//! (3 runs). Tried and dropped this session (no gain beyond the noise, or
+//! slower): the sweep one event at a time without a branch on where a run
+//! of equal positions ends (33% more instructions, the SAH phase twice as
+//! slow); the three axes' candidates of a tiny node in one pass over its
+//! boxes; tied tiny lanes as a bit mask; sweeping the finisher's longest
+//! axis first (to find a low cost sooner); the root's radix sort parallel
+//! within each axis (the setup stayed at 0.16–0.19 s on 2 threads: it is
+//! bound by memory and page faults, not by the sort's threads); a pool of
+//! freed RAM columns for the next level (more page faults, not fewer, and
+//! 170 MB more peak RSS); building with `-C target-cpu=x86-64-v3` (2–3%).
+//!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
-//! one bound (callgrind: 0.5% more instructions; the per-plane bound
-//! already prunes cheaply); a blocked sweep that writes every plane's
+//! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
+//! bound already prunes cheaply: that block still visited every plane,
+//! where session 5's passes over the block's planes without looking); a blocked sweep that writes every plane's
 //! counts, then bounds all planes without branches, then prices (36% more
 //! instructions in the sweep, which outweighed the 45% fewer
 //! mispredictions). Estimated and not built: dropping the events that lie
