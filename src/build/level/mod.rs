@@ -144,7 +144,11 @@
 //! within each axis (the setup stayed at 0.16–0.19 s on 2 threads: it is
 //! bound by memory and page faults, not by the sort's threads); a pool of
 //! freed RAM columns for the next level (more page faults, not fewer, and
-//! 170 MB more peak RSS); building with `-C target-cpu=x86-64-v3` (2–3%).
+//! 170 MB more peak RSS); building with `-C target-cpu=x86-64-v3` (2–3%);
+//! a larger block of 64 events tried first after a pass-over (the SAH
+//! phase got slower); the level partition's side counts in registers
+//! rather than an array indexed by slot (no change: the per-event lookup
+//! of the reference's placement is what costs).
 //!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
