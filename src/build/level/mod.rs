@@ -1324,7 +1324,10 @@ impl Pricer {
     /// first plane and `n_r` right of the last: counts only grow to the
     /// left and shrink to the right along the sweep, `P_L` grows with the
     /// position and `P_R` shrinks, planar references only add terms, and
-    /// `λ ≥ min(1, λ_empty)`. Shrunk like [`Pricer::lower_bound`]; `-∞`
+    /// `λ` is 1 at every plane when both counts are non-zero (both sides
+    /// stay occupied), else at least `min(1, λ_empty)`. (With that
+    /// minimum throughout, the bound passed over 13% of black_forest's
+    /// events instead of 61%.) Shrunk like [`Pricer::lower_bound`]; `-∞`
     /// when the constants make it invalid.
     #[inline]
     fn block_bound(&self, x0: f32, x1: f32, n_l: usize, n_r: usize) -> f64 {
