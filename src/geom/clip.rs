@@ -650,6 +650,26 @@ mod tests {
         true
     }
 
+    /// A triangle, a cell, an axis and a plane position in the cell.
+    fn split_case() -> impl proptest::strategy::Strategy<Value = ([Vec3; 3], Aabb, usize, f32)> {
+        use proptest::prelude::*;
+        (
+            point(),
+            point(),
+            point(),
+            point(),
+            point(),
+            0usize..3,
+            0.0f32..=1.0,
+        )
+            .prop_map(|(a, b, c, p, q, axis, t)| {
+                let cell = Aabb::new(p.min(q), p.max(q));
+                let pos = cell.min[axis] + (cell.max[axis] - cell.min[axis]) * t;
+                let pos = pos.clamp(cell.min[axis], cell.max[axis]) + 0.0;
+                ([a, b, c], cell, axis, pos)
+            })
+    }
+
     proptest::proptest! {
         #![proptest_config(proptest::prelude::ProptestConfig::with_cases(5_000))]
         /// Clipping only to the faces the known box reaches stays
@@ -657,14 +677,8 @@ mod tests {
         /// every face the triangle crosses up to the rounding.
         #[test]
         fn known_box_skips_only_faces_that_cut_nothing(
-            a in point(), b in point(), c in point(),
-            p in point(), q in point(),
-            axis in 0usize..3, t in 0.0f32..=1.0,
+            (tri, cell, axis, pos) in split_case(),
         ) {
-            let tri = [a, b, c];
-            let cell = Aabb::new(p.min(q), p.max(q));
-            let pos = cell.min[axis] + (cell.max[axis] - cell.min[axis]) * t;
-            let pos = pos.clamp(cell.min[axis], cell.max[axis]) + 0.0;
             let Some(known) = clip_triangle(&tri, &cell) else {
                 return Ok(());
             };
@@ -698,14 +712,8 @@ mod tests {
         /// The branch-free clip equals the textbook one bit for bit.
         #[test]
         fn branch_free_equals_reference(
-            a in point(), b in point(), c in point(),
-            p in point(), q in point(),
-            axis in 0usize..3, t in 0.0f32..=1.0,
+            (tri, cell, axis, pos) in split_case(),
         ) {
-            let tri = [a, b, c];
-            let cell = Aabb::new(p.min(q), p.max(q));
-            let pos = cell.min[axis] + (cell.max[axis] - cell.min[axis]) * t;
-            let pos = pos.clamp(cell.min[axis], cell.max[axis]) + 0.0;
             proptest::prop_assert_eq!(clip_triangle(&tri, &cell), reference::clip_triangle(&tri, &cell));
             proptest::prop_assert_eq!(
                 clip_split(&tri, &cell, &cell, axis, pos),
