@@ -11,7 +11,7 @@
 mod clip;
 mod intersect;
 
-pub use clip::{clip_split, clip_triangle};
+pub use clip::{clip_split, clip_split_on, clip_triangle};
 pub use intersect::{RayPrecomp, intersect_ray_triangle, intersect_triangle};
 
 use glam::Vec3;
