@@ -178,7 +178,7 @@ impl<'a> Finisher<'a> {
         depth: u32,
     ) {
         if n <= self.tiny {
-            self.tiny_node(r0, n, cell, depth);
+            self.tiny_node(r0, n, cell, depth, tiny::Boxes::Count);
             return;
         }
         let sa = cell.surface_area();
@@ -391,13 +391,18 @@ impl<'a> Finisher<'a> {
     /// pass that classifies, clips and writes the children's references
     /// (the left child's in place above the node, the right child's
     /// through `right_tri`/`right_boxes`), in the same order as `node`.
-    fn tiny_node(&mut self, r0: usize, n: usize, cell: Aabb, depth: u32) {
+    ///
+    /// `which` is [`tiny::Boxes::Same`] when the node's boxes are those its
+    /// parent counted (the parent's split sent them all, unclipped, to
+    /// this side).
+    fn tiny_node(&mut self, r0: usize, n: usize, cell: Aabb, depth: u32, which: tiny::Boxes) {
         let sa = cell.surface_area();
         let mut best = None;
         if n > 0 && sa > 0.0 && depth < self.depth_limit {
             let boxes = &self.boxes[r0..r0 + n];
             let scratch = &mut self.tiny_scratch;
-            tiny::best_split(self.simd, self.params, &cell, sa, boxes, scratch, &mut best);
+            let (simd, params) = (self.simd, self.params);
+            tiny::best_split(simd, params, &cell, sa, boxes, which, scratch, &mut best);
         }
         if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
             self.leaf(r0, n);
@@ -411,6 +416,7 @@ impl<'a> Finisher<'a> {
         grow(&mut self.right_tri, n);
         grow(&mut self.right_boxes, n);
         let (mut n_l, mut n_r) = (0, 0);
+        let mut clipped = false;
         for i in r0..r0 + n {
             let (t, b) = (self.tri[i], self.boxes[i]);
             let bx = to_aabb(&b);
@@ -418,6 +424,7 @@ impl<'a> Finisher<'a> {
                 Placement::Left => (Some(b), None),
                 Placement::Right => (None, Some(b)),
                 Placement::Both => {
+                    clipped = true;
                     let r = TriRef {
                         tri: TriId(t),
                         bounds: bx,
@@ -442,10 +449,18 @@ impl<'a> Finisher<'a> {
         self.boxes[r1..r1 + n_r].copy_from_slice(&self.right_boxes[..n_r]);
         self.ref_top = r1 + n_r;
 
+        // A split that moves every box unchanged to one side (cutting off
+        // empty space): that child prices this node's counts again. The
+        // other child is empty, so nothing counts in between.
+        let which = if !clipped && (n_l == 0 || n_r == 0) {
+            tiny::Boxes::Same
+        } else {
+            tiny::Boxes::Count
+        };
         let me = self.open_inner(&split);
-        self.tiny_node(l0, n_l, lc, depth + 1);
+        self.tiny_node(l0, n_l, lc, depth + 1, which);
         self.right_child_next(me);
-        self.tiny_node(r1, n_r, rc, depth + 1);
+        self.tiny_node(r1, n_r, rc, depth + 1, which);
         self.ref_top = l0;
     }
 
