@@ -233,6 +233,26 @@ impl<'a> Finisher<'a> {
             return;
         }
 
+        // A split that cuts off empty space: every reference goes,
+        // unclipped, to one side, so that child's references and events
+        // are this node's, in the same order, and it works on them in
+        // place (no copy, no partition); the other child is an empty leaf.
+        if self.clipped.is_empty() && (c.n[0] == 0 || c.n[1] == 0) {
+            let me = self.open_inner(&split);
+            let full = usize::from(c.n[0] == 0);
+            for (side, child) in [lc, rc].into_iter().enumerate() {
+                if side == 1 {
+                    self.right_child_next(me);
+                }
+                if side == full {
+                    self.node(r0, n, e0, ne, child, depth + 1);
+                } else {
+                    self.leaf(r0, 0);
+                }
+            }
+            return;
+        }
+
         // Child references: left at [c0[0], c0[1]), right at [c0[1], end).
         let l0 = self.ref_top;
         let c0 = [l0, l0 + c.n[0]];
