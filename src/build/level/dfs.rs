@@ -20,6 +20,11 @@
 //! and priced in vector lanes), and a child that small gets no event
 //! lists from its parent.
 //!
+//! A split that sends every reference, unclipped, to one side (it cuts off
+//! empty space) gives that child the node's own references and events, in
+//! the same order, so the child works on them in place; a tiny child then
+//! prices its parent's candidate counts again ([`tiny::Boxes::Same`]).
+//!
 //! A [`Finisher`] is a worker's scratch: references and events live on
 //! stacks that grow to the deepest path's needs once and are reused for
 //! every node it finishes. A node's children are pushed above it, built

@@ -156,6 +156,27 @@
 //! the extra pass over each node's boxes cost as much, and ravenbridge got
 //! no faster).
 //!
+//! Session 6: `clip_split` (every straddler's clip, 7.4 M of them on
+//! black_forest) runs in AVX-512 lanes, the same bits as the scalar clip
+//! (`geom::clip`); a split that cuts off empty space (every reference to
+//! one side, none clipped: 47% of black_forest's inner nodes) costs its
+//! occupied child less: in the finisher that child works on the node's
+//! references and events in place, with no copy or partition, and a tiny
+//! child prices its parent's candidates and counts again instead of
+//! counting (`tiny::Boxes::Same`). Every tree stays byte-identical
+//! (aneurysm, ravenbridge, candela, black_forest, stk_all). Against the
+//! session's start, alternating runs, medians: black_forest 3.72 → 3.42 s
+//! on 2 threads (5 runs each), 6.12 → 5.57 s on 1 (3 runs); ravenbridge
+//! 0.91 → 0.81 s, candela 1.05 → 0.91 s, aneurysm 0.204 s both (2
+//! threads, 5 runs). Tried and dropped: the tiny candidates gathered and
+//! compressed in AVX-512 lanes (the split search's share of the profile
+//! fell from 18.0% to 17.1%, within the wall-time noise over 8 alternating
+//! runs, not worth 80 lines of `unsafe`); the vertices of every triangle
+//! copied into one array for the clipper (no gain beyond the noise: the
+//! straddlers' triangle lookups are not what the clip waits on); small
+//! thresholds 512, 8192 and 32768 against 2048 and tiny thresholds 32 and
+//! 64 against 48, re-checked (within the noise, 48 ahead).
+//!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
 //! bound already prunes cheaply: that block still visited every plane,
