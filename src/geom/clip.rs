@@ -264,10 +264,10 @@ pub fn clip_split(
     pos: f32,
 ) -> [Option<Aabb>; 2] {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        return clip_split_on(SimdLevel::Avx512, tri, cell, known, axis, pos);
-    }
-    clip_split_on(SimdLevel::Baseline, tri, cell, known, axis, pos)
+    let lanes = std::arch::is_x86_feature_detected!("avx512f");
+    #[cfg(not(target_arch = "x86_64"))]
+    let lanes = false;
+    clip_split_checked(lanes, tri, cell, known, axis, pos)
 }
 
 /// [`clip_split`] on a chosen instruction set: [`SimdLevel::Avx512`]
@@ -284,13 +284,29 @@ pub fn clip_split_on(
     axis: usize,
     pos: f32,
 ) -> [Option<Aabb>; 2] {
+    let lanes = simd == SimdLevel::Avx512;
     #[cfg(target_arch = "x86_64")]
-    if simd == SimdLevel::Avx512 {
-        assert!(
-            std::arch::is_x86_feature_detected!("avx512f"),
-            "AVX-512 clipping on a CPU without avx512f"
-        );
-        // SAFETY: the CPU reports avx512f (checked just above).
+    assert!(
+        !lanes || std::arch::is_x86_feature_detected!("avx512f"),
+        "AVX-512 clipping on a CPU without avx512f"
+    );
+    clip_split_checked(lanes, tri, cell, known, axis, pos)
+}
+
+/// [`clip_split`] in lanes when `lanes` (which the callers have checked:
+/// the CPU has avx512f), else scalar.
+#[inline(always)]
+fn clip_split_checked(
+    lanes: bool,
+    tri: &[Vec3; 3],
+    cell: &Aabb,
+    known: &Aabb,
+    axis: usize,
+    pos: f32,
+) -> [Option<Aabb>; 2] {
+    #[cfg(target_arch = "x86_64")]
+    if lanes {
+        // SAFETY: `lanes` is set only when the CPU reports avx512f.
         let got = unsafe {
             match axis {
                 0 => lanes::clip_split_axis::<0>(tri, cell, known, pos),
@@ -305,7 +321,7 @@ pub fn clip_split_on(
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = simd;
+    let _ = lanes;
     match axis {
         0 => clip_split_axis::<0>(tri, cell, known, pos),
         1 => clip_split_axis::<1>(tri, cell, known, pos),
@@ -400,6 +416,19 @@ mod lanes {
         n: u32,
     }
 
+    impl Poly {
+        /// The lanes that hold vertices, and each edge's start and end
+        /// (vertex `j` and `j + 1`, the first again after the last).
+        #[inline]
+        #[target_feature(enable = "avx512f")]
+        fn edges(&self) -> (__mmask8, [__m512d; 3], [__m512d; 3]) {
+            let valid = ((1u32 << self.n) - 1) as __mmask8;
+            let next = next_lane(self.n);
+            let b = self.c.map(|c| _mm512_permutexvar_pd(next, c));
+            (valid, self.c, b)
+        }
+    }
+
     /// `SPREAD[m]`: the 4 bits of `m` moved to the even bits 0, 2, 4, 6.
     const SPREAD: [u8; 16] = {
         let mut t = [0u8; 16];
@@ -462,10 +491,7 @@ mod lanes {
     /// the lanes.
     #[target_feature(enable = "avx512f")]
     fn clip<const AXIS: usize, const ABOVE: bool>(p: &Poly, plane: f64) -> Option<Poly> {
-        let valid = ((1u32 << p.n) - 1) as __mmask8;
-        let a = p.c;
-        let next = next_lane(p.n);
-        let b = [0, 1, 2].map(|k| _mm512_permutexvar_pd(next, a[k]));
+        let (valid, a, b) = p.edges();
         let pl = _mm512_set1_pd(plane);
         let (ina, inb) = if ABOVE {
             (
@@ -554,10 +580,7 @@ mod lanes {
     /// half's; a half with no point has `+∞` minima and `−∞` maxima.
     #[target_feature(enable = "avx512f")]
     fn split<const AXIS: usize>(p: &Poly, plane: f64) -> (__m512d, __m512d) {
-        let valid = ((1u32 << p.n) - 1) as __mmask8;
-        let a = p.c;
-        let next = next_lane(p.n);
-        let b = [0, 1, 2].map(|k| _mm512_permutexvar_pd(next, a[k]));
+        let (valid, a, b) = p.edges();
         let pl = _mm512_set1_pd(plane);
         let q = crossings::<AXIS>(&a, &b, pl);
         let al = _mm512_mask_cmp_pd_mask::<_CMP_LE_OQ>(valid, a[AXIS], pl);

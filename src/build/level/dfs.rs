@@ -244,16 +244,14 @@ impl<'a> Finisher<'a> {
         // place (no copy, no partition); the other child is an empty leaf.
         if self.clipped.is_empty() && (c.n[0] == 0 || c.n[1] == 0) {
             let me = self.open_inner(&split);
-            let full = usize::from(c.n[0] == 0);
-            for (side, child) in [lc, rc].into_iter().enumerate() {
-                if side == 1 {
-                    self.right_child_next(me);
-                }
-                if side == full {
-                    self.node(r0, n, e0, ne, child, depth + 1);
-                } else {
-                    self.leaf(r0, 0);
-                }
+            if c.n[0] == 0 {
+                self.leaf(r0, 0);
+                self.right_child_next(me);
+                self.node(r0, n, e0, ne, rc, depth + 1);
+            } else {
+                self.node(r0, n, e0, ne, lc, depth + 1);
+                self.right_child_next(me);
+                self.leaf(r0, 0);
             }
             return;
         }
