@@ -32,7 +32,7 @@
 
 use super::event::{Box6, ev_ref, push_events, to_aabb, to_box, with_ref};
 use super::tiny::{self, MAX_TINY};
-use super::{CLIPPED, DROPPED, NewEvents, SideCounts, TO_RIGHT, classify_ref, sweep_events};
+use super::{Alone, CLIPPED, DROPPED, NewEvents, SideCounts, TO_RIGHT, classify_ref, sweep_events};
 use crate::build::sah::{self, SahParams, Split};
 use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
 use crate::geom::Aabb;
@@ -194,7 +194,18 @@ impl<'a> Finisher<'a> {
             let cap = self.params.leaf_cost(n);
             for (axis, ev) in self.ev.iter().enumerate() {
                 let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
-                sweep_events(self.params, &cell, sa, axis, ev, 0, n, cap, &mut best);
+                sweep_events(
+                    self.params,
+                    &cell,
+                    sa,
+                    axis,
+                    ev,
+                    0,
+                    n,
+                    cap,
+                    &mut best,
+                    &Alone,
+                );
             }
         }
         if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
