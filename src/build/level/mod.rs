@@ -177,6 +177,32 @@
 //! thresholds 512, 8192 and 32768 against 2048 and tiny thresholds 32 and
 //! 64 against 48, re-checked (within the noise, 48 ahead).
 //!
+//! Session 7: the level passes' sweep tasks of one node (its three axes,
+//! and the parts of a large node) prune against one shared best cost
+//! (`SharedBest`: an atomic minimum that only ever holds the cost of a
+//! real plane of the node, so the split does not depend on the tasks'
+//! timing). Each task used to start from the leaf cost alone, and a part
+//! in which the cost falls towards a best plane elsewhere priced every
+//! plane. A node's last part is no longer counted for carries (no later
+//! part needs them), and the root's boxes and cell are computed in
+//! parallel. Every tree stays byte-identical (aneurysm, ravenbridge,
+//! candela, black_forest, stk_all). Black_forest, alternating runs,
+//! medians: SAH phase 0.49 → 0.35 s on 2 threads (5 runs) and 0.61 →
+//! 0.47 s on 1 (3 runs); build 3.02 → 2.97 s on 2 threads, 5.77 → 5.36 s
+//! on 1. `tools/icount.sh` on ravenbridge: 11.40 G → 11.17 G
+//! instructions, 1.34 G → 1.26 G branches, 65.2 M → 63.4 M mispredicted.
+//! Tried and dropped: two straddlers clipped interleaved in one lane
+//! function (one clip is a chain of dependent steps, 115 ns latency-bound
+//! against 100 ns independent, but the pair ran at 160 ns a clip); the
+//! root's radix sort cut into chunks of all three axes at once, to balance
+//! three axes on two threads (setup unchanged: it waits on page faults,
+//! not on the sort); transparent huge pages for the allocator
+//! (`GLIBC_TUNABLES=glibc.malloc.hugetlb=1`: page faults 184 K → 95 K on
+//! black_forest, but system time rose from 0.64 to 0.86 s); a lower bound
+//! that skips the exact pricing of 8 tiny candidates when all exceed the
+//! best (it skipped 54% of 19.5 M blocks, but cost 2% more instructions
+//! than it saved and no wall time).
+//!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
 //! bound already prunes cheaply: that block still visited every plane,
