@@ -143,12 +143,18 @@ pub fn root(scene: &TriangleColumns) -> (Aabb, Vec<TriRef>) {
         })
         .collect();
     let bounds = refs.iter().fold(Aabb::EMPTY, |b, r| b.union(&r.bounds));
-    let bounds = if bounds.is_empty() {
+    (root_cell(bounds), refs)
+}
+
+/// The root cell of a scene whose triangles' boxes have the union
+/// `union`: that union, or a point at the origin for a scene with no
+/// triangle. Every builder's root cell comes from here.
+pub fn root_cell(union: Aabb) -> Aabb {
+    if union.is_empty() {
         Aabb::new(Vec3::ZERO, Vec3::ZERO)
     } else {
-        bounds
-    };
-    (bounds, refs)
+        union
+    }
 }
 
 /// Appends nodes in pre-order.

@@ -102,12 +102,26 @@ pub fn n_events(b: &Box6, axis: usize) -> usize {
 /// Appends the events of reference `r` with box `b` on `axis`.
 #[inline]
 pub fn push_events(b: &Box6, axis: usize, r: u32, out: &mut Vec<u64>) {
+    let (ev, n) = events_of(b, axis, r);
+    out.push(ev[0]);
+    if n == 2 {
+        out.push(ev[1]);
+    }
+}
+
+/// The events of reference `r` with box `b` on `axis`, in order: the
+/// first `n` of the array ([`n_events`]), a planar event when the box is
+/// flat there, else a start and an end.
+#[inline]
+pub fn events_of(b: &Box6, axis: usize, r: u32) -> ([u64; 2], usize) {
     let (lo, hi) = (b[axis], b[axis + 3]);
     if lo == hi {
-        out.push(event(lo, EventKind::Planar, r));
+        ([event(lo, EventKind::Planar, r), 0], 1)
     } else {
-        out.push(event(lo, EventKind::Start, r));
-        out.push(event(hi, EventKind::End, r));
+        (
+            [event(lo, EventKind::Start, r), event(hi, EventKind::End, r)],
+            2,
+        )
     }
 }
 

@@ -230,18 +230,16 @@ mod tiny;
 use self::assemble::{Rec, SubStore, SubStream, assemble};
 use self::dfs::Finisher;
 use self::event::{
-    Box6, MAX_REFS, ev_key, ev_kind, ev_ref, event, key_pos, n_events, push_events, to_aabb,
+    Box6, MAX_REFS, ev_key, ev_kind, ev_ref, events_of, key_pos, n_events, push_events, to_aabb,
     to_box, with_ref,
 };
 use self::pieces::{Piece, carries, pieces};
 use super::sah::{self, PlaneCounts, Split};
-use super::sweep::EventKind;
-use super::{BuildConfig, Placement, Progress, TriRef, classify, clip_straddler};
+use super::{BuildConfig, Placement, Progress, TriRef, classify, clip_straddler, root_cell};
 use crate::columns::{Column, ColumnsError, ScatterSlice, Scratch, ScratchConfig, ScratchStats};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{TreeIr, TriId};
-use glam::Vec3;
 use rayon::prelude::*;
 use std::ops::Add;
 use std::path::PathBuf;
@@ -777,9 +775,9 @@ impl<'a> Builder<'a> {
     }
 
     /// The root level: every triangle with its own bounds, events sorted.
-    /// The cell is [`super::root`]'s, the union of the boxes, reduced in
-    /// parallel here: minima and maxima, which the order of the reduction
-    /// cannot change (scenes hold no NaN or `-0.0`).
+    /// The cell is [`super::root`]'s ([`root_cell`] of the union of the
+    /// boxes), reduced in parallel here: minima and maxima, which the order
+    /// of the reduction cannot change (scenes hold no NaN or `-0.0`).
     fn root(&mut self) -> Result<(Aabb, Level<'a>), ColumnsError> {
         let scene = self.scene;
         let n = scene.len();
@@ -793,15 +791,12 @@ impl<'a> Builder<'a> {
                 *t = i as u32;
                 *b = to_box(&Aabb::of_triangle(&scene.tri(i as u32)));
             });
-        let bounds = boxes
-            .par_iter()
-            .map(to_aabb)
-            .reduce(|| Aabb::EMPTY, |a, b| a.union(&b));
-        let bounds = if bounds.is_empty() {
-            Aabb::new(Vec3::ZERO, Vec3::ZERO)
-        } else {
-            bounds
-        };
+        let bounds = root_cell(
+            boxes
+                .par_iter()
+                .map(to_aabb)
+                .reduce(|| Aabb::EMPTY, |a, b| a.union(&b)),
+        );
         // Each axis's events, generated in reference order and sorted by
         // (position, kind) with a stable radix sort, which leaves them in
         // (position, kind, reference) order. The sort ping-pongs between
@@ -822,15 +817,9 @@ impl<'a> Builder<'a> {
             .map(|(axis, (mut a, mut b))| {
                 let mut at = 0;
                 for (i, bx) in boxes_ref.iter().enumerate() {
-                    let (lo, hi) = (bx[axis], bx[axis + 3]);
-                    if lo == hi {
-                        a[at] = event(lo, EventKind::Planar, i as u32);
-                        at += 1;
-                    } else {
-                        a[at] = event(lo, EventKind::Start, i as u32);
-                        a[at + 1] = event(hi, EventKind::End, i as u32);
-                        at += 2;
-                    }
+                    let (ev, k) = events_of(bx, axis, i as u32);
+                    a[at..at + k].copy_from_slice(&ev[..k]);
+                    at += k;
                 }
                 let in_b = radix_sort_by_position_and_kind(&mut a, &mut b);
                 if in_b { b } else { a }
