@@ -67,6 +67,10 @@ pub struct Scratch {
     counts: [[[i32; CAND]; 3]; 3],
     /// Per axis: how many candidates there are.
     nc: [usize; 3],
+    /// Per axis: each candidate's cost and whether its planar triangles
+    /// go right.
+    cost: [[f64; CAND]; 3],
+    right: [[bool; CAND]; 3],
     /// Whether `cand`, `counts` and `nc` belong to the last node counted.
     counted: bool,
 }
@@ -80,6 +84,8 @@ impl Default for Scratch {
             cand: [[f32::NAN; CAND]; 3],
             counts: [[[0; CAND]; 3]; 3],
             nc: [0; 3],
+            cost: [[0.0; CAND]; 3],
+            right: [[false; CAND]; 3],
             counted: false,
         }
     }
@@ -188,9 +194,7 @@ fn best_split_lanes(
         }
         scratch.counted = true;
     }
-    for axis in 0..3 {
-        price_axis(params, cell, sa, axis, scratch, best);
-    }
+    price_node(params, cell, sa, scratch, best);
 }
 
 /// Fills the scratch's candidates and counts of one axis.
@@ -242,72 +246,86 @@ fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
     }
 }
 
-/// Prices the scratch's candidates of one axis in `cell`, keeping the best
-/// split in `best`.
+/// Prices the scratch's candidates of every axis in `cell`, keeping the
+/// best split in `best`.
+///
+/// Every block of planes is priced first, into the scratch, with one
+/// running minimum in the lanes; only then are the planes of that least
+/// cost offered to `best` (ties are broken by [`Split::keep_best`]'s
+/// order). So the three axes' pricing has no branch between its blocks
+/// and overlaps, where a test of each block's least cost against the best
+/// so far made every block wait for the one before.
 #[inline(always)]
-fn price_axis(
+fn price_node(
     params: &SahParams,
     cell: &Aabb,
     sa: f64,
-    axis: usize,
-    scratch: &Scratch,
+    scratch: &mut Scratch,
     best: &mut Option<Split>,
 ) {
-    let (cand, counts, nc) = (&scratch.cand[axis], &scratch.counts[axis], scratch.nc[axis]);
-    let pricer = LanePricer::new(params, cell, sa, axis);
-    let mut best_cost = best.map_or(f64::INFINITY, |b| b.cost);
-    // Priced [`PRICE_LANES`] at a time, so that a node with few candidates
-    // does not price a whole vector of padding.
-    for h0 in (0..nc).step_by(PRICE_LANES) {
-        let at = |k: usize| -> [i32; PRICE_LANES] {
-            counts[k][h0..h0 + PRICE_LANES]
+    let mut least = [f64::INFINITY; PRICE_LANES];
+    for axis in 0..3 {
+        let nc = scratch.nc[axis];
+        let pricer = LanePricer::new(params, cell, sa, axis);
+        let (cand, counts) = (&scratch.cand[axis], &scratch.counts[axis]);
+        let (costs, rights) = (&mut scratch.cost[axis], &mut scratch.right[axis]);
+        // Priced [`PRICE_LANES`] at a time, so that a node with few
+        // candidates does not price a whole vector of padding.
+        for h0 in (0..nc).step_by(PRICE_LANES) {
+            let at = |k: usize| -> [i32; PRICE_LANES] {
+                counts[k][h0..h0 + PRICE_LANES]
+                    .try_into()
+                    .expect("PRICE_LANES long")
+            };
+            let counts = [at(0), at(1), at(2)];
+            let pos: &[f32; PRICE_LANES] = cand[h0..h0 + PRICE_LANES]
                 .try_into()
-                .expect("PRICE_LANES long")
-        };
-        let counts = [at(0), at(1), at(2)];
-        let pos: &[f32; PRICE_LANES] = cand[h0..h0 + PRICE_LANES]
-            .try_into()
-            .expect("PRICE_LANES long");
-        let (cost, right) = match axis {
-            0 => pricer.price::<0>(pos, &counts),
-            1 => pricer.price::<1>(pos, &counts),
-            _ => pricer.price::<2>(pos, &counts),
-        };
-        // Only the cheapest lanes can win: find their cost in the lanes,
-        // then offer each lane of that cost (ties are broken by
-        // `keep_best`'s order).
-        let valid = PRICE_LANES.min(nc - h0);
-        let least = least_valid(&cost, valid);
-        if least > best_cost {
-            continue;
+                .expect("PRICE_LANES long");
+            let (cost, right) = match axis {
+                0 => pricer.price::<0>(pos, &counts),
+                1 => pricer.price::<1>(pos, &counts),
+                _ => pricer.price::<2>(pos, &counts),
+            };
+            let valid = PRICE_LANES.min(nc - h0);
+            for (c, (m, &v)) in least.iter_mut().zip(&cost).enumerate() {
+                let v = if c < valid { v } else { f64::INFINITY };
+                *m = if v < *m { v } else { *m };
+            }
+            costs[h0..h0 + PRICE_LANES].copy_from_slice(&cost);
+            rights[h0..h0 + PRICE_LANES].copy_from_slice(&right);
         }
-        for c in 0..valid {
-            if cost[c] == least {
-                let planar = if right[c] { Side::Right } else { Side::Left };
+    }
+    let least = least_of(least);
+    if best.is_some_and(|b| least > b.cost) {
+        return;
+    }
+    for axis in 0..3 {
+        let (cand, costs, rights) = (
+            &scratch.cand[axis],
+            &scratch.cost[axis],
+            &scratch.right[axis],
+        );
+        for c in 0..scratch.nc[axis] {
+            if costs[c] == least {
+                let planar = if rights[c] { Side::Right } else { Side::Left };
                 Split {
-                    cost: cost[c],
+                    cost: least,
                     axis: axis as u8,
-                    pos: pos[c],
+                    pos: cand[c],
                     planar,
                 }
                 .keep_best(best);
-                best_cost = best.map_or(f64::INFINITY, |b| b.cost);
             }
         }
     }
 }
 
-/// The least of the first `valid` costs (+∞ when there are none), as a
-/// tree of pairwise minima, which vectorizes where a running minimum is a
-/// chain of dependent selects. The costs are sums of non-negative terms
-/// (never NaN, never −0), so the order of the comparisons does not change
-/// the result.
+/// The least of the lanes, as a tree of pairwise minima, which vectorizes
+/// where a running minimum is a chain of dependent selects. The costs are
+/// sums of non-negative terms (never NaN, never −0), so the order of the
+/// comparisons does not change the result.
 #[inline(always)]
-fn least_valid(cost: &[f64; PRICE_LANES], valid: usize) -> f64 {
-    let mut m = [0f64; PRICE_LANES];
-    for (c, (m, &v)) in m.iter_mut().zip(cost).enumerate() {
-        *m = if c < valid { v } else { f64::INFINITY };
-    }
+fn least_of(mut m: [f64; PRICE_LANES]) -> f64 {
     let mut w = PRICE_LANES / 2;
     while w > 0 {
         for c in 0..w {
