@@ -213,6 +213,48 @@ impl AxisPricer {
     }
 }
 
+/// [`AxisPricer::ratios_on`] for planes whose axis varies from one call to
+/// the next: the same operations on the chosen axis's bounds, which are
+/// picked by selects, so that a loop over planes of several axes
+/// vectorizes (`build::level::tiny` packs a small node's three axes into
+/// the same vectors).
+#[derive(Clone, Copy, Debug)]
+pub struct CellPricer([AxisPricer; 3]);
+
+impl CellPricer {
+    #[inline]
+    pub fn new(cell: &Aabb, sa_cell: f64) -> CellPricer {
+        CellPricer([0, 1, 2].map(|axis| AxisPricer::new(cell, sa_cell, axis)))
+    }
+
+    /// `[P_L, P_R]` of the plane at `pos` on axis `axis` (0, 1, or 2 for
+    /// any other value), and whether it lies on a face of the cell.
+    #[inline(always)]
+    pub fn ratios(&self, axis: u32, pos: f32) -> ([f64; 2], bool) {
+        let [a0, a1, a2] = &self.0;
+        let pick = |f: fn(&AxisPricer) -> f64| match axis {
+            0 => f(a0),
+            1 => f(a1),
+            _ => f(a2),
+        };
+        let pick32 = |f: fn(&AxisPricer) -> f32| match axis {
+            0 => f(a0),
+            1 => f(a1),
+            _ => f(a2),
+        };
+        let x = f64::from(pos);
+        let (lo, hi) = (pick(|a| a.lo), pick(|a| a.hi));
+        let (l, r) = (x - lo, hi - x);
+        // Every pricer holds the cell's extents.
+        let d = a0.d;
+        let at = |k: u32, v: f64| [0, 1, 2].map(|j| if j == k.min(2) { v } else { d[j as usize] });
+        let p_l = AxisPricer::area(at(axis, l)) / a0.sa;
+        let p_r = AxisPricer::area(at(axis, r)) / a0.sa;
+        let on_face = pos == pick32(|a| a.lo32) || pos == pick32(|a| a.hi32);
+        ([p_l, p_r], on_face)
+    }
+}
+
 /// The cost of a split with the children's surface-area ratios
 /// `p = [P_L, P_R]` and `n_l`, `n_r`, `n_p` triangles left, right and in
 /// the plane (whole numbers, as `f64`): `λ`, the cost of each planar
@@ -384,7 +426,7 @@ mod tests {
     /// `Aabb::split` and `Aabb::surface_area`, bit for bit, on cells and
     /// planes from a small grid (faces, flat cells) and arbitrary ones.
     #[test]
-    fn axis_pricer_is_surface_area_of_the_halves() {
+    fn axis_and_cell_pricers_are_surface_area_of_the_halves() {
         let mut x = 0x9E37_79B9_7F4A_7C15u64;
         let mut next = move || {
             x ^= x << 13;
@@ -424,6 +466,10 @@ mod tests {
             let got = AxisPricer::new(&cell, sa, axis).cost(&params, pos, counts);
             assert_eq!(got.cost.to_bits(), want.cost.to_bits());
             assert_eq!(got.planar, want.planar);
+            // The per-call axis of `CellPricer` gives the same ratios.
+            let (q, q_face) = CellPricer::new(&cell, sa).ratios(axis as u32, pos);
+            assert_eq!(q.map(f64::to_bits), p.map(f64::to_bits));
+            assert_eq!(q_face, on_face);
         }
     }
 }

@@ -15,13 +15,20 @@
 //! box with a vector of positions: `n · ⌈2n / LANES⌉` vector steps per
 //! axis for `n` references, with no sort, no event list to keep in order
 //! for the children, and no data-dependent branch. Every plane is then
-//! priced in the lanes too, by the functions [`sah::AxisPricer::cost`] is
-//! made of ([`sah::AxisPricer::ratios_on`], [`sah::plane_cost`]) inlined
-//! into the loop over lanes (IEEE operations give the same bits in a lane
-//! as in a scalar register, and Rust never fuses a multiply and an add),
-//! so the costs are bit for bit [`sah::split_cost`]'s; a test holds the
-//! best split equal to one found plane by plane on every instruction set
-//! this CPU has.
+//! priced in the lanes too, by the arithmetic of [`sah::AxisPricer::cost`]
+//! ([`sah::CellPricer::ratios`], [`sah::plane_cost`]) inlined into the
+//! loop over lanes (IEEE operations give the same bits in a lane as in a
+//! scalar register, and Rust never fuses a multiply and an add), so the
+//! costs are bit for bit [`sah::split_cost`]'s; a test holds the best
+//! split equal to one found plane by plane on every instruction set this
+//! CPU has.
+//!
+//! The three axes' candidates lie packed in one array, each lane priced on
+//! its own axis, and every plane is priced before the least cost is looked
+//! for: a node of one or two references prices its planes in one vector,
+//! not three, and no branch waits on a block's costs. (Session 8: the
+//! search took 3.66 G cycles on black_forest with a vector per axis and a
+//! test of each block against the best so far; 2.40 G now.)
 //!
 //! The best split is the same as the three sweeps': [`Split::keep_best`]
 //! is a total order, so the order the planes are offered in does not
@@ -47,12 +54,15 @@ pub const LANES: usize = 16;
 /// Planes priced at once: one 512-bit vector of `f64`.
 const PRICE_LANES: usize = 8;
 
+/// Costs compared with the least at once, when its planes are looked for.
+const SCAN: usize = 32;
+
 /// The largest node the counting sweep takes.
 pub const MAX_TINY: usize = 64;
 
-/// Candidate slots per axis: at most two per box, or the faces, then NaN
-/// padding to a whole number of lanes.
-const CAND: usize = 2 * MAX_TINY + 2 + LANES;
+/// Candidate slots: at most two per box, or the faces, per axis, the three
+/// axes one after the other, then NaN padding to a whole number of lanes.
+const CAND: usize = 3 * (2 * MAX_TINY + 2) + LANES;
 
 /// A finisher's working storage for [`best_split`] (kept, so that no call
 /// fills fresh arrays), and the last node's candidates and counts, which
@@ -61,17 +71,18 @@ pub struct Scratch {
     lo: [f32; MAX_TINY],
     hi: [f32; MAX_TINY],
     flat: [f32; MAX_TINY],
-    /// Per axis: the candidate planes, then NaN padding.
-    cand: [[f32; CAND]; 3],
-    /// Per axis: each candidate's counts (left, right, planar).
-    counts: [[[i32; CAND]; 3]; 3],
-    /// Per axis: how many candidates there are.
-    nc: [usize; 3],
-    /// Per axis: each candidate's cost and whether its planar triangles
-    /// go right.
-    cost: [[f64; CAND]; 3],
-    right: [[bool; CAND]; 3],
-    /// Whether `cand`, `counts` and `nc` belong to the last node counted.
+    /// The candidate planes: axis `a`'s at `off[a]..off[a + 1]`, then NaN
+    /// padding. Packed without a gap between the axes, so that a node with
+    /// few candidates prices them all in one or two vectors.
+    cand: [f32; CAND],
+    /// Each candidate's counts (left, right, planar).
+    counts: [[i32; CAND]; 3],
+    /// Where each axis's candidates start, and where they end.
+    off: [usize; 4],
+    /// Each candidate's cost and whether its planar triangles go right.
+    cost: [f64; CAND + SCAN],
+    right: [bool; CAND],
+    /// Whether `cand`, `counts` and `off` belong to the last node counted.
     counted: bool,
 }
 
@@ -81,11 +92,11 @@ impl Default for Scratch {
             lo: [0.0; MAX_TINY],
             hi: [0.0; MAX_TINY],
             flat: [0.0; MAX_TINY],
-            cand: [[f32::NAN; CAND]; 3],
-            counts: [[[0; CAND]; 3]; 3],
-            nc: [0; 3],
-            cost: [[0.0; CAND]; 3],
-            right: [[false; CAND]; 3],
+            cand: [f32::NAN; CAND],
+            counts: [[0; CAND]; 3],
+            off: [0; 4],
+            cost: [0.0; CAND + SCAN],
+            right: [false; CAND],
             counted: false,
         }
     }
@@ -197,7 +208,8 @@ fn best_split_lanes(
     price_node(params, cell, sa, scratch, best);
 }
 
-/// Fills the scratch's candidates and counts of one axis.
+/// Fills the scratch's candidates and counts of one axis, after those of
+/// the axes before it.
 #[inline(always)]
 fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
     let n = boxes.len();
@@ -207,10 +219,11 @@ fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
         flat,
         cand,
         counts,
-        nc: ncs,
+        off,
         ..
     } = scratch;
-    let (cand, counts) = (&mut cand[axis], &mut counts[axis]);
+    let start = if axis == 0 { 0 } else { off[axis] };
+    off[axis] = start;
     // The candidates: every box's min, and its max unless the box is flat
     // there (then it is the same plane). Deep in the tree many boxes are
     // clipped to the cell, so a face of the cell is a candidate once, if
@@ -218,7 +231,7 @@ fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
     // set of planes, fewer lanes).
     let (face_lo, face_hi) = (cell.min[axis], cell.max[axis]);
     let mut on_face = [false; 2];
-    let mut nc = 0;
+    let mut nc = start;
     for (i, b) in boxes.iter().enumerate().take(MAX_TINY) {
         let (l, h) = (b[axis], b[axis + 3]);
         lo[i] = l;
@@ -235,9 +248,11 @@ fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
     nc += usize::from(on_face[0]);
     cand[nc] = face_hi;
     nc += usize::from(on_face[1]);
+    // The padding only counts nothing: the next axis's candidates (and
+    // counts) overwrite it.
     cand[nc..nc + LANES].fill(f32::NAN);
-    ncs[axis] = nc;
-    for c0 in (0..nc).step_by(LANES) {
+    off[axis + 1] = nc;
+    for c0 in (start..nc).step_by(LANES) {
         let pos: &[f32; LANES] = cand[c0..c0 + LANES].try_into().expect("LANES long");
         let got = count_lanes(&lo[..n], &hi[..n], &flat[..n], pos);
         for (dst, src) in counts.iter_mut().zip(&got) {
@@ -249,12 +264,14 @@ fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
 /// Prices the scratch's candidates of every axis in `cell`, keeping the
 /// best split in `best`.
 ///
-/// Every block of planes is priced first, into the scratch, with one
-/// running minimum in the lanes; only then are the planes of that least
-/// cost offered to `best` (ties are broken by [`Split::keep_best`]'s
-/// order). So the three axes' pricing has no branch between its blocks
-/// and overlaps, where a test of each block's least cost against the best
-/// so far made every block wait for the one before.
+/// The three axes' candidates lie packed one after the other, so a block
+/// of lanes may hold planes of two axes (each lane is priced on its own
+/// axis). Every block is priced first, into the scratch, with one running
+/// minimum in the lanes; only then are the planes of that least cost
+/// offered to `best` (ties are broken by [`Split::keep_best`]'s order). So
+/// the pricing has no branch between its blocks, where a test of each
+/// block's least cost against the best so far made every block wait for
+/// the one before.
 #[inline(always)]
 fn price_node(
     params: &SahParams,
@@ -263,61 +280,75 @@ fn price_node(
     scratch: &mut Scratch,
     best: &mut Option<Split>,
 ) {
+    let pricer = LanePricer::new(params, cell, sa);
+    let off = scratch.off;
+    let total = off[3];
     let mut least = [f64::INFINITY; PRICE_LANES];
-    for axis in 0..3 {
-        let nc = scratch.nc[axis];
-        let pricer = LanePricer::new(params, cell, sa, axis);
-        let (cand, counts) = (&scratch.cand[axis], &scratch.counts[axis]);
-        let (costs, rights) = (&mut scratch.cost[axis], &mut scratch.right[axis]);
-        // Priced [`PRICE_LANES`] at a time, so that a node with few
-        // candidates does not price a whole vector of padding.
-        for h0 in (0..nc).step_by(PRICE_LANES) {
-            let at = |k: usize| -> [i32; PRICE_LANES] {
-                counts[k][h0..h0 + PRICE_LANES]
-                    .try_into()
-                    .expect("PRICE_LANES long")
-            };
-            let counts = [at(0), at(1), at(2)];
-            let pos: &[f32; PRICE_LANES] = cand[h0..h0 + PRICE_LANES]
+    // Priced [`PRICE_LANES`] at a time, so that a node with few candidates
+    // does not price a whole vector of padding.
+    for h0 in (0..total).step_by(PRICE_LANES) {
+        let at = |k: usize| -> [i32; PRICE_LANES] {
+            scratch.counts[k][h0..h0 + PRICE_LANES]
                 .try_into()
-                .expect("PRICE_LANES long");
-            let (cost, right) = match axis {
-                0 => pricer.price::<0>(pos, &counts),
-                1 => pricer.price::<1>(pos, &counts),
-                _ => pricer.price::<2>(pos, &counts),
-            };
-            let valid = PRICE_LANES.min(nc - h0);
-            for (c, (m, &v)) in least.iter_mut().zip(&cost).enumerate() {
-                let v = if c < valid { v } else { f64::INFINITY };
-                *m = if v < *m { v } else { *m };
-            }
-            costs[h0..h0 + PRICE_LANES].copy_from_slice(&cost);
-            rights[h0..h0 + PRICE_LANES].copy_from_slice(&right);
+                .expect("PRICE_LANES long")
+        };
+        let counts = [at(0), at(1), at(2)];
+        let pos: &[f32; PRICE_LANES] = scratch.cand[h0..h0 + PRICE_LANES]
+            .try_into()
+            .expect("PRICE_LANES long");
+        let (cost, right) = pricer.price(pos, &counts, axes_of(&off, h0));
+        for (c, (m, &v)) in least.iter_mut().zip(&cost).enumerate() {
+            let v = if h0 + c < total { v } else { f64::INFINITY };
+            *m = if v < *m { v } else { *m };
         }
+        scratch.cost[h0..h0 + PRICE_LANES].copy_from_slice(&cost);
+        scratch.right[h0..h0 + PRICE_LANES].copy_from_slice(&right);
     }
     let least = least_of(least);
     if best.is_some_and(|b| least > b.cost) {
         return;
     }
-    for axis in 0..3 {
-        let (cand, costs, rights) = (
-            &scratch.cand[axis],
-            &scratch.cost[axis],
-            &scratch.right[axis],
-        );
-        for c in 0..scratch.nc[axis] {
-            if costs[c] == least {
-                let planar = if rights[c] { Side::Right } else { Side::Left };
-                Split {
-                    cost: least,
-                    axis: axis as u8,
-                    pos: cand[c],
-                    planar,
-                }
-                .keep_best(best);
+    // The slots of that cost: a vector compare per [`SCAN`] slots and a
+    // branch per slot found (mostly one), not a branch per slot.
+    for h0 in (0..total).step_by(SCAN) {
+        let cost: &[f64; SCAN] = scratch.cost[h0..h0 + SCAN].try_into().expect("SCAN long");
+        let mut hits = 0u32;
+        for (c, &v) in cost.iter().enumerate() {
+            hits |= u32::from(v == least) << c;
+        }
+        let valid = total - h0;
+        if valid < SCAN {
+            hits &= (1u32 << valid) - 1;
+        }
+        while hits != 0 {
+            let c = h0 + hits.trailing_zeros() as usize;
+            hits &= hits - 1;
+            let axis = u8::from(c >= off[1]) + u8::from(c >= off[2]);
+            let planar = if scratch.right[c] {
+                Side::Right
+            } else {
+                Side::Left
+            };
+            Split {
+                cost: least,
+                axis,
+                pos: scratch.cand[c],
+                planar,
             }
+            .keep_best(best);
         }
     }
+}
+
+/// The axis of each candidate slot `h0..h0 + PRICE_LANES` (slots past the
+/// last axis's say 2: they are padding).
+#[inline(always)]
+fn axes_of(off: &[usize; 4], h0: usize) -> [u32; PRICE_LANES] {
+    let mut axes = [0u32; PRICE_LANES];
+    for (c, a) in axes.iter_mut().enumerate() {
+        *a = u32::from(h0 + c >= off[1]) + u32::from(h0 + c >= off[2]);
+    }
+    axes
 }
 
 /// The least of the lanes, as a tree of pairwise minima, which vectorizes
@@ -355,34 +386,37 @@ fn count_lanes(lo: &[f32], hi: &[f32], flat: &[f32], pos: &[f32; LANES]) -> [[i3
     [n_l, n_r, n_p]
 }
 
-/// [`sah::AxisPricer::cost`] for a vector of planes of one cell and axis:
-/// the same two functions ([`sah::AxisPricer::ratios_on`],
+/// [`sah::AxisPricer::cost`] for a vector of planes of one cell, each on
+/// its own axis: the same two functions ([`sah::CellPricer::ratios`], which
+/// is [`sah::AxisPricer`]'s arithmetic with the axis chosen per lane, and
 /// [`sah::plane_cost`]), inlined into a loop over lanes.
 struct LanePricer<'a> {
     params: &'a SahParams,
-    exact: sah::AxisPricer,
+    exact: sah::CellPricer,
 }
 
 impl<'a> LanePricer<'a> {
     #[inline(always)]
-    fn new(params: &'a SahParams, cell: &Aabb, sa: f64, axis: usize) -> LanePricer<'a> {
+    fn new(params: &'a SahParams, cell: &Aabb, sa: f64) -> LanePricer<'a> {
         LanePricer {
             params,
-            exact: sah::AxisPricer::new(cell, sa, axis),
+            exact: sah::CellPricer::new(cell, sa),
         }
     }
 
-    /// Each plane's cost and whether its planar triangles go right.
+    /// Each plane's cost and whether its planar triangles go right; plane
+    /// `c` lies at `pos[c]` on axis `axes[c]`.
     #[inline(always)]
-    fn price<const AXIS: usize>(
+    fn price(
         &self,
         pos: &[f32; PRICE_LANES],
         counts: &[[i32; PRICE_LANES]; 3],
+        axes: [u32; PRICE_LANES],
     ) -> ([f64; PRICE_LANES], [bool; PRICE_LANES]) {
         let mut cost = [0f64; PRICE_LANES];
         let mut right = [false; PRICE_LANES];
         for c in 0..PRICE_LANES {
-            let (p, on_face) = self.exact.ratios_on::<AXIS>(pos[c]);
+            let (p, on_face) = self.exact.ratios(axes[c], pos[c]);
             let [n_l, n_r, n_p] = [0, 1, 2].map(|k| f64::from(counts[k][c]));
             (cost[c], right[c]) = sah::plane_cost(self.params, p, on_face, n_l, n_r, n_p);
         }
