@@ -213,10 +213,15 @@
 //! `tools/icount.sh` on ravenbridge (AVX2): 11.16 G → 11.28 G
 //! instructions, 1.265 G → 1.199 G branches, 64.2 M → 47.7 M
 //! mispredicted. Measured and kept as it was: the tiny threshold (48 and
-//! 64 within the noise). Measured, not yet acted on: the level passes'
-//! event partition costs about 12 ns an event on the top four levels
-//! (each event's reference looked up in a 4 MB column in position order,
-//! out of cache) against 2–3 ns below; 0.26 of its 0.68 s on 1 thread.
+//! 64 within the noise). Tried and dropped: the level passes' event
+//! partition costs about 12 ns an event on the top four levels against
+//! 2–3 ns below (0.2–0.26 of its 0.6–0.7 s on 1 thread), so each event's
+//! new index, looked up in a 4 MB column in position order, looked like a
+//! cache miss. Ranks in bit masks (half a byte a reference, in cache:
+//! left, right and straddler masks per 64 references with the counts
+//! before them) made the partition slower on every level (3 alternating
+//! runs: top four levels 0.20–0.25 → 0.24–0.30 s, the rest 0.41–0.52 →
+//! 0.63–0.65 s): the popcounts and selects cost more than the misses.
 //!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
