@@ -187,14 +187,20 @@ pub struct Scratch {
 /// `u64::MAX`) buffers are made to measure instead, since a pooled column
 /// counts against the budget with its whole capacity.
 ///
-/// Measured (session 8, 2 threads, one run each unless said): stk_all
-/// (6.2 M triangles) without a budget 18.5 → 17.2 s, page faults 2.83 M →
-/// 0.74 M, peak RssAnon 1094 → 1234 MiB; with `--mem-budget 1G` 19.8 →
-/// 17.1 s, faults 2.84 M → 1.79 M, RssAnon 1122 → 1104 MiB, nothing
-/// spilled either way. Black_forest: the level passes' event phase 0.54–
-/// 0.58 → 0.46–0.49 s (minima of two batches of 5), the build unchanged
-/// on 2 threads (medians 2.82 and 2.81 s), the whole process on 1 thread
-/// 5.49–5.71 → 5.23–5.38 s with `time`'s maxrss 357 → 253 MB.
+/// The level builder asks for its columns with
+/// [`Scratch::column_for_overwrite`], so reused memory is not zeroed
+/// first (a fresh buffer is zeroed lazily by the system, page by page, as
+/// the parallel passes first write it).
+///
+/// Measured against session 8's start (2 threads, 2 alternating runs
+/// each): stk_all (6.2 M triangles) without a budget 18.9 / 20.8 → 16.3 /
+/// 15.5 s, page faults 2.83 M → 0.74 M, peak RssAnon 1095 → 1234 MiB;
+/// with `--mem-budget 1G` 19.8 / 19.7 → 17.8 / 18.2 s, faults 2.83 M →
+/// 1.79 M, RssAnon 1117 → 1102 MiB, nothing spilled either way. On
+/// black_forest the level passes' event phase went 0.65 → 0.50 s (minima
+/// of 5). Zeroing reused buffers (a first version) gave back most of it
+/// on stk_all under the budget: the classify phase, which makes three
+/// columns, went 2.4 → 3.0 s.
 #[derive(Debug, Default)]
 struct Pool {
     /// Buffers of `u64`s, so that any `Pod` type of alignment up to 8 can
@@ -288,6 +294,30 @@ impl Scratch {
 
     /// A zeroed column of `len` elements; `name` goes into the file name.
     pub fn column<T: Pod>(&self, name: &str, len: usize) -> Result<Column<'_, T>, ColumnsError> {
+        self.make(name, len, true)
+    }
+
+    /// A column of `len` elements whose contents are unspecified: zeros,
+    /// or a dropped column's bytes where it reuses that memory (any bytes
+    /// are a valid `T`, which is `Pod`). For a caller that writes every
+    /// element before it reads it, so that reused memory is not zeroed
+    /// first: each level of the level builder rewrites hundreds of MB on
+    /// large scenes. Debug builds fill reused memory with `0xA5` bytes
+    /// instead, so that an element read before it is written shows.
+    pub fn column_for_overwrite<T: Pod>(
+        &self,
+        name: &str,
+        len: usize,
+    ) -> Result<Column<'_, T>, ColumnsError> {
+        self.make(name, len, false)
+    }
+
+    fn make<T: Pod>(
+        &self,
+        name: &str,
+        len: usize,
+        zeroed: bool,
+    ) -> Result<Column<'_, T>, ColumnsError> {
         let bytes = (len as u64).saturating_mul(size_of::<T>() as u64);
         // Reserve the bytes against the budget first; give them back when
         // they do not fit, so concurrent allocations never overshoot it.
@@ -299,7 +329,7 @@ impl Scratch {
                 .is_some_and(|b| b <= self.config.mem_budget)
         {
             if bytes >= Pool::MIN_BYTES && align_of::<T>() <= 8 {
-                let v = self.words(bytes.div_ceil(8) as usize, before);
+                let v = self.words(bytes.div_ceil(8) as usize, before, zeroed);
                 // A pooled buffer counts with its whole capacity: the
                 // pages an earlier column touched past this one's end
                 // stay resident.
@@ -363,10 +393,11 @@ impl Scratch {
 }
 
 impl Scratch {
-    /// `words` zeroed `u64`s, in a pooled buffer where one fits; else a
-    /// fresh one, after dropping kept buffers until the RAM columns alive
-    /// (`alive` bytes besides this one), the pool and it fit the budget.
-    fn words(&self, words: usize, alive: u64) -> Vec<u64> {
+    /// `words` `u64`s, in a pooled buffer where one fits (zeroed if
+    /// `zeroed`, else as it was); else fresh zeroed ones, after dropping
+    /// kept buffers until the RAM columns alive (`alive` bytes besides
+    /// this one), the pool and it fit the budget.
+    fn words(&self, words: usize, alive: u64, zeroed: bool) -> Vec<u64> {
         // Under a budget a buffer is made to measure: the headroom would
         // count against the budget and send other columns to files.
         let capacity = if self.config.mem_budget == u64::MAX {
@@ -387,20 +418,28 @@ impl Scratch {
         });
         match reused {
             Some(mut v) => {
-                v.clear();
+                if zeroed {
+                    v.clear();
+                }
                 // A buffer of a larger column (levels shrink once the
                 // finisher takes their nodes) gives its pages past the
                 // headroom back to the system, so that a shrinking level
                 // keeps no more memory than a fresh buffer would.
+                v.truncate(words);
                 if v.capacity() > capacity {
                     v.shrink_to(capacity);
                 }
                 v.resize(words, 0);
+                if !zeroed && cfg!(debug_assertions) {
+                    v.fill(0xA5A5_A5A5_A5A5_A5A5);
+                }
                 v
             }
             None => {
-                let mut v = Vec::with_capacity(capacity);
-                v.resize(words, 0);
+                // Zeroed by the system as its pages are first touched
+                // (by the parallel passes that fill the column), not here.
+                let mut v = vec![0u64; capacity];
+                v.truncate(words);
                 v
             }
         }
@@ -770,6 +809,27 @@ mod tests {
         // Released, the pool hands out nothing kept.
         s.release_pool();
         assert!(s.pool.lock().unwrap().free.is_empty());
+    }
+
+    /// A column for overwriting reuses a dropped buffer without zeroing it
+    /// (in a release build; a debug build fills it with `0xA5`).
+    #[test]
+    fn overwrite_columns_reuse_without_zeroing() {
+        let s = Scratch::new(ScratchConfig::default()).unwrap();
+        let n = (Pool::MIN_BYTES / 4) as usize;
+        let mut a = s.column::<u32>("a", n).unwrap();
+        a.fill(7);
+        let at = a.as_ptr() as usize;
+        drop(a);
+        let b = s.column_for_overwrite::<u32>("b", n).unwrap();
+        assert_eq!(b.as_ptr() as usize, at);
+        assert_eq!(b.len(), n);
+        let want = if cfg!(debug_assertions) {
+            0xA5A5_A5A5
+        } else {
+            7
+        };
+        assert!(b.iter().all(|&x| x == want));
     }
 
     /// Under a budget the pool keeps a buffer only while it and the RAM

@@ -811,8 +811,8 @@ impl<'a> Builder<'a> {
         let scene = self.scene;
         let n = scene.len();
         Self::capacity(n)?;
-        let mut tri = self.scratch.column::<u32>("tri", n)?;
-        let mut boxes = self.scratch.column::<Box6>("bounds", n)?;
+        let mut tri = self.scratch.column_for_overwrite::<u32>("tri", n)?;
+        let mut boxes = self.scratch.column_for_overwrite::<Box6>("bounds", n)?;
         tri.par_iter_mut()
             .zip(boxes.par_iter_mut())
             .enumerate()
@@ -835,8 +835,8 @@ impl<'a> Builder<'a> {
         let mut cols = Vec::with_capacity(3);
         for (axis, nev) in nev.iter_mut().enumerate() {
             *nev = boxes.par_iter().map(|b| n_events(b, axis)).sum();
-            let a = self.scratch.column::<u64>("ev", *nev)?;
-            let b = self.scratch.column::<u64>("ev", *nev)?;
+            let a = self.scratch.column_for_overwrite::<u64>("ev", *nev)?;
+            let b = self.scratch.column_for_overwrite::<u64>("ev", *nev)?;
             cols.push((a, b));
         }
         let boxes_ref = &boxes;
@@ -978,7 +978,9 @@ impl<'a> Builder<'a> {
             .map(|&(j, _)| (l.nodes[j].refs, l.nodes[j].n))
             .collect();
         let rpieces = pieces(&rsegs, PIECE, |_| true);
-        let mut place = self.scratch.column::<u8>("place", l.tri.len())?;
+        let mut place = self
+            .scratch
+            .column_for_overwrite::<u8>("place", l.tri.len())?;
         let classified = self.classify_pass(l, &splits, &rsegs, &rpieces, &mut place);
         self.report.clipped += classified
             .iter()
@@ -1037,9 +1039,13 @@ impl<'a> Builder<'a> {
             }
         }
         Self::capacity(refs_at)?;
-        let mut tri = self.scratch.column::<u32>("tri", refs_at)?;
-        let mut boxes = self.scratch.column::<Box6>("bounds", refs_at)?;
-        let mut new_idx = self.scratch.column::<u32>("new-idx", l.tri.len())?;
+        let mut tri = self.scratch.column_for_overwrite::<u32>("tri", refs_at)?;
+        let mut boxes = self
+            .scratch
+            .column_for_overwrite::<Box6>("bounds", refs_at)?;
+        let mut new_idx = self
+            .scratch
+            .column_for_overwrite::<u32>("new-idx", l.tri.len())?;
         let copies = write_children(
             l,
             &place,
@@ -1059,7 +1065,7 @@ impl<'a> Builder<'a> {
         // 5. Child events.
         let mut ev = Vec::with_capacity(3);
         for &len in &ev_at {
-            ev.push(self.scratch.column::<u64>("ev", len)?);
+            ev.push(self.scratch.column_for_overwrite::<u64>("ev", len)?);
         }
         let mut ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
         partition_events(l, &splits, &place, &new_idx, &next_nodes, &mut ev);
