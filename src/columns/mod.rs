@@ -25,8 +25,10 @@
 //! - Every error names the path it is about.
 //! - Large RAM columns are reused: a dropped one's memory goes to the
 //!   scratch's pool and the next column it fits is made in it (zeroed
-//!   again), so each level of the level builder writes into the memory of
-//!   the level before last instead of fresh pages (see `Pool`).
+//!   again for [`Scratch::column`]; left as it was for
+//!   [`Scratch::column_for_overwrite`]), so each level of the level
+//!   builder writes into the memory of the level before last instead of
+//!   fresh pages (see `Pool`).
 
 use bytemuck::Pod;
 use memmap2::MmapMut;

@@ -225,7 +225,13 @@
 //! What the top levels do wait on is fresh pages: a page fault costs
 //! 1.8–4.3 µs on this machine, and each level's columns were fresh
 //! memory. Large columns now reuse the memory of dropped ones (the pool
-//! of [`crate::columns`]). Tried and dropped for it: glibc's `mallopt`
+//! of [`crate::columns`]), unzeroed (`column_for_overwrite`: every
+//! column here is written whole before it is read). Session 8 in all,
+//! against its start, alternating runs, medians: black_forest 3.08 →
+//! 2.96 s on 2 threads and 5.27 → 4.97 s on 1 (one batch), 3.61 → 3.22 s
+//! and 5.46 → 5.27 s (another); stk_all 18.9 / 20.8 → 16.3 / 15.5 s
+//! without a budget and 19.8 / 19.7 → 17.8 / 18.2 s with 1 GiB. Tried and
+//! dropped for it: glibc's `mallopt`
 //! (one arena, no `mmap` below 1 GiB, no trimming), which cut
 //! black_forest's page faults from 230 K to 84 K but kept every freed
 //! level in the heap: stk_all peaked at 1.8 GiB of RssAnon.
