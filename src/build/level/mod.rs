@@ -227,9 +227,8 @@
 //! memory. Large columns now reuse the memory of dropped ones (the pool
 //! of [`crate::columns`]), unzeroed (`column_for_overwrite`: every
 //! column here is written whole before it is read). Session 8 in all,
-//! against its start, alternating runs, medians: black_forest 3.08 →
-//! 2.96 s on 2 threads and 5.27 → 4.97 s on 1 (one batch), 3.61 → 3.22 s
-//! and 5.46 → 5.27 s (another); stk_all 18.9 / 20.8 → 16.3 / 15.5 s
+//! against its start, alternating runs, medians: black_forest 3.61 →
+//! 3.22 s on 2 threads (5 runs) and 5.46 → 5.27 s on 1 (3 runs); stk_all 18.9 / 20.8 → 16.3 / 15.5 s
 //! without a budget and 19.8 / 19.7 → 17.8 / 18.2 s with 1 GiB. Tried and
 //! dropped for it: glibc's `mallopt`
 //! (one arena, no `mmap` below 1 GiB, no trimming), which cut
