@@ -196,11 +196,12 @@ pub struct Scratch {
 ///
 /// Measured against session 8's start (2 threads, 2 alternating runs
 /// each): stk_all (6.2 M triangles) without a budget 18.9 / 20.8 → 16.3 /
-/// 15.5 s, page faults 2.83 M → 0.74 M, peak RssAnon 1095 → 1234 MiB;
+/// 15.5 s, page faults 2.83 M → 0.74 M, peak RssAnon 1095 → 1234 MiB
+/// (1190 MiB with the headroom an eighth);
 /// with `--mem-budget 1G` 19.8 / 19.7 → 17.8 / 18.2 s, faults 2.83 M →
 /// 1.79 M, RssAnon 1117 → 1102 MiB, nothing spilled either way. On
 /// black_forest the level passes' event phase went 0.65 → 0.50 s (minima
-/// of 5). Zeroing reused buffers (a first version) gave back most of it
+/// of 5) and its peak RssAnon 342–392 → 229 MiB. Zeroing reused buffers (a first version) gave back most of it
 /// on stk_all under the budget: the classify phase, which makes three
 /// columns, went 2.4 → 3.0 s.
 #[derive(Debug, Default)]
@@ -215,8 +216,10 @@ struct Pool {
 impl Pool {
     const MIN_BYTES: u64 = 1 << 20;
     const MAX_BUFFERS: usize = 16;
-    /// A fresh buffer's capacity over the request, in quarters.
-    const HEADROOM: usize = 5;
+    /// A fresh buffer's capacity over the request, in eighths. (Five
+    /// quarters made the same page faults on stk_all and black_forest,
+    /// with 3.5% more peak RssAnon on stk_all: 1234 against 1190 MiB.)
+    const HEADROOM: usize = 9;
 
     /// The smallest buffer of at least `words`, if one is kept; else makes
     /// room for a new one by dropping the buffers smaller than `words`.
@@ -403,7 +406,7 @@ impl Scratch {
         // Under a budget a buffer is made to measure: the headroom would
         // count against the budget and send other columns to files.
         let capacity = if self.config.mem_budget == u64::MAX {
-            words / 4 * Pool::HEADROOM + 1
+            words / 8 * Pool::HEADROOM + 1
         } else {
             words
         };
