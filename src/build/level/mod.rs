@@ -233,7 +233,13 @@
 //! dropped for it: glibc's `mallopt`
 //! (one arena, no `mmap` below 1 GiB, no trimming), which cut
 //! black_forest's page faults from 230 K to 84 K but kept every freed
-//! level in the heap: stk_all peaked at 1.8 GiB of RssAnon.
+//! level in the heap: stk_all peaked at 1.8 GiB of RssAnon. Also tried
+//! and dropped: the finisher merging each side's sorted new events in
+//! during its partition (every event written once; `merge_back` and the
+//! sorts cost 1.25 G cycles on black_forest on 1 thread, the finisher's
+//! merges 0.48 G of it), which was no faster (1 thread 5.07 → 5.06 s,
+//! 2 threads 2.71 → 2.76 s, medians of 3 and 5): the branch per kept
+//! event costs what the moves did.
 //!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
