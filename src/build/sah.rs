@@ -231,26 +231,27 @@ impl CellPricer {
     /// any other value), and whether it lies on a face of the cell.
     #[inline(always)]
     pub fn ratios(&self, axis: u32, pos: f32) -> ([f64; 2], bool) {
-        let [a0, a1, a2] = &self.0;
-        let pick = |f: fn(&AxisPricer) -> f64| match axis {
-            0 => f(a0),
-            1 => f(a1),
-            _ => f(a2),
-        };
-        let pick32 = |f: fn(&AxisPricer) -> f32| match axis {
-            0 => f(a0),
-            1 => f(a1),
-            _ => f(a2),
-        };
+        /// Element `axis` (the last for any larger value), by selects.
+        #[inline(always)]
+        fn pick<T: Copy>(axis: u32, v: [T; 3]) -> T {
+            match axis {
+                0 => v[0],
+                1 => v[1],
+                _ => v[2],
+            }
+        }
+        let a = &self.0;
         let x = f64::from(pos);
-        let (lo, hi) = (pick(|a| a.lo), pick(|a| a.hi));
-        let (l, r) = (x - lo, hi - x);
-        // Every pricer holds the cell's extents.
-        let d = a0.d;
-        let at = |k: u32, v: f64| [0, 1, 2].map(|j| if j == k.min(2) { v } else { d[j as usize] });
-        let p_l = AxisPricer::area(at(axis, l)) / a0.sa;
-        let p_r = AxisPricer::area(at(axis, r)) / a0.sa;
-        let on_face = pos == pick32(|a| a.lo32) || pos == pick32(|a| a.hi32);
+        let (l, r) = (
+            x - pick(axis, a.map(|a| a.lo)),
+            pick(axis, a.map(|a| a.hi)) - x,
+        );
+        // Every pricer holds the cell's extents and surface area.
+        let (d, sa) = (a[0].d, a[0].sa);
+        let with = |v: f64| [0, 1, 2].map(|j| if j == axis.min(2) { v } else { d[j as usize] });
+        let p_l = AxisPricer::area(with(l)) / sa;
+        let p_r = AxisPricer::area(with(r)) / sa;
+        let on_face = pos == pick(axis, a.map(|a| a.lo32)) || pos == pick(axis, a.map(|a| a.hi32));
         ([p_l, p_r], on_face)
     }
 }

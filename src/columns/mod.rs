@@ -221,27 +221,29 @@ impl Pool {
     /// with 3.5% more peak RssAnon on stk_all: 1234 against 1190 MiB.)
     const HEADROOM: usize = 9;
 
-    /// The smallest buffer of at least `words`, if one is kept; else makes
-    /// room for a new one by dropping the buffers smaller than `words`.
+    /// The smallest buffer of at least `words`, if one is kept.
     fn take(&mut self, words: usize) -> Option<Vec<u64>> {
-        let best = self
+        let i = self
             .free
             .iter()
             .enumerate()
             .filter(|(_, b)| b.capacity() >= words)
-            .min_by_key(|(_, b)| b.capacity())
-            .map(|(i, _)| i);
-        match best {
-            Some(i) => {
-                let b = self.free.swap_remove(i);
-                self.bytes -= Self::bytes_of(&b);
-                Some(b)
-            }
-            None => {
-                self.free.retain(|b| b.capacity() >= words);
-                self.bytes = self.free.iter().map(Self::bytes_of).sum();
-                None
-            }
+            .min_by_key(|(_, b)| b.capacity())?
+            .0;
+        let b = self.free.swap_remove(i);
+        self.bytes -= Self::bytes_of(&b);
+        Some(b)
+    }
+
+    /// Makes room for a fresh buffer of `words` that no kept one fits:
+    /// drops the kept buffers smaller than it, then more until the pool
+    /// holds at most `room` bytes.
+    fn make_room(&mut self, words: usize, room: u64) {
+        self.free.retain(|b| b.capacity() >= words);
+        self.bytes = self.free.iter().map(Self::bytes_of).sum();
+        while self.bytes > room {
+            let b = self.free.pop().expect("bytes are held");
+            self.bytes -= Self::bytes_of(&b);
         }
     }
 
@@ -395,9 +397,7 @@ impl Scratch {
             scratch: self,
         })
     }
-}
 
-impl Scratch {
     /// `words` `u64`s, in a pooled buffer where one fits (zeroed if
     /// `zeroed`, else as it was); else fresh zeroed ones, after dropping
     /// kept buffers until the RAM columns alive (`alive` bytes besides
@@ -414,10 +414,7 @@ impl Scratch {
             let got = p.take(words);
             if got.is_none() {
                 let need = alive.saturating_add(capacity as u64 * 8);
-                while !p.free.is_empty() && need.saturating_add(p.bytes) > self.config.mem_budget {
-                    let b = p.free.pop().expect("not empty");
-                    p.bytes -= Pool::bytes_of(&b);
-                }
+                p.make_room(words, self.config.mem_budget.saturating_sub(need));
             }
             got
         });

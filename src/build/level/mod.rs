@@ -1228,6 +1228,8 @@ impl<'a> Builder<'a> {
     ) -> Vec<Classified> {
         let scene = self.scene;
         let place = ScatterSlice::new(place);
+        // Sliced once: a column's `Deref` matches on where it lives.
+        let (tris, bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
         rpieces
             .par_iter()
             .map(|p| {
@@ -1239,7 +1241,7 @@ impl<'a> Builder<'a> {
                     let mut c = SideCounts::default();
                     for i in p.range(rsegs[si]) {
                         let (code, straddler) =
-                            classify_ref(scene, l.tri[i], &l.bounds[i], &split, &lc, &rc, &mut c);
+                            classify_ref(scene, tris[i], &bounds[i], &split, &lc, &rc, &mut c);
                         if let Some((lb, rb)) = straddler {
                             clipped.push((i as u32, lb, rb));
                         }
@@ -1564,6 +1566,8 @@ fn write_children(
     let tri = ScatterSlice::new(tri);
     let boxes = ScatterSlice::new(boxes);
     let new_idx = ScatterSlice::new(new_idx);
+    // Sliced once: a column's `Deref` matches on where it lives.
+    let (l_tri, l_bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
     let copies: Vec<Vec<u64>> = rpieces
         .par_iter()
         .zip(classified.par_iter())
@@ -1591,8 +1595,8 @@ fn write_children(
                         // child's start: distinct for every reference of
                         // every piece. `i` lies in this piece's range.
                         unsafe {
-                            tri.write(d, l.tri[i]);
-                            boxes.write(d, l.bounds[i]);
+                            tri.write(d, l_tri[i]);
+                            boxes.write(d, l_bounds[i]);
                             new_idx.write(i, d as u32 | (side as u32) << 31);
                         }
                     } else {
@@ -1606,7 +1610,7 @@ fn write_children(
                                 at[side] += 1;
                                 // SAFETY: as above.
                                 unsafe {
-                                    tri.write(d, l.tri[i]);
+                                    tri.write(d, l_tri[i]);
                                     boxes.write(d, to_box(&cb));
                                 }
                                 let child = [cl, cr][side];

@@ -200,6 +200,7 @@ fn best_split_lanes(
     best: &mut Option<Split>,
 ) {
     if which == Boxes::Count {
+        scratch.off[0] = 0;
         for axis in 0..3 {
             count_axis(cell, boxes, axis, scratch);
         }
@@ -222,8 +223,7 @@ fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
         off,
         ..
     } = scratch;
-    let start = if axis == 0 { 0 } else { off[axis] };
-    off[axis] = start;
+    let start = off[axis];
     // The candidates: every box's min, and its max unless the box is flat
     // there (then it is the same plane). Deep in the tree many boxes are
     // clipped to the cell, so a face of the cell is a candidate once, if
@@ -296,7 +296,8 @@ fn price_node(
         let pos: &[f32; PRICE_LANES] = scratch.cand[h0..h0 + PRICE_LANES]
             .try_into()
             .expect("PRICE_LANES long");
-        let (cost, right) = pricer.price(pos, &counts, axes_of(&off, h0));
+        let axes = std::array::from_fn(|c| axis_of(&off, h0 + c));
+        let (cost, right) = pricer.price(pos, &counts, axes);
         for (c, (m, &v)) in least.iter_mut().zip(&cost).enumerate() {
             let v = if h0 + c < total { v } else { f64::INFINITY };
             *m = if v < *m { v } else { *m };
@@ -323,7 +324,7 @@ fn price_node(
         while hits != 0 {
             let c = h0 + hits.trailing_zeros() as usize;
             hits &= hits - 1;
-            let axis = u8::from(c >= off[1]) + u8::from(c >= off[2]);
+            let axis = axis_of(&off, c) as u8;
             let planar = if scratch.right[c] {
                 Side::Right
             } else {
@@ -340,15 +341,11 @@ fn price_node(
     }
 }
 
-/// The axis of each candidate slot `h0..h0 + PRICE_LANES` (slots past the
-/// last axis's say 2: they are padding).
+/// The axis of candidate slot `c` (slots past the last axis's say 2:
+/// they are padding).
 #[inline(always)]
-fn axes_of(off: &[usize; 4], h0: usize) -> [u32; PRICE_LANES] {
-    let mut axes = [0u32; PRICE_LANES];
-    for (c, a) in axes.iter_mut().enumerate() {
-        *a = u32::from(h0 + c >= off[1]) + u32::from(h0 + c >= off[2]);
-    }
-    axes
+fn axis_of(off: &[usize; 4], c: usize) -> u32 {
+    u32::from(c >= off[1]) + u32::from(c >= off[2])
 }
 
 /// The least of the lanes, as a tree of pairwise minima, which vectorizes
