@@ -337,6 +337,42 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
     std::fs::remove_dir_all(dir).unwrap();
 }
 
+/// The processor time the report gives moves with the work done: a
+/// counter read from the wrong field of `/proc/self/stat` would stand
+/// still (or count something else entirely).
+#[test]
+fn the_report_counts_processor_time() {
+    let Some(start) = level::cpu_seconds() else {
+        // No `/proc` here: the report says 0, which the CLI leaves out.
+        return;
+    };
+    // Busy on this thread until the process has used 50 ms more.
+    let begun = std::time::Instant::now();
+    let mut x = 1u64;
+    while level::cpu_seconds().unwrap() < start + 0.05 {
+        for _ in 0..100_000 {
+            x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+        }
+        assert!(
+            begun.elapsed().as_secs() < 30,
+            "processor time stood still at {start} s"
+        );
+    }
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    let (_, report) = level::build(
+        &scene,
+        &BuildConfig::default(),
+        None,
+        &LevelOptions::default(),
+    )
+    .unwrap();
+    assert!(
+        report.cpu_s > 0.0,
+        "a 35 K-triangle build took no processor time"
+    );
+}
+
 #[test]
 fn progress_reaches_the_total() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");

@@ -612,6 +612,13 @@ fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
             p.small_s,
             p.setup_s + p.assemble_s
         );
+        if r.cpu_s > 0.0 {
+            println!(
+                "           processor time {:.3} s: {:.2} cores busy on average",
+                r.cpu_s,
+                r.cpu_s / built.std_seconds
+            );
+        }
         println!(
             "           peak RssAnon {:.1} MiB (start {:.1} MiB), peak RssFile {:.1} MiB, scratch written {:.1} MiB",
             r.peak_rss_anon_bytes as f64 / (1 << 20) as f64,
@@ -686,6 +693,7 @@ fn build_json(
             "peak_rss_anon_bytes": r.peak_rss_anon_bytes,
             "peak_rss_file_bytes": r.peak_rss_file_bytes,
             "scratch_bytes_written": r.scratch.file_bytes_total,
+            "cpu_s": r.cpu_s,
         })),
         // The builder's figure; `build` replaces it with the whole command's.
         "peak_rss_anon_bytes": built.level.as_ref().map_or_else(rss_anon_bytes, |r| r.peak_rss_anon_bytes),

@@ -241,6 +241,51 @@
 //! 2 threads 2.71 → 2.76 s, medians of 3 and 5): the branch per kept
 //! event costs what the moves did.
 //!
+//! Session 9 changed no code path; it measured where black_forest's time
+//! goes and tried seven changes, none faster beyond the noise. On 2
+//! threads the build keeps 1.84–1.85 cores busy (processor time 5.3–5.9 s
+//! against 2.9–3.2 s of wall time, `cpu_s` in the report), so what stands
+//! between it and 1 s is work, not idle time. The work, 1 thread, `rdtsc`
+//! (2.6 GHz) around each part, one run of 4.7 s:
+//! - the finisher's 260 K nodes with events (23.0 M references, 116 M
+//!   events): sweeps 1.02 G ticks, classify and clip 1.05 G, the children's
+//!   lists 1.48 G (the clipped copies' events made and sorted 0.47 G, the
+//!   partition 0.41 G, the merges 0.48 G);
+//! - its 5.05 M tiny nodes (3.18 M split searches, 0.96 M of them pricing a
+//!   parent's counts again at about 330 ticks each): searches 2.1–2.2 G,
+//!   classify, clip and write 1.9 G, of which 5.0 M clips take 1.27 G
+//!   (about 255 ticks, 98 ns, each; 122–129 ns each in a loop over 2 M of
+//!   the same clips alone);
+//! - the level passes: 22 levels, the first 13 with about 1.09 M
+//!   references and 6.5 M events each; per event, SAH about 4 ns,
+//!   partition 4–5 ns (its counting pass 1.1 ns, its writes 3.6 ns), the
+//!   merge of the new events 1–2 ns. Root setup is mostly first touches of
+//!   its six fresh 17 MB event columns (about 20 ms an axis to generate).
+//!
+//! Tried in session 9 and dropped (same trees; alternating runs, medians):
+//! - placement without a branch on the side (`classify` without a `match`,
+//!   a one-sided reference written to both sides and counted by its
+//!   flags): `tools/icount.sh` on ravenbridge 10.84 → 11.31 G
+//!   instructions and 48.9 → 43.9 M mispredicted, black_forest 4.71 →
+//!   4.81 s on 1 thread (3 runs) and 2.76 → 2.81 s on 2 (5 runs);
+//! - a de-indexed copy of the triangles (36 bytes each) for clipping: the
+//!   tiny nodes' clips took the same cycles (1.31 G, 1.28 G), so a clip
+//!   does not wait on its vertices;
+//! - pricing without its two divisions (a timing probe, wrong costs): the
+//!   tiny searches' cycles per node did not move, so pricing is not bound
+//!   by division;
+//! - transparent huge pages for the heap (`GLIBC_TUNABLES=glibc.malloc.hugetlb=1`):
+//!   page faults 123 K → 51 K and 1 thread 5.07 → 4.82 s (3 runs), but 2
+//!   threads 3.26 → 3.27 s (5 runs) with root setup 0.15 → 0.31 s (with
+//!   `defrag` at `madvise`, an advised region's fault compacts memory
+//!   synchronously);
+//! - root setup's radix sort parallel within an axis (per-chunk digit
+//!   offsets, stable): setup on 2 threads 0.167 → 0.162 s (7 runs);
+//! - fat LTO with one codegen unit: 2.615 → 2.613 s on 2 threads, 4.715 →
+//!   4.814 s on 1, for a minute more of compiling;
+//! - small thresholds 512, 2048, 16384 and 131072: processor time 5.01,
+//!   4.79, 4.82 and 4.64 s on 1 thread, within the noise.
+//!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
 //! bound already prunes cheaply: that block still visited every plane,
@@ -433,6 +478,12 @@ pub struct LevelReport {
     pub peak_rss_file_bytes: u64,
     /// Bytes of RAM columns and scratch files.
     pub scratch: ScratchStats,
+    /// Processor time (user and system, all threads) the process spent
+    /// during the build, from `/proc/self/stat` (0 where it cannot be
+    /// read; the kernel counts it in ticks of 10 ms). Divided by the
+    /// build's wall time, it is the number of cores kept busy on average:
+    /// how far a build on more threads is from perfect scaling.
+    pub cpu_s: f64,
 }
 
 /// Builds the standard tree breadth-first; see the module docs.
@@ -448,6 +499,7 @@ pub fn build(
         scratch_limit: options.scratch_limit,
     })?;
     let start_rss = rss();
+    let start_cpu = cpu_seconds();
     let mut b = Builder {
         scene,
         config,
@@ -483,6 +535,10 @@ pub fn build(
     b.sample_rss();
     let mut report = b.report;
     report.scratch = scratch.stats();
+    report.cpu_s = match (start_cpu, cpu_seconds()) {
+        (Some(start), Some(end)) => (end - start).max(0.0),
+        _ => 0.0,
+    };
     Ok((tree, report))
 }
 
@@ -491,6 +547,21 @@ fn lap(clock: &mut Instant) -> f64 {
     let s = now.duration_since(*clock).as_secs_f64();
     *clock = now;
     s
+}
+
+/// This process's processor time so far (user and system, every thread),
+/// in seconds, from `/proc/self/stat`; `None` where it cannot be read.
+pub fn cpu_seconds() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name (field 2) is in parentheses and may hold spaces, so
+    // the fields are counted from the last `)`: there `state` is field 3,
+    // `utime` field 14 and `stime` field 15, in clock ticks (`USER_HZ`,
+    // 100 a second on Linux whatever the kernel's own tick rate).
+    let rest = &text[text.rfind(')')? + 1..];
+    let mut fields = rest.split_whitespace().skip(11);
+    let utime: u64 = fields.next()?.parse().ok()?;
+    let stime: u64 = fields.next()?.parse().ok()?;
+    Some((utime + stime) as f64 / 100.0)
 }
 
 /// This process's `RssAnon` and `RssFile` in bytes, from
