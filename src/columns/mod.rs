@@ -422,12 +422,13 @@ impl Scratch {
             Some(mut v) => {
                 if zeroed {
                     v.clear();
+                } else {
+                    v.truncate(words);
                 }
                 // A buffer of a larger column (levels shrink once the
                 // finisher takes their nodes) gives its pages past the
                 // headroom back to the system, so that a shrinking level
                 // keeps no more memory than a fresh buffer would.
-                v.truncate(words);
                 if v.capacity() > capacity {
                     v.shrink_to(capacity);
                 }

@@ -535,10 +535,9 @@ pub fn build(
     b.sample_rss();
     let mut report = b.report;
     report.scratch = scratch.stats();
-    report.cpu_s = match (start_cpu, cpu_seconds()) {
-        (Some(start), Some(end)) => (end - start).max(0.0),
-        _ => 0.0,
-    };
+    report.cpu_s = start_cpu
+        .zip(cpu_seconds())
+        .map_or(0.0, |(start, end)| end - start);
     Ok((tree, report))
 }
 
