@@ -251,3 +251,38 @@ fn tiny_threshold_writes_the_same_file() {
     assert!(!bad.exists());
     std::fs::remove_dir_all(dir).unwrap();
 }
+
+/// A camera that defines no rays (`up` along the view direction, `eye` on
+/// `at`) is an error naming the cause, not an image of NaN rays that all
+/// miss; and no image is written.
+#[test]
+fn render_refuses_a_degenerate_camera() {
+    let dir = tmp_dir("camera");
+    let png = dir.join("x.png");
+    let png_s = png.to_str().unwrap();
+    for (eye, at, up, what) in [
+        ("0,5,0", "0,0,0", "0,1,0", "parallel"),
+        ("1,2,3", "1,2,3", "0,1,0", "same point"),
+        ("0,0,5", "0,0,0", "0,0,0", "zero"),
+    ] {
+        let out = slimkd(&[
+            "render", "default", "--eye", eye, "--at", at, "--up", up, "--size", "8x8", "-o", png_s,
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains(what), "{err}");
+        assert!(!png.exists());
+    }
+    // The same views with a usable up render.
+    let out = slimkd(&[
+        "render", "default", "--eye", "0,5,0", "--at", "0,0,0", "--up", "0,0,1", "--size", "8x8",
+        "-o", png_s,
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(png.exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -1120,6 +1120,7 @@ fn camera_for(args: &RenderArgs, scene_path: &Path, bounds: &slimkd::geom::Aabb)
         }
         cam.fov_deg = v;
     }
+    cam.check()?;
     Ok(cam)
 }
 

@@ -86,6 +86,44 @@ impl Camera {
         }
     }
 
+    /// Whether the camera defines rays: finite vectors, `eye ≠ at`, an
+    /// `up` that is not parallel to the view direction, `0 < fov < 180`
+    /// and a non-empty image. The error says which fails. Without this a
+    /// degenerate camera gives NaN directions, and every ray misses.
+    ///
+    /// `up` counts as parallel when the sine of its angle to the view
+    /// direction is below `1e-9`: the right vector would then be mostly
+    /// rounding error, so the image would depend on the last bits of the
+    /// inputs (decided here; pbrt's `LookAt` likewise refuses a parallel
+    /// `up`).
+    pub fn check(&self) -> Result<(), String> {
+        let finite = |v: DVec3| v.x.is_finite() && v.y.is_finite() && v.z.is_finite();
+        if !(finite(self.eye) && finite(self.at) && finite(self.up)) {
+            return Err("the camera's eye, at and up must be finite".into());
+        }
+        if !(self.fov_deg > 0.0 && self.fov_deg < 180.0) {
+            return Err(format!("fov {} is not in (0, 180)", self.fov_deg));
+        }
+        if self.width == 0 || self.height == 0 {
+            return Err(format!(
+                "image size {}x{} is empty",
+                self.width, self.height
+            ));
+        }
+        let d = self.at - self.eye;
+        if d.length() == 0.0 {
+            return Err("eye and at are the same point: no view direction".into());
+        }
+        let up_len = self.up.length();
+        if cross(normalize(d), self.up).length() <= 1e-9 * up_len {
+            return Err(format!(
+                "up ({}, {}, {}) is zero or parallel to the view direction (at - eye = {}, {}, {})",
+                self.up.x, self.up.y, self.up.z, d.x, d.y, d.z
+            ));
+        }
+        Ok(())
+    }
+
     /// The primary ray through the centre of pixel `(x, y)`.
     pub fn ray(&self, x: u32, y: u32) -> Ray {
         let f = normalize(self.at - self.eye);
@@ -138,14 +176,18 @@ pub fn parse_views(text: &str) -> Result<Vec<View>, String> {
                 _ => return Err(bad(&format!("unknown key `{key}`"))),
             }
         }
-        views.push(View {
+        let view = View {
             scene,
             id,
             eye: eye.ok_or_else(|| bad("missing eye"))?,
             at: at.ok_or_else(|| bad("missing at"))?,
             up: up.ok_or_else(|| bad("missing up"))?,
             fov_deg: fov.ok_or_else(|| bad("missing fov"))?,
-        });
+        };
+        Camera::from_view(&view, 1, 1)
+            .check()
+            .map_err(|e| bad(&e))?;
+        views.push(view);
     }
     Ok(views)
 }
@@ -344,6 +386,54 @@ mod tests {
         // With fov 90 and 2x2 pixels, sx = ±0.5 and sy = ±0.5 exactly.
         let expect = normalize(DVec3::new(0.5, -0.5, -1.0)).as_vec3();
         assert_eq!(r.dir, expect);
+    }
+
+    #[test]
+    fn degenerate_cameras_are_refused() {
+        let good = Camera {
+            eye: DVec3::new(0.0, 5.0, 0.0),
+            at: DVec3::ZERO,
+            up: DVec3::Z,
+            fov_deg: 60.0,
+            width: 4,
+            height: 3,
+        };
+        assert_eq!(good.check(), Ok(()));
+        assert!(good.ray(0, 0).dir.is_finite());
+        let with = |f: &dyn Fn(&mut Camera)| {
+            let mut c = good;
+            f(&mut c);
+            c.check().unwrap_err()
+        };
+        // Looking straight down (−y) with up = +y: no right vector, and
+        // the rays would be NaN.
+        let parallel = with(&|c| c.up = DVec3::Y);
+        assert!(parallel.contains("parallel"), "{parallel}");
+        let mut down = good;
+        down.up = DVec3::Y;
+        assert!(!down.ray(0, 0).dir.is_finite());
+        assert!(with(&|c| c.up = DVec3::new(0.0, -3.0, 0.0)).contains("parallel"));
+        assert!(with(&|c| c.up = DVec3::ZERO).contains("zero"));
+        assert!(with(&|c| c.at = c.eye).contains("same point"));
+        assert!(with(&|c| c.fov_deg = 180.0).contains("fov"));
+        assert!(with(&|c| c.fov_deg = 0.0).contains("fov"));
+        assert!(with(&|c| c.fov_deg = f64::NAN).contains("fov"));
+        assert!(with(&|c| c.width = 0).contains("empty"));
+        assert!(with(&|c| c.eye.x = f64::INFINITY).contains("finite"));
+        // Nearly parallel but well defined: accepted.
+        let mut tilted = good;
+        tilted.up = DVec3::new(1e-6, 1.0, 0.0);
+        assert_eq!(tilted.check(), Ok(()));
+        assert!(tilted.ray(1, 2).dir.is_finite());
+        // A views file line with such a camera is refused, naming the line.
+        let err = parse_views("a 1 eye=0,0,0 at=0,0,0 up=0,1,0 fov=60\n").unwrap_err();
+        assert!(
+            err.contains("line 1") && err.contains("same point"),
+            "{err}"
+        );
+        let err = parse_views("\na 2 eye=0,5,0 at=0,0,0 up=0,1,0 fov=60").unwrap_err();
+        assert!(err.contains("line 2") && err.contains("parallel"), "{err}");
+        assert!(parse_views("a 1 eye=1,2,3 at=0,0,0 up=0,1,0 fov=200").is_err());
     }
 
     #[test]
