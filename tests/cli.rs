@@ -153,6 +153,19 @@ fn verify_rejects_corrupt_and_truncated_files() {
     std::fs::write(&junk, b"not a kd file at all").unwrap();
     let v = slimkd(&["info", junk.to_str().unwrap()]);
     assert_eq!(v.status.code(), Some(1));
+    // Another kind of file is named as such, short or long, not as a
+    // truncated `.kd` file; a directory is named as one.
+    for other in [&b"v 0 0 0\n"[..], &[b'#'; 4096][..]] {
+        std::fs::write(&junk, other).unwrap();
+        let v = slimkd(&["verify", junk.to_str().unwrap()]);
+        assert_eq!(v.status.code(), Some(1));
+        let err = String::from_utf8_lossy(&v.stderr);
+        assert!(err.contains("not a slimkd .kd file"), "{err}");
+    }
+    let v = slimkd(&["info", dir.to_str().unwrap()]);
+    assert_eq!(v.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&v.stderr);
+    assert!(err.contains("is a directory"), "{err}");
 
     // A failed build leaves no output file behind.
     let missing = dir.join("no/such/dir/x.kd");

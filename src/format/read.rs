@@ -112,6 +112,12 @@ impl<D: AsRef<[u8]>> KdFile<D> {
     pub fn from_bytes(data: D) -> Result<KdFile<D>, FormatError> {
         let b = data.as_ref();
         let got = b.len() as u64;
+        // The magic first, on as much of it as there is: a file of another
+        // kind is named as such, not as a truncated `.kd` file.
+        let have = b.len().min(MAGIC.len());
+        if b[..have] != MAGIC[..have] {
+            return Err(FormatError::BadMagic);
+        }
         if b.len() < HEADER_SIZE {
             return Err(FormatError::Truncated {
                 needed: HEADER_SIZE as u64,
@@ -653,6 +659,10 @@ impl KdFile<Mapped> {
             source,
         };
         let file = std::fs::File::open(path).map_err(io)?;
+        // A directory opens, but its map fails with an obscure `ENODEV`.
+        if file.metadata().map_err(io)?.is_dir() {
+            return Err(io(std::io::ErrorKind::IsADirectory.into()));
+        }
         // SAFETY: the map is read-only and private to this process; the
         // remaining precondition (nobody modifies the file in place while
         // it is mapped) is the caller's, documented above.
