@@ -214,3 +214,23 @@ fn cli_build_json_has_the_figures() {
     assert!(j["refs"].as_u64().unwrap() >= 34973);
     assert!(j["build_s"].as_f64().unwrap() > 0.0);
 }
+
+/// A frame's progress (the CLI's bar) ends at exactly 1, with an image
+/// size that leaves partial tiles, and watching it changes no hit.
+#[test]
+fn frame_progress_ends_at_one() {
+    let path = manifest("scenes/bunny_npm.obj");
+    let (scene, _) = scene::load_obj(&path).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let tracer = TreeTracer {
+        tree: &tree,
+        scene: &scene,
+    };
+    for (w, h) in [(1, 1), (37, 23), (64, 64), (129, 3)] {
+        let cam = Camera::default_for(&tree.bounds, w, h);
+        let progress = build::Progress::default();
+        let got = render::trace_frame_with_progress(&tracer, &cam, Some(&progress));
+        assert_eq!(progress.fraction(), 1.0, "{w}x{h}");
+        assert_eq!(got.hits, render::trace_frame(&tracer, &cam).hits);
+    }
+}

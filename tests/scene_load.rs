@@ -1183,3 +1183,22 @@ proptest! {
         }
     }
 }
+
+/// Loading an OBJ file advances its progress (the CLI's bar) to exactly 1,
+/// and watching it changes nothing loaded; a scene cache finishes at once.
+#[test]
+fn load_progress_ends_at_one() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
+    let progress = slimkd::build::Progress::default();
+    let (watched, _) = slimkd::scene::load_with_progress(&path, Some(&progress)).unwrap();
+    assert_eq!(progress.fraction(), 1.0);
+    let (plain, _) = load_obj(&path).unwrap();
+    assert_eq!(tris(&watched), tris(&plain));
+    let cache = scratch_dir().join("progress.kds");
+    let (_, summary) = load_obj(&path).unwrap();
+    slimkd::scene::write_scene_cache(&cache, &plain, &summary).unwrap();
+    let progress = slimkd::build::Progress::default();
+    slimkd::scene::load_with_progress(&cache, Some(&progress)).unwrap();
+    assert_eq!(progress.fraction(), 1.0);
+    std::fs::remove_file(&cache).unwrap();
+}

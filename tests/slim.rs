@@ -675,6 +675,41 @@ fn fast_equals_literal_with_big_triangles_over_small_ones() {
     }
 }
 
+/// The progress of the pass (for the CLI's bar) ends at exactly 1 (every
+/// share handed down is done once: none lost, none counted twice),
+/// whatever is hoisted, rejected, cancelled or skipped, and watching it
+/// changes nothing.
+#[test]
+fn progress_ends_at_one() {
+    let mut runner = TestRunner::deterministic();
+    let strategy = scene_strategy();
+    let mut hoisted = 0;
+    let no_t2rn = SlimParams {
+        max_t2rn: 0,
+        ..SlimParams::SMALL
+    };
+    for _ in 0..40 {
+        let (_, tris) = strategy.new_tree(&mut runner).unwrap().current();
+        let scene = columns(&tris);
+        let std = std_tree(&scene);
+        for p in [
+            SlimParams::SMALL.with_rule(HoistRule::Paper),
+            SlimParams::SMALL,
+            SlimParams::FAST,
+            no_t2rn,
+        ] {
+            let progress = build::Progress::default();
+            let (tree, report, _) =
+                slim::slim_with_progress(&std, &scene, &config(), &p, Some(&progress));
+            assert_eq!(progress.fraction(), 1.0, "{p:?}: {report:?}");
+            let (plain, _) = slim::slim(&std, &scene, &config(), &p);
+            assert_eq!(tree, plain);
+            hoisted += report.hoisted;
+        }
+    }
+    assert!(hoisted > 0, "the scenes exercise hoisting");
+}
+
 /// The random scenes are not trivial: with `small`, many of them hoist
 /// with the paper's rule and some cancel; with the byte rule some hoist,
 /// some reject and some skip.

@@ -416,14 +416,19 @@ struct Loaded {
     seconds: f64,
 }
 
-fn load(path: &Path) -> Res<Loaded> {
+/// Loads a scene; a progress bar shows the bytes read once loading has
+/// taken a second, unless `quiet`.
+fn load(path: &Path, quiet: bool) -> Res<Loaded> {
     let start = Instant::now();
     let (scene, summary, path) = if path.as_os_str() == DEFAULT_ARG {
         let name = scene::embedded_name(DEFAULT_SCENE_NAME);
         let (s, m) = scene::load_obj_bytes(&name, DEFAULT_SCENE)?;
         (s, m, PathBuf::from(DEFAULT_SCENE_NAME))
     } else {
-        let (s, m) = scene::load(path)?;
+        let progress = Progress::default();
+        let (s, m) = with_bar(quiet, "loading", &progress, &String::new, || {
+            Ok(scene::load_with_progress(path, Some(&progress))?)
+        })?;
         (s, m, path.to_path_buf())
     };
     Ok(Loaded {
@@ -447,8 +452,69 @@ struct Built {
     builder: &'static str,
 }
 
+/// Runs `work` on a scoped worker thread, in a rayon pool the size of the
+/// caller's (the worker is outside the caller's pool), while this thread
+/// draws a progress bar of `progress` with `label` and `message()` once the
+/// work has run for a second, unless `quiet`. (indicatif draws nothing
+/// when standard error is not a terminal.)
+fn with_bar<T: Send>(
+    quiet: bool,
+    label: &str,
+    progress: &Progress,
+    message: &(dyn Fn() -> String + Sync),
+    work: impl FnOnce() -> Res<T> + Send,
+) -> Res<T> {
+    let start = Instant::now();
+    let pool_threads = rayon::current_num_threads();
+    std::thread::scope(|s| {
+        // The worker sends its result, so that this thread wakes the moment
+        // it is done (a plain sleep between polls added up to a poll's
+        // interval to every timed build).
+        let (done, result) = std::sync::mpsc::channel::<Res<T>>();
+        let worker = s.spawn(move || {
+            let run = || -> Res<T> {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(pool_threads)
+                    .build()?;
+                pool.install(work)
+            };
+            // The receiver waits until this is sent (or the worker panics).
+            let _ = done.send(run());
+        });
+        let mut bar: Option<ProgressBar> = None;
+        let got = loop {
+            match result.recv_timeout(Duration::from_millis(50)) {
+                Ok(got) => break Some(got),
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break None,
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+            }
+            if bar.is_none() && !quiet && start.elapsed() > Duration::from_secs(1) {
+                let b = ProgressBar::new(1000);
+                b.set_style(
+                    ProgressStyle::with_template(&format!(
+                        "{label} {{bar:40}} {{percent:>3}}% {{elapsed_precise}} {{msg}}"
+                    ))
+                    .expect("the template is valid"),
+                );
+                bar = Some(b);
+            }
+            if let Some(b) = &bar {
+                b.set_position((progress.fraction() * 1000.0) as u64);
+                b.set_message(message());
+            }
+        };
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        match (got, worker.join()) {
+            (Some(got), Ok(())) => got,
+            _ => Err(format!("{label}: a worker panicked").into()),
+        }
+    })
+}
+
 /// Builds on a worker thread; shows a progress bar once the build has
-/// taken a second (on a terminal).
+/// taken a second (on a terminal), and another for the slim pass.
 /// `reordered`: whether the tree will be written with reordering (what the
 /// byte rule of the slim pass counts with).
 fn build_tree(
@@ -477,67 +543,54 @@ fn build_tree(
         options.scratch_dir = d.clone();
     }
     let start = Instant::now();
-    let pool_threads = rayon::current_num_threads();
-    let built = std::thread::scope(|s| {
-        let worker = s.spawn(|| -> Res<(TreeIr, Option<level::LevelReport>)> {
-            // Run on a pool of the caller's size (the spawned thread is
-            // outside the caller's pool).
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(pool_threads)
-                .build()?;
-            pool.install(|| match args.builder {
-                BuilderArg::Level => {
-                    let (tree, report) = level::build(scene, &config, Some(&progress), &options)?;
-                    Ok((tree, Some(report)))
-                }
-                BuilderArg::Sweep => Ok((
-                    build::build(scene, &config, Builder::Sweep, Some(&progress)),
-                    None,
-                )),
-                BuilderArg::Naive => Ok((
-                    build::build(scene, &config, Builder::Naive, Some(&progress)),
-                    None,
-                )),
-            })
-        });
-        let mut bar: Option<ProgressBar> = None;
-        while !worker.is_finished() {
-            std::thread::sleep(Duration::from_millis(50));
-            if bar.is_none() && !quiet && start.elapsed() > Duration::from_secs(1) {
-                let b = ProgressBar::new(1000);
-                b.set_style(
-                    ProgressStyle::with_template(
-                        "building {bar:40} {percent:>3}% {elapsed_precise} {msg}",
-                    )
-                    .expect("the template is valid"),
-                );
-                bar = Some(b);
-            }
-            if let Some(b) = &bar {
-                b.set_position((progress.fraction() * 1000.0) as u64);
-                if matches!(args.builder, BuilderArg::Level) {
-                    use std::sync::atomic::Ordering::Relaxed;
-                    b.set_message(format!(
-                        "level {}, {} open nodes, {} refs",
-                        status.level.load(Relaxed),
-                        status.open_nodes.load(Relaxed),
-                        status.refs.load(Relaxed)
-                    ));
-                }
-            }
+    let level_message = || {
+        use std::sync::atomic::Ordering::Relaxed;
+        match args.builder {
+            BuilderArg::Level => format!(
+                "level {}, {} open nodes, {} refs",
+                status.level.load(Relaxed),
+                status.open_nodes.load(Relaxed),
+                status.refs.load(Relaxed)
+            ),
+            _ => String::new(),
         }
-        if let Some(b) = bar {
-            b.finish_and_clear();
-        }
-        worker.join()
-    })
-    .map_err(|_| "the builder panicked")?;
+    };
+    let built = with_bar(
+        quiet,
+        "building",
+        &progress,
+        &level_message,
+        || match args.builder {
+            BuilderArg::Level => {
+                let (tree, report) = level::build(scene, &config, Some(&progress), &options)?;
+                Ok((tree, Some(report)))
+            }
+            BuilderArg::Sweep => Ok((
+                build::build(scene, &config, Builder::Sweep, Some(&progress)),
+                None,
+            )),
+            BuilderArg::Naive => Ok((
+                build::build(scene, &config, Builder::Naive, Some(&progress)),
+                None,
+            )),
+        },
+    );
     let (tree, level_report) = built?;
     let std_seconds = start.elapsed().as_secs_f64();
     let (params, preset) = args.slim(reordered);
     let (tree, slim) = match params {
         Some(p) => {
-            let (t, report, phases) = slim::slim_with_phases(&tree, scene, &config, &p);
+            let progress = Progress::default();
+            let (t, report, phases) =
+                with_bar(quiet, "slim pass", &progress, &String::new, || {
+                    Ok(slim::slim_with_progress(
+                        &tree,
+                        scene,
+                        &config,
+                        &p,
+                        Some(&progress),
+                    ))
+                })?;
             (t, Some((p, report, phases)))
         }
         None => (tree, None),
@@ -804,7 +857,7 @@ fn cmd_build(
     let pool = pool(args.threads)?;
     let watch = PeakRss::start();
     pool.install(|| {
-        let loaded = load(path)?;
+        let loaded = load(path, json)?;
         let mut built = build_tree(&loaded.scene, args, json, reorder)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
         let mut written = None;
@@ -880,7 +933,7 @@ fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
         )
         .into());
     }
-    let loaded = load(scene)?;
+    let loaded = load(scene, false)?;
     let start = Instant::now();
     scene::write_scene_cache(output, &loaded.scene, &loaded.summary)?;
     let write_s = start.elapsed().as_secs_f64();
@@ -1045,7 +1098,7 @@ fn cmd_report(args: &ReportArgs) -> Res<()> {
     };
     let mut scenes = Vec::new();
     for path in &args.scenes {
-        let loaded = load(path)?;
+        let loaded = load(path, false)?;
         eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
         scenes.push((
             loaded.path.display().to_string(),
@@ -1161,7 +1214,7 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
             let columns = file.to_columns();
             Source::File { file, columns, open_ms }
         } else {
-            let loaded = load(&args.scene)?;
+            let loaded = load(&args.scene, args.json)?;
             // Not written: bytes are counted as in a reordered file.
             let built = build_tree(&loaded.scene, &args.build, args.json, true)?;
             let stats = TreeStats::of(&built.tree, &built.config.sah);
@@ -1194,8 +1247,16 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
         };
         let mut rates = Vec::new();
         let mut last: Option<HitBuffer> = None;
-        for _ in 0..args.reps {
-            let buf = render::trace_frame(tracer.as_ref(), &camera);
+        for rep in 0..args.reps {
+            let progress = Progress::default();
+            let rep_message = || format!("frame {} of {}", rep + 1, args.reps);
+            let buf = with_bar(args.json, "rendering", &progress, &rep_message, || {
+                Ok(render::trace_frame_with_progress(
+                    tracer.as_ref(),
+                    &camera,
+                    Some(&progress),
+                ))
+            })?;
             rates.push(buf.mrays_per_s());
             last = Some(buf);
         }

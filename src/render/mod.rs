@@ -18,6 +18,7 @@ mod image_out;
 
 pub use image_out::{Frame, ImageError, write_depth_f32, write_exr, write_image, write_png};
 
+use crate::build::Progress;
 use crate::geom::{Aabb, Ray};
 use crate::scene::TriangleColumns;
 use crate::trace::{ClosestHit, Hit};
@@ -270,13 +271,25 @@ impl HitBuffer {
 /// (packets, for a packet tracer); blocks cut by the image border go ray
 /// by ray.
 pub fn trace_frame(tracer: &dyn ClosestHit, camera: &Camera) -> HitBuffer {
+    trace_frame_with_progress(tracer, camera, None)
+}
+
+/// [`trace_frame`], advancing `progress` by an equal share per tile traced
+/// (to exactly 1 at the end).
+pub fn trace_frame_with_progress(
+    tracer: &dyn ClosestHit,
+    camera: &Camera,
+    progress: Option<&Progress>,
+) -> HitBuffer {
     let (w, h) = (camera.width, camera.height);
     let tiles_x = w.div_ceil(TILE);
     let tiles_y = h.div_ceil(TILE);
+    let n_tiles = u64::from(tiles_x * tiles_y);
     let start = Instant::now();
     let tiles: Vec<Vec<Hit>> = (0..tiles_x * tiles_y)
         .into_par_iter()
         .map(|tile| {
+            let _done = TileDone(progress, u64::from(tile), n_tiles);
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (tw, th) = ((x0 + TILE).min(w) - x0, (y0 + TILE).min(h) - y0);
             let mut out = vec![Hit::MISS; (tw * th) as usize];
@@ -321,6 +334,15 @@ pub fn trace_frame(tracer: &dyn ClosestHit, camera: &Camera) -> HitBuffer {
         height: h,
         hits,
         seconds,
+    }
+}
+
+/// Advances the progress by a tile's share when the tile is done (dropped).
+struct TileDone<'a>(Option<&'a Progress>, u64, u64);
+
+impl Drop for TileDone<'_> {
+    fn drop(&mut self) {
+        Progress::advance(self.0, self.1, self.1 + 1, self.2);
     }
 }
 

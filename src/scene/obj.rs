@@ -18,17 +18,56 @@
 //! the line of the face.
 
 use super::{LoadSummary, SceneError, TriangleColumns};
+use crate::build::Progress;
 use glam::Vec3;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// Loads an OBJ file. See the module docs of [`crate::scene`] for the rules.
 pub fn load_obj(path: &Path) -> Result<(TriangleColumns, LoadSummary), SceneError> {
-    let file = std::fs::File::open(path).map_err(|source| SceneError::Io {
+    load_obj_with_progress(path, None)
+}
+
+/// [`load_obj`], advancing `progress` with the bytes of the file read (to
+/// 1 when the whole file has been read).
+pub fn load_obj_with_progress(
+    path: &Path,
+    progress: Option<&Progress>,
+) -> Result<(TriangleColumns, LoadSummary), SceneError> {
+    let io = |source| SceneError::Io {
         path: path.to_path_buf(),
         source,
-    })?;
-    load_obj_reader(path, BufReader::with_capacity(1 << 20, file))
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let size = file.metadata().map_err(io)?.len();
+    let counted = Counted {
+        inner: file,
+        read: 0,
+        size,
+        progress,
+    };
+    load_obj_reader(path, BufReader::with_capacity(1 << 20, counted))
+}
+
+/// A reader that advances a [`Progress`] with the share of `size` bytes
+/// read (a file that grows while read stops advancing at its old size).
+struct Counted<'a, R> {
+    inner: R,
+    read: u64,
+    size: u64,
+    progress: Option<&'a Progress>,
+}
+
+impl<R: Read> Read for Counted<'_, R> {
+    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(out)?;
+        let after = (self.read + n as u64).min(self.size);
+        if self.size > 0 {
+            Progress::advance(self.progress, self.read, after, self.size);
+        }
+        self.read = after;
+        Ok(n)
+    }
 }
 
 /// Loads OBJ text held in memory; `name` is used in error messages.

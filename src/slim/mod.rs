@@ -79,7 +79,7 @@
 //!   children of hoisting nodes are redirected.
 
 use crate::build::level::SubtreeBuilder;
-use crate::build::{BuildConfig, TriRef, sweep};
+use crate::build::{BuildConfig, Progress, TriRef, sweep};
 use crate::format::node::leaf_index_bytes;
 use crate::geom::{Aabb, clip_triangle};
 use crate::scene::TriangleColumns;
@@ -763,7 +763,8 @@ fn analyze(
 
 /// A subtree to process: its root, node count (a contiguous pre-order
 /// range of the work tree), cell, depth, the hoisted triangles on the path
-/// above it, and the analysis of an enclosing subtree if it still holds.
+/// above it, the analysis of an enclosing subtree if it still holds, and
+/// its share of the progress ([`Progress::TOTAL`] for the whole tree).
 #[derive(Clone)]
 struct Todo {
     node: u32,
@@ -772,10 +773,14 @@ struct Todo {
     depth: u32,
     t2rn: u32,
     analysis: Option<Arc<Analysis>>,
+    weight: u64,
 }
 
 impl Todo {
-    /// The children of an inner node as subtrees to process.
+    /// The children of an inner node as subtrees to process. Each gets a
+    /// share of this subtree's progress weight in proportion to its node
+    /// count; the rest (this node's own share) is done: the caller adds
+    /// [`Todo::own_share`].
     fn children(&self, work: &Work, t2rn: u32, analysis: Option<Arc<Analysis>>) -> [Todo; 2] {
         let WNode::Inner {
             axis,
@@ -796,7 +801,19 @@ impl Todo {
             depth: self.depth + 1,
             t2rn,
             analysis: analysis.clone(),
+            weight: self.share(size),
         })
+    }
+
+    /// The progress weight of `size` of this subtree's nodes.
+    fn share(&self, size: u32) -> u64 {
+        (u128::from(self.weight) * u128::from(size) / u128::from(self.size.max(1))) as u64
+    }
+
+    /// The part of this subtree's progress weight that [`Todo::children`]
+    /// does not hand down (its root's share, and rounding).
+    fn own_share(&self, children: &[Todo; 2]) -> u64 {
+        self.weight - children[0].weight - children[1].weight
     }
 }
 
@@ -809,11 +826,15 @@ struct Pick {
 
 /// Walks a subtree top-down and returns the highest nodes where a triangle
 /// is picked (their subtrees are not walked further in this pass).
+///
+/// The progress weight of every node walked and not picked is done here;
+/// the picks carry theirs on.
 fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
     let mut picks = Vec::new();
     if sub.t2rn >= ctx.params.max_t2rn
         || !matches!(work.nodes[sub.node as usize], WNode::Inner { .. })
     {
+        Progress::add(ctx.progress, sub.weight);
         return picks;
     }
     let analysis = match &sub.analysis {
@@ -831,6 +852,7 @@ fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
     let mut stack = vec![sub];
     while let Some(mut at) = stack.pop() {
         if !matches!(work.nodes[at.node as usize], WNode::Inner { .. }) {
+            Progress::add(ctx.progress, at.weight);
             continue;
         }
         if let Some(tri) = analysis.pick(at.node) {
@@ -838,7 +860,9 @@ fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
             picks.push(Pick { at, tri });
             continue;
         }
-        let [l, r] = at.children(work, at.t2rn, None);
+        let children = at.children(work, at.t2rn, None);
+        Progress::add(ctx.progress, at.own_share(&children));
+        let [l, r] = children;
         stack.push(r);
         stack.push(l);
     }
@@ -861,6 +885,7 @@ struct Ctx<'a> {
     params: &'a SlimParams,
     sa_root: f64,
     bytes: Option<ByteModel>,
+    progress: Option<&'a Progress>,
 }
 
 /// Rebuilds the subtree of a pick without its triangle and decides.
@@ -953,9 +978,25 @@ pub fn slim_with_phases(
     config: &BuildConfig,
     params: &SlimParams,
 ) -> (TreeIr, SlimReport, SlimPhases) {
+    slim_with_progress(tree, scene, config, params, None)
+}
+
+/// [`slim_with_phases`], advancing `progress` from 0 to 1 as it goes
+/// (for a progress bar). Each subtree to process carries a share of the
+/// progress in proportion to its node count; the share of a node is done
+/// when the pass decides it (no pick there, or the pick's rebuild taken or
+/// not), and a rebuilt subtree hands its share on to its children.
+pub fn slim_with_progress(
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    params: &SlimParams,
+    progress: Option<&Progress>,
+) -> (TreeIr, SlimReport, SlimPhases) {
     let mut report = SlimReport::default();
     let mut phases = SlimPhases::default();
     if params.max_t2rn == 0 {
+        Progress::add_all(progress);
         return (tree.clone(), report, phases);
     }
     let mut clock = Instant::now();
@@ -987,6 +1028,7 @@ pub fn slim_with_phases(
         params,
         sa_root: tree.bounds.surface_area(),
         bytes,
+        progress,
     };
     phases.analysis_s += lap(&mut clock);
     let mut todo = vec![Todo {
@@ -996,6 +1038,7 @@ pub fn slim_with_phases(
         depth: 0,
         t2rn: 0,
         analysis: Some(Arc::new(analysis)),
+        weight: Progress::TOTAL,
     }];
     while !todo.is_empty() {
         phases.passes += 1;
@@ -1032,7 +1075,9 @@ pub fn slim_with_phases(
                         Outcome::Rejected => report.rejected += 1,
                         _ => report.skipped += 1,
                     }
-                    todo.extend(p.at.children(&work, p.at.t2rn, p.at.analysis.clone()));
+                    let children = p.at.children(&work, p.at.t2rn, p.at.analysis.clone());
+                    Progress::add(progress, p.at.own_share(&children));
+                    todo.extend(children);
                 }
             }
         }
@@ -1064,7 +1109,11 @@ pub fn slim_with_phases(
                 ..p.at.clone()
             };
             if p.at.t2rn + 1 < params.max_t2rn {
-                todo.extend(here.children(&work, p.at.t2rn + 1, None));
+                let children = here.children(&work, p.at.t2rn + 1, None);
+                Progress::add(progress, here.own_share(&children));
+                todo.extend(children);
+            } else {
+                Progress::add(progress, here.weight);
             }
         }
         phases.apply_s += lap(&mut clock);
