@@ -1127,7 +1127,8 @@ fn cmd_report(args: &ReportArgs) -> Res<()> {
     })?;
     let written = report
         .write(&args.output)
-        .map_err(|e| format!("{}: {e}", args.output.display()))?;
+        // Its errors name the file.
+        .map_err(|e| format!("cannot write the report: {e}"))?;
     for p in written {
         println!("wrote {}", p.display());
     }
