@@ -286,6 +286,25 @@
 //! - small thresholds 512, 2048, 16384 and 131072: processor time 5.01,
 //!   4.79, 4.82 and 4.64 s on 1 thread, within the noise.
 //!
+//! Session 10 changed no build code path. Two findings:
+//! - The CLI's `build_s` (and the main job's build time) included up to
+//!   50 ms of the progress bar's polling: the caller slept in 50 ms steps
+//!   until the worker finished, so small builds read as multiples of 50 ms
+//!   (aneurysm: 0.201 or 0.251 s; 0.169–0.196 s now that the worker wakes
+//!   the caller). Earlier sessions' figures carry that slack, about 25 ms
+//!   on average.
+//! - A straddler's boxes without Sutherland–Hodgman (tried and dropped):
+//!   the bounds of `triangle ∩ cell` taken over the candidate vertices of
+//!   that polygon all at once, with no chain of dependent clips (the
+//!   triangle's vertices in the cell, its edges' crossings of the six
+//!   faces and of the split plane, and the cell's edges' crossings of the
+//!   triangle, each tested with a rounding margin). On 2 M straddlers
+//!   recorded from black_forest's tiny nodes it gave the same boxes but for
+//!   182 (one `f32` step, either way), at 480–550 ns a clip in plain code
+//!   against 120 ns for the vectorized clip: the 40 candidate points cost
+//!   more than the chain they replace, and a hand-vectorized form would at
+//!   best draw level.
+//!
 //! Tried and dropped (measured slower): pricing blocks of 8 events with
 //! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
 //! bound already prunes cheaply: that block still visited every plane,
