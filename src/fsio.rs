@@ -7,6 +7,15 @@
 //! failed or killed write leaves no file at the path, and never a
 //! half-written one that could pass for valid; a failed write removes its
 //! temporary file and leaves whatever was at the path untouched.
+//!
+//! On Linux the temporary file has no name while it is written
+//! (`O_TMPFILE`): it is given one (`linkat` through `/proc/self/fd`) only
+//! once written and synced, just before the rename. So a write killed by
+//! Ctrl-C, `kill -9` or the OOM killer leaves nothing behind, not even a
+//! hidden temporary file of the size written so far. Where the directory's
+//! filesystem or the kernel cannot do that, or `/proc` is not mounted, the
+//! temporary file is named from the start (`.NAME.tmp.PID.N`) and only a
+//! killed write can leave it.
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -30,43 +39,230 @@ pub fn write_atomically<E>(
     let name = path
         .file_name()
         .ok_or_else(|| io(std::io::Error::other("not a file name")))?;
-    // A name left behind by a killed writer is skipped, never reused.
-    let mut attempt = 0;
-    let (tmp, f) = loop {
-        let tmp = dir.join(format!(
+    // A fresh name in `dir` (one left behind by a killed writer is skipped,
+    // never reused).
+    let fresh = || {
+        dir.join(format!(
             ".{}.tmp.{}.{}",
             name.to_string_lossy(),
             std::process::id(),
             TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-        ));
-        match std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create_new(true)
-            .open(&tmp)
-        {
-            Ok(f) => break (tmp, f),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && attempt < 100 => {
-                attempt += 1;
-            }
-            Err(e) => return Err(io(e)),
-        }
+        ))
     };
-    let result = (|| {
-        let mut f = f;
-        body(&mut f)?;
-        f.sync_all().map_err(&io)?;
-        drop(f);
-        std::fs::rename(&tmp, path).map_err(&io)
-    })();
-    if let Err(e) = result {
-        // The original error is more useful than a failure to clean up.
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e);
+    if let Some(f) = unnamed::create(&dir) {
+        let result = (|| {
+            let mut f = f;
+            body(&mut f)?;
+            f.sync_all().map_err(&io)?;
+            let tmp = unnamed::give_name(&f, fresh).map_err(&io)?;
+            drop(f);
+            std::fs::rename(&tmp, path).map_err(|e| {
+                let _ = std::fs::remove_file(&tmp);
+                io(e)
+            })
+        })();
+        // An unnamed file that fails vanishes when `f` closes.
+        result?;
+    } else {
+        let mut attempt = 0;
+        let (tmp, f) = loop {
+            let tmp = fresh();
+            match std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create_new(true)
+                .open(&tmp)
+            {
+                Ok(f) => break (tmp, f),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && attempt < 100 => {
+                    attempt += 1;
+                }
+                Err(e) => return Err(io(e)),
+            }
+        };
+        let result = (|| {
+            let mut f = f;
+            body(&mut f)?;
+            f.sync_all().map_err(&io)?;
+            drop(f);
+            std::fs::rename(&tmp, path).map_err(&io)
+        })();
+        if let Err(e) = result {
+            // The original error is more useful than a failure to clean up.
+            let _ = std::fs::remove_file(&tmp);
+            return Err(e);
+        }
     }
     // Make the rename durable; not every platform can open a directory.
     if let Ok(d) = File::open(&dir) {
         let _ = d.sync_all();
     }
     Ok(())
+}
+
+/// Unnamed temporary files (`O_TMPFILE`), named once written.
+#[cfg(target_os = "linux")]
+mod unnamed {
+    use std::ffi::CString;
+    use std::fs::File;
+    use std::os::fd::AsRawFd;
+    use std::os::unix::ffi::OsStrExt;
+    use std::os::unix::fs::OpenOptionsExt;
+    use std::path::{Path, PathBuf};
+
+    /// An unnamed file in `dir`, opened for reading and writing, or `None`
+    /// where that cannot be done (the filesystem or kernel lacks
+    /// `O_TMPFILE`, or `/proc` is not mounted, so it could not be named
+    /// later; the caller then names its file from the start).
+    pub fn create(dir: &Path) -> Option<File> {
+        if !Path::new("/proc/self/fd").is_dir() {
+            return None;
+        }
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .mode(0o666)
+            .custom_flags(libc::O_TMPFILE)
+            .open(dir)
+            .ok()
+    }
+
+    /// Links the unnamed file `f` into its directory under the first name
+    /// `fresh` gives that is free; returns that name.
+    pub fn give_name(f: &File, fresh: impl Fn() -> PathBuf) -> std::io::Result<PathBuf> {
+        let src =
+            CString::new(format!("/proc/self/fd/{}", f.as_raw_fd())).expect("no NUL in a number");
+        for _ in 0..100 {
+            let name = fresh();
+            let dst = CString::new(name.as_os_str().as_bytes())
+                .map_err(|_| std::io::Error::other("a NUL byte in the path"))?;
+            // SAFETY: both paths are NUL-terminated strings that outlive the
+            // call; `linkat` reads them and keeps no pointer.
+            let rc = unsafe {
+                libc::linkat(
+                    libc::AT_FDCWD,
+                    src.as_ptr(),
+                    libc::AT_FDCWD,
+                    dst.as_ptr(),
+                    libc::AT_SYMLINK_FOLLOW,
+                )
+            };
+            if rc == 0 {
+                return Ok(name);
+            }
+            let e = std::io::Error::last_os_error();
+            if e.kind() != std::io::ErrorKind::AlreadyExists {
+                return Err(e);
+            }
+        }
+        Err(std::io::Error::other("no free temporary name"))
+    }
+}
+
+/// Elsewhere the temporary file is named from the start.
+#[cfg(not(target_os = "linux"))]
+mod unnamed {
+    use std::fs::File;
+    use std::path::{Path, PathBuf};
+
+    pub fn create(_dir: &Path) -> Option<File> {
+        None
+    }
+
+    pub fn give_name(_f: &File, _fresh: impl Fn() -> PathBuf) -> std::io::Result<PathBuf> {
+        unreachable!("no unnamed files here")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    fn entries(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("slimkd-fsio-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    /// A write replaces the file whole; a failed one leaves the old file
+    /// and no temporary file; where unnamed files work, nothing is in the
+    /// directory while the body writes (so a kill then leaves nothing).
+    #[test]
+    fn writes_are_atomic_and_leave_nothing_behind() {
+        let dir = scratch("atomic");
+        let path = dir.join("out.bin");
+        let unnamed_here = unnamed::create(&dir).is_some();
+        write_atomically(
+            &path,
+            |e| e,
+            |f| {
+                f.write_all(b"first")?;
+                if unnamed_here {
+                    assert!(entries(&dir).is_empty(), "{:?}", entries(&dir));
+                }
+                Ok(())
+            },
+        )
+        .unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"first");
+        assert_eq!(entries(&dir), ["out.bin"]);
+
+        let failed = write_atomically(
+            &path,
+            |e| e,
+            |f| {
+                f.write_all(b"second, half")?;
+                if unnamed_here {
+                    assert_eq!(entries(&dir), ["out.bin"]);
+                }
+                Err(std::io::Error::other("the body failed"))
+            },
+        );
+        assert_eq!(failed.unwrap_err().to_string(), "the body failed");
+        assert_eq!(std::fs::read(&path).unwrap(), b"first");
+        assert_eq!(entries(&dir), ["out.bin"]);
+
+        write_atomically(&path, |e| e, |f| f.write_all(b"third")).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"third");
+        assert_eq!(entries(&dir), ["out.bin"]);
+        // The file reads back while written (the `.kd` writer reads its
+        // node section back for the checksum).
+        write_atomically(
+            &path,
+            |e| e,
+            |f| {
+                use std::io::{Read, Seek, SeekFrom};
+                f.write_all(b"fourth")?;
+                f.seek(SeekFrom::Start(0))?;
+                let mut back = String::new();
+                f.read_to_string(&mut back)?;
+                assert_eq!(back, "fourth");
+                Ok(())
+            },
+        )
+        .unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"fourth");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// This machine's temporary directory (ext4 or tmpfs on Linux) takes
+    /// unnamed files, so the test above checks the directory mid-write.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn unnamed_files_work_on_linux_temp_dirs() {
+        let dir = scratch("unnamed");
+        assert!(unnamed::create(&dir).is_some());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
