@@ -32,72 +32,128 @@ pub fn write_atomically<E>(
     io: impl Fn(std::io::Error) -> E,
     body: impl FnOnce(&mut File) -> Result<(), E>,
 ) -> Result<(), E> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .ok_or_else(|| io(std::io::Error::other("not a file name")))?;
-    // A fresh name in `dir` (one left behind by a killed writer is skipped,
-    // never reused).
-    let fresh = || {
-        dir.join(format!(
-            ".{}.tmp.{}.{}",
-            name.to_string_lossy(),
-            std::process::id(),
-            TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-        ))
-    };
-    if let Some(f) = unnamed::create(&dir) {
-        let result = (|| {
-            let mut f = f;
-            body(&mut f)?;
-            f.sync_all().map_err(&io)?;
-            let tmp = unnamed::give_name(&f, fresh).map_err(&io)?;
-            drop(f);
-            std::fs::rename(&tmp, path).map_err(|e| {
-                let _ = std::fs::remove_file(&tmp);
-                io(e)
-            })
-        })();
-        // An unnamed file that fails vanishes when `f` closes.
-        result?;
-    } else {
-        let mut attempt = 0;
-        let (tmp, f) = loop {
-            let tmp = fresh();
+    let mut staged = Staged::create(path).map_err(&io)?;
+    body(staged.file())?;
+    staged.stage().map_err(&io)?;
+    staged.commit().map_err(&io)
+}
+
+/// A file being written to replace `path` atomically: a temporary file in
+/// the same directory (unnamed while written, where it can be), then
+/// [`Staged::stage`]d (synced and named) and [`Staged::commit`]ted
+/// (renamed onto `path`, the directory synced, best effort). Dropped
+/// before its commit, it leaves nothing behind and `path` untouched.
+///
+/// Several files can be written all or nothing: stage every one, then
+/// commit them (what the report does with its Markdown, JSON and figures).
+pub struct Staged {
+    file: Option<File>,
+    /// The temporary file's name, once it has one.
+    named: Option<PathBuf>,
+    path: PathBuf,
+    dir: PathBuf,
+}
+
+impl Staged {
+    /// A fresh temporary file for `path`, opened for reading and writing.
+    pub fn create(path: &Path) -> std::io::Result<Staged> {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        if path.file_name().is_none() {
+            return Err(std::io::Error::other("not a file name"));
+        }
+        let mut staged = Staged {
+            file: None,
+            named: None,
+            path: path.to_path_buf(),
+            dir,
+        };
+        if let Some(f) = unnamed::create(&staged.dir) {
+            staged.file = Some(f);
+            return Ok(staged);
+        }
+        // A name left behind by a killed writer is skipped, never reused.
+        for _ in 0..100 {
+            let tmp = staged.fresh_name();
             match std::fs::OpenOptions::new()
                 .read(true)
                 .write(true)
                 .create_new(true)
                 .open(&tmp)
             {
-                Ok(f) => break (tmp, f),
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && attempt < 100 => {
-                    attempt += 1;
+                Ok(f) => {
+                    staged.file = Some(f);
+                    staged.named = Some(tmp);
+                    return Ok(staged);
                 }
-                Err(e) => return Err(io(e)),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+                Err(e) => return Err(e),
             }
-        };
-        let result = (|| {
-            let mut f = f;
-            body(&mut f)?;
-            f.sync_all().map_err(&io)?;
-            drop(f);
-            std::fs::rename(&tmp, path).map_err(&io)
-        })();
-        if let Err(e) = result {
+        }
+        Err(std::io::Error::other("no free temporary name"))
+    }
+
+    /// The file to write.
+    pub fn file(&mut self) -> &mut File {
+        self.file
+            .as_mut()
+            .expect("a staged file is open until committed")
+    }
+
+    /// Syncs the contents and gives the file its temporary name, so that
+    /// only the rename is left.
+    pub fn stage(&mut self) -> std::io::Result<()> {
+        let f = self
+            .file
+            .as_ref()
+            .expect("a staged file is open until committed");
+        f.sync_all()?;
+        if self.named.is_none() {
+            self.named = Some(unnamed::give_name(f, || self.fresh_name())?);
+        }
+        Ok(())
+    }
+
+    /// Renames the staged file onto its path (staging it first if need
+    /// be) and syncs the directory.
+    pub fn commit(mut self) -> std::io::Result<()> {
+        self.stage()?;
+        self.file = None;
+        let tmp = self.named.take().expect("staged");
+        if let Err(e) = std::fs::rename(&tmp, &self.path) {
             // The original error is more useful than a failure to clean up.
             let _ = std::fs::remove_file(&tmp);
             return Err(e);
         }
+        // Make the rename durable; not every platform can open a directory.
+        if let Ok(d) = File::open(&self.dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
     }
-    // Make the rename durable; not every platform can open a directory.
-    if let Ok(d) = File::open(&dir) {
-        let _ = d.sync_all();
+
+    fn fresh_name(&self) -> PathBuf {
+        let name = self.path.file_name().expect("checked in create");
+        self.dir.join(format!(
+            ".{}.tmp.{}.{}",
+            name.to_string_lossy(),
+            std::process::id(),
+            TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
+        ))
     }
-    Ok(())
+}
+
+impl Drop for Staged {
+    /// Not committed: the temporary file goes (an unnamed one with its
+    /// descriptor).
+    fn drop(&mut self) {
+        self.file = None;
+        if let Some(tmp) = self.named.take() {
+            let _ = std::fs::remove_file(tmp);
+        }
+    }
 }
 
 /// Unnamed temporary files (`O_TMPFILE`), named once written.
@@ -253,6 +309,39 @@ mod tests {
         )
         .unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), b"fourth");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Staged files are all or nothing: one dropped before its commit
+    /// leaves no trace (staged and named or not), and the others land only
+    /// when committed.
+    #[test]
+    fn staged_files_land_only_when_committed() {
+        let dir = scratch("staged");
+        let (a, b) = (dir.join("a.md"), dir.join("b.json"));
+        let mut sa = Staged::create(&a).unwrap();
+        sa.file().write_all(b"A").unwrap();
+        sa.stage().unwrap();
+        let mut sb = Staged::create(&b).unwrap();
+        sb.file().write_all(b"B").unwrap();
+        drop(sb);
+        assert_eq!(
+            entries(&dir).iter().filter(|e| !e.starts_with('.')).count(),
+            0
+        );
+        drop(sa);
+        assert!(entries(&dir).is_empty(), "{:?}", entries(&dir));
+        let mut sa = Staged::create(&a).unwrap();
+        let mut sb = Staged::create(&b).unwrap();
+        sa.file().write_all(b"A").unwrap();
+        sb.file().write_all(b"B").unwrap();
+        sa.stage().unwrap();
+        sb.stage().unwrap();
+        sa.commit().unwrap();
+        sb.commit().unwrap();
+        assert_eq!(entries(&dir), ["a.md", "b.json"]);
+        assert_eq!(std::fs::read(&b).unwrap(), b"B");
+        assert!(Staged::create(&dir.join("..")).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -54,7 +54,6 @@ use serde_json::{Value, json};
 use std::fmt;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 /// The default sweep grid of Figure 5: τ_occu values.
@@ -1439,91 +1438,26 @@ fn scene_json(s: &SceneReport) -> Value {
     })
 }
 
-/// Distinguishes the temporary files of concurrent writes in one process.
-static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
 /// Adds the path to an I/O error's message.
 fn with_path(path: &Path, e: std::io::Error) -> std::io::Error {
     std::io::Error::new(e.kind(), format!("{}: {e}", path.display()))
 }
 
-/// Writes `contents` to a fresh temporary file next to `path`, synced;
-/// returns its name. A failed write removes the temporary file.
-fn write_temp(path: &Path, contents: &str) -> std::io::Result<PathBuf> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let name = path
-        .file_name()
-        .ok_or_else(|| with_path(path, std::io::Error::other("not a file name")))?;
-    loop {
-        let tmp = dir.join(format!(
-            ".{}.tmp.{}.{}",
-            name.to_string_lossy(),
-            std::process::id(),
-            TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-        ));
-        let mut f = match std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&tmp)
-        {
-            Ok(f) => f,
-            // A name left behind by a killed writer is skipped.
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
-            Err(e) => return Err(with_path(path, e)),
-        };
-        let written = f.write_all(contents.as_bytes()).and_then(|()| f.sync_all());
-        return match written {
-            Ok(()) => Ok(tmp),
-            Err(e) => {
-                drop(f);
-                let _ = std::fs::remove_file(&tmp);
-                Err(with_path(path, e))
-            }
-        };
-    }
-}
-
-/// Writes every file through a temporary file; renames only once all the
-/// temporary files are written. On failure, removes the temporary files
-/// not yet renamed.
+/// Writes every file through a temporary file ([`crate::fsio::Staged`]);
+/// renames only once all of them are written and synced. On failure, the
+/// temporary files not yet renamed go.
 fn write_all_atomically(files: &[(PathBuf, String)]) -> std::io::Result<()> {
-    let mut temps: Vec<PathBuf> = Vec::new();
-    let cleanup = |temps: &[PathBuf]| {
-        for t in temps {
-            let _ = std::fs::remove_file(t);
-        }
-    };
+    let mut staged = Vec::with_capacity(files.len());
     for (path, contents) in files {
-        match write_temp(path, contents) {
-            Ok(t) => temps.push(t),
-            Err(e) => {
-                cleanup(&temps);
-                return Err(e);
-            }
-        }
+        let mut f = crate::fsio::Staged::create(path).map_err(|e| with_path(path, e))?;
+        f.file()
+            .write_all(contents.as_bytes())
+            .and_then(|()| f.stage())
+            .map_err(|e| with_path(path, e))?;
+        staged.push(f);
     }
-    for (i, ((path, _), tmp)) in files.iter().zip(&temps).enumerate() {
-        if let Err(e) = std::fs::rename(tmp, path) {
-            cleanup(&temps[i..]);
-            return Err(with_path(path, e));
-        }
-    }
-    // Best effort: make the renames durable.
-    let mut dirs: Vec<&Path> = files
-        .iter()
-        .map(|(p, _)| match p.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        })
-        .collect();
-    dirs.dedup();
-    for d in dirs {
-        if let Ok(f) = std::fs::File::open(d) {
-            let _ = f.sync_all();
-        }
+    for ((path, _), f) in files.iter().zip(staged) {
+        f.commit().map_err(|e| with_path(path, e))?;
     }
     Ok(())
 }
