@@ -34,7 +34,6 @@ pub fn write_atomically<E>(
 ) -> Result<(), E> {
     let mut staged = Staged::create(path).map_err(&io)?;
     body(staged.file())?;
-    staged.stage().map_err(&io)?;
     staged.commit().map_err(&io)
 }
 
@@ -50,6 +49,8 @@ pub struct Staged {
     file: Option<File>,
     /// The temporary file's name, once it has one.
     named: Option<PathBuf>,
+    /// Synced and named: only the rename is left.
+    staged: bool,
     path: PathBuf,
     dir: PathBuf,
 }
@@ -67,6 +68,7 @@ impl Staged {
         let mut staged = Staged {
             file: None,
             named: None,
+            staged: false,
             path: path.to_path_buf(),
             dir,
         };
@@ -103,8 +105,11 @@ impl Staged {
     }
 
     /// Syncs the contents and gives the file its temporary name, so that
-    /// only the rename is left.
+    /// only the rename is left (once: staging again does nothing).
     pub fn stage(&mut self) -> std::io::Result<()> {
+        if self.staged {
+            return Ok(());
+        }
         let f = self
             .file
             .as_ref()
@@ -113,6 +118,7 @@ impl Staged {
         if self.named.is_none() {
             self.named = Some(unnamed::give_name(f, || self.fresh_name())?);
         }
+        self.staged = true;
         Ok(())
     }
 

@@ -289,7 +289,6 @@ pub fn trace_frame_with_progress(
     let tiles: Vec<Vec<Hit>> = (0..tiles_x * tiles_y)
         .into_par_iter()
         .map(|tile| {
-            let _done = TileDone(progress, u64::from(tile), n_tiles);
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (tw, th) = ((x0 + TILE).min(w) - x0, (y0 + TILE).min(h) - y0);
             let mut out = vec![Hit::MISS; (tw * th) as usize];
@@ -315,6 +314,7 @@ pub fn trace_frame_with_progress(
                     }
                 }
             }
+            Progress::advance(progress, u64::from(tile), u64::from(tile) + 1, n_tiles);
             out
         })
         .collect();
@@ -334,15 +334,6 @@ pub fn trace_frame_with_progress(
         height: h,
         hits,
         seconds,
-    }
-}
-
-/// Advances the progress by a tile's share when the tile is done (dropped).
-struct TileDone<'a>(Option<&'a Progress>, u64, u64);
-
-impl Drop for TileDone<'_> {
-    fn drop(&mut self) {
-        Progress::advance(self.0, self.1, self.1 + 1, self.2);
     }
 }
 

@@ -779,9 +779,15 @@ struct Todo {
 impl Todo {
     /// The children of an inner node as subtrees to process. Each gets a
     /// share of this subtree's progress weight in proportion to its node
-    /// count; the rest (this node's own share) is done: the caller adds
-    /// [`Todo::own_share`].
-    fn children(&self, work: &Work, t2rn: u32, analysis: Option<Arc<Analysis>>) -> [Todo; 2] {
+    /// count; the rest (this node's own share, and rounding) is done, and
+    /// added to `progress`.
+    fn children(
+        &self,
+        work: &Work,
+        t2rn: u32,
+        analysis: Option<Arc<Analysis>>,
+        progress: Option<&Progress>,
+    ) -> [Todo; 2] {
         let WNode::Inner {
             axis,
             pos,
@@ -794,26 +800,24 @@ impl Todo {
         };
         let (lc, rc) = self.cell.split(axis as usize, pos);
         let size_l = right - left;
-        [(left, size_l, lc), (right, self.size - 1 - size_l, rc)].map(|(node, size, cell)| Todo {
-            node,
-            size,
-            cell,
-            depth: self.depth + 1,
-            t2rn,
-            analysis: analysis.clone(),
-            weight: self.share(size),
-        })
-    }
-
-    /// The progress weight of `size` of this subtree's nodes.
-    fn share(&self, size: u32) -> u64 {
-        (u128::from(self.weight) * u128::from(size) / u128::from(self.size.max(1))) as u64
-    }
-
-    /// The part of this subtree's progress weight that [`Todo::children`]
-    /// does not hand down (its root's share, and rounding).
-    fn own_share(&self, children: &[Todo; 2]) -> u64 {
-        self.weight - children[0].weight - children[1].weight
+        let children =
+            [(left, size_l, lc), (right, self.size - 1 - size_l, rc)].map(|(node, size, cell)| {
+                Todo {
+                    node,
+                    size,
+                    cell,
+                    depth: self.depth + 1,
+                    t2rn,
+                    analysis: analysis.clone(),
+                    weight: (u128::from(self.weight) * u128::from(size)
+                        / u128::from(self.size.max(1))) as u64,
+                }
+            });
+        Progress::add(
+            progress,
+            self.weight - children[0].weight - children[1].weight,
+        );
+        children
     }
 }
 
@@ -860,9 +864,7 @@ fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
             picks.push(Pick { at, tri });
             continue;
         }
-        let children = at.children(work, at.t2rn, None);
-        Progress::add(ctx.progress, at.own_share(&children));
-        let [l, r] = children;
+        let [l, r] = at.children(work, at.t2rn, None, ctx.progress);
         stack.push(r);
         stack.push(l);
     }
@@ -1075,9 +1077,7 @@ pub fn slim_with_progress(
                         Outcome::Rejected => report.rejected += 1,
                         _ => report.skipped += 1,
                     }
-                    let children = p.at.children(&work, p.at.t2rn, p.at.analysis.clone());
-                    Progress::add(progress, p.at.own_share(&children));
-                    todo.extend(children);
+                    todo.extend(p.at.children(&work, p.at.t2rn, p.at.analysis.clone(), progress));
                 }
             }
         }
@@ -1109,9 +1109,7 @@ pub fn slim_with_progress(
                 ..p.at.clone()
             };
             if p.at.t2rn + 1 < params.max_t2rn {
-                let children = here.children(&work, p.at.t2rn + 1, None);
-                Progress::add(progress, here.own_share(&children));
-                todo.extend(children);
+                todo.extend(here.children(&work, p.at.t2rn + 1, None, progress));
             } else {
                 Progress::add(progress, here.weight);
             }
