@@ -97,7 +97,7 @@ fn shipped_scene_frames_are_identical_in_every_mode() {
             );
         }
         assert_eq!(
-            render::trace_frame(&trace::Scalar(&file), &cam).hits,
+            render::trace_frame(&trace::Scalar::new(&file), &cam).hits,
             want.hits
         );
     }

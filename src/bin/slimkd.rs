@@ -4,6 +4,9 @@
 //! Exit codes: 0 success, 1 failure (bad input, invalid file, I/O), 2 bad
 //! usage.
 
+#[path = "slimkd/trace.rs"]
+mod trace;
+
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
@@ -90,6 +93,10 @@ enum Command {
     /// Write the paper's tables and figures (Choi et al. 2013, Tables 1–4,
     /// Figures 5–6) for std, fast and small trees of the given scenes.
     Report(ReportArgs),
+    /// Trace a ray file (closest hit or any hit) through a .kd file and
+    /// print Mrays/s, hits and a checksum comparable with the Embree peer
+    /// program's `--rays` mode.
+    Trace(Box<trace::TraceArgs>),
 }
 
 #[derive(clap::Args)]
@@ -388,6 +395,7 @@ fn main() -> ExitCode {
         Some(Command::Verify { file }) => cmd_verify(&file),
         Some(Command::Convert { scene, output }) => cmd_convert(&scene, &output),
         Some(Command::Report(args)) => cmd_report(&args),
+        Some(Command::Trace(args)) => pool(args.threads).and_then(|p| trace::cmd_trace(&args, p)),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -1239,11 +1247,11 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
         };
         let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode) {
             (_, ModeArg::Brute) => Box::new(BruteForce(columns)),
-            (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar(tree_tracer.as_ref().expect("built"))),
+            (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar::new(tree_tracer.as_ref().expect("built"))),
             (Source::Built { .. }, ModeArg::Packet) => {
                 Box::new(PacketTracer::new(tree_tracer.as_ref().expect("built")))
             }
-            (Source::File { file, .. }, ModeArg::Single) => Box::new(Scalar(file)),
+            (Source::File { file, .. }, ModeArg::Single) => Box::new(Scalar::new(file)),
             (Source::File { file, .. }, ModeArg::Packet) => Box::new(PacketTracer::new(file)),
         };
         let mut rates = Vec::new();

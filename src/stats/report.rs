@@ -603,7 +603,8 @@ fn measure_views(
     reps: usize,
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<ViewRates>, ReportError> {
-    let scalars: Vec<Scalar<'_, KdFile<AlignedBytes>>> = files.iter().map(|f| Scalar(*f)).collect();
+    let scalars: Vec<Scalar<'_, KdFile<AlignedBytes>>> =
+        files.iter().map(|f| Scalar::new(*f)).collect();
     let packets: Vec<PacketTracer<'_, KdFile<AlignedBytes>>> =
         files.iter().map(|f| PacketTracer::new(*f)).collect();
     let mut out = Vec::new();

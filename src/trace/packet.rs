@@ -2,15 +2,22 @@
 //! 16 rays walk the tree together, and each leaf triangle is tested against
 //! all active rays at once in SIMD lanes.
 //!
-//! Packets whose rays share the sign of every direction component take one
-//! traversal order; incoherent packets fall back to single rays. Each lane
-//! makes exactly the scalar traverser's decisions
+//! A packet is up to 16 rays with an active mask. Rays that share the
+//! sign of every direction component (one octant) walk the tree together
+//! in one traversal order; an incoherent packet is split by octant into
+//! sub-packets that each walk the tree under their own lane mask, and an
+//! octant of fewer than [`MIN_LANES`] rays goes ray by ray. When all lanes
+//! of a (sub-)packet share the watertight test's axis permutation, as
+//! nearly all coherent rays do, the leaf kernel picks each vertex
+//! component once for all lanes instead of per lane. Each lane makes
+//! exactly the scalar traverser's decisions
 //! ([`super::split_visit`]): a child is visited when any active lane needs
 //! it, and a lane is active in a cell only when the scalar traverser would
 //! visit that cell. Pending cells are culled per lane by the same rule. The
 //! ray–triangle kernel performs the scalar watertight test's operations in
 //! the same order (no fused multiply–add), so a packet returns exactly the
 //! scalar traverser's hits, bit for bit, whatever instruction set ran it.
+//! Any-hit queries drop a lane at its first hit and end when none is left.
 //!
 //! **Instruction sets.** The whole packet traversal (split decisions and
 //! leaf kernel) is compiled three times, for AVX-512, for AVX2 and for the
@@ -19,17 +26,30 @@
 //! written as branch-free loops over 16 lanes that LLVM vectorises to the
 //! widest registers the target feature allows.
 
-use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, SourceNode, clip_ray, traverse};
+// Lane loops index several arrays by lane: the form LLVM vectorises.
+#![allow(clippy::needless_range_loop)]
+
+use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, SourceNode, TraceStats, Walk};
 use crate::geom::{Ray, RayPrecomp, intersect_triangle};
+use crate::tree::TriId;
+use arrayvec::ArrayVec;
 use glam::Vec3;
 
 /// Rays in a packet.
 pub const LANES: usize = 16;
 
+/// An octant with fewer rays than this goes ray by ray: a packet step
+/// costs several scalar steps whatever its occupancy, and so few rays of
+/// one octant are seldom coherent (ambient-occlusion rays split into
+/// octants of about 4, which as packets kept 1.6 lanes busy a step and
+/// traced 15 % slower than single rays).
+pub const MIN_LANES: u32 = 8;
+
 type Lanes = [f32; LANES];
 
-/// Structure-of-arrays form of 16 rays, with the per-ray constants of the
-/// watertight test.
+/// Structure-of-arrays form of up to 16 rays, with the per-ray constants
+/// of the watertight test. Lanes past the last ray repeat ray 0 and are
+/// never active.
 struct Packet {
     o: [Lanes; 3],
     dir: [Lanes; 3],
@@ -44,10 +64,13 @@ struct Packet {
     sy: Lanes,
     sz: Lanes,
     rp: [RayPrecomp; LANES],
+    /// Direction octant per lane (bit k: component k is negative).
+    octant: [u8; LANES],
 }
 
 impl Packet {
-    fn new(rays: &[Ray; LANES]) -> Packet {
+    fn new(rays: &[Ray]) -> Packet {
+        debug_assert!(!rays.is_empty() && rays.len() <= LANES);
         let mut p = Packet {
             o: [[0.0; LANES]; 3],
             dir: [[0.0; LANES]; 3],
@@ -61,13 +84,17 @@ impl Packet {
             sy: [0.0; LANES],
             sz: [0.0; LANES],
             rp: [RayPrecomp::new(&rays[0]); LANES],
+            octant: [0; LANES],
         };
-        for (i, r) in rays.iter().enumerate() {
-            let inv = Vec3::ONE / r.dir;
+        for i in 0..LANES {
+            let r = rays.get(i).unwrap_or(&rays[0]);
+            let inv = (Vec3::ONE / r.dir).to_array();
+            let (o, d) = (r.origin.to_array(), r.dir.to_array());
             for k in 0..3 {
-                p.o[k][i] = r.origin[k];
-                p.dir[k][i] = r.dir[k];
+                p.o[k][i] = o[k];
+                p.dir[k][i] = d[k];
                 p.inv[k][i] = inv[k];
+                p.octant[i] |= u8::from(d[k].is_sign_negative()) << k;
             }
             p.tmin[i] = r.tmin;
             p.tmax[i] = r.tmax;
@@ -82,6 +109,16 @@ impl Packet {
         }
         p
     }
+
+    /// The permutation all lanes of `mask` share, if they do.
+    fn shared_permutation(&self, mask: u16) -> Option<[usize; 3]> {
+        let first = mask.trailing_zeros() as usize;
+        let (kx, kz) = (self.kx[first], self.kz[first]);
+        let same = (0..LANES)
+            .filter(|i| mask & (1 << i) != 0)
+            .all(|i| self.kx[i] == kx && self.kz[i] == kz);
+        same.then(|| [kx as usize, self.ky[first] as usize, kz as usize])
+    }
 }
 
 /// The best hit per lane.
@@ -90,11 +127,19 @@ struct Best {
     id: [u32; LANES],
 }
 
-/// Tests one triangle against the lanes in `mask`; returns the lanes whose
-/// edge functions hit an exact zero and need the scalar test's
+/// The lanes a triangle test found: hits to keep, and lanes whose edge
+/// functions hit an exact zero and need the scalar test's
 /// double-precision fallback.
+struct LaneHits {
+    t: Lanes,
+    ok: u16,
+    fallback: u16,
+}
+
+/// The watertight test of one triangle in all lanes, each lane with its
+/// own axis permutation.
 #[inline(always)]
-fn kernel_body(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best) -> u16 {
+fn kernel_any_perm(p: &Packet, tri: &[Vec3; 3], best: &Best) -> LaneHits {
     let mut t_out = [0f32; LANES];
     let mut ok = [false; LANES];
     let mut fallback = [false; LANES];
@@ -114,52 +159,104 @@ fn kernel_body(p: &Packet, tri: &[Vec3; 3], id: u32, mask: u16, best: &mut Best)
         let c = tri[2] - org;
         let (kx, ky, kz) = (p.kx[i], p.ky[i], p.kz[i]);
         let (akz, bkz, ckz) = (sel(kz, a), sel(kz, b), sel(kz, c));
-        let ax = sel(kx, a) - p.sx[i] * akz;
-        let ay = sel(ky, a) - p.sy[i] * akz;
-        let bx = sel(kx, b) - p.sx[i] * bkz;
-        let by = sel(ky, b) - p.sy[i] * bkz;
-        let cx = sel(kx, c) - p.sx[i] * ckz;
-        let cy = sel(ky, c) - p.sy[i] * ckz;
-        let u = cx * by - cy * bx;
-        let v = ax * cy - ay * cx;
-        let w = bx * ay - by * ax;
-        fallback[i] = (u == 0.0) | (v == 0.0) | (w == 0.0);
-        let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
-        let det = u + v + w;
-        let az = p.sz[i] * akz;
-        let bz = p.sz[i] * bkz;
-        let cz = p.sz[i] * ckz;
-        let t = (u * az + v * bz + w * cz) / det;
-        let limit = if best.t[i] < p.tmax[i] {
-            best.t[i]
-        } else {
-            p.tmax[i]
-        };
-        t_out[i] = t;
-        ok[i] = !mixed & (det != 0.0) & (t > p.tmin[i]) & (t <= limit);
+        let (ax, ay) = (sel(kx, a), sel(ky, a));
+        let (bx, by) = (sel(kx, b), sel(ky, b));
+        let (cx, cy) = (sel(kx, c), sel(ky, c));
+        (t_out[i], ok[i], fallback[i]) =
+            lane_test(p, i, best, [ax, ay, akz], [bx, by, bkz], [cx, cy, ckz]);
     }
-    let mut need_fallback = 0u16;
+    pack(t_out, ok, fallback)
+}
+
+/// The watertight test of one triangle in all lanes, which share the axis
+/// permutation `k`: each vertex component is picked once.
+#[inline(always)]
+fn kernel_shared_perm(p: &Packet, tri: &[Vec3; 3], k: [usize; 3], best: &Best) -> LaneHits {
+    let mut t_out = [0f32; LANES];
+    let mut ok = [false; LANES];
+    let mut fallback = [false; LANES];
+    let [kx, ky, kz] = k;
+    let pick = |v: Vec3| [v[kx], v[ky], v[kz]];
+    let (ta, tb, tc) = (pick(tri[0]), pick(tri[1]), pick(tri[2]));
+    let (ox, oy, oz) = (&p.o[kx], &p.o[ky], &p.o[kz]);
     for i in 0..LANES {
-        let active = mask & (1 << i) != 0;
-        if active && fallback[i] {
-            need_fallback |= 1 << i;
-        } else if active && ok[i] {
-            let t = t_out[i];
-            if t < best.t[i] || (t == best.t[i] && id < best.id[i]) {
-                best.t[i] = t;
-                best.id[i] = id;
-            }
-        }
+        // `tri[j] - org`, component by component: the scalar test's
+        // subtractions.
+        let a = [ta[0] - ox[i], ta[1] - oy[i], ta[2] - oz[i]];
+        let b = [tb[0] - ox[i], tb[1] - oy[i], tb[2] - oz[i]];
+        let c = [tc[0] - ox[i], tc[1] - oy[i], tc[2] - oz[i]];
+        (t_out[i], ok[i], fallback[i]) = lane_test(p, i, best, a, b, c);
     }
-    need_fallback
+    pack(t_out, ok, fallback)
+}
+
+/// The rest of the watertight test in lane `i`, given the vertices
+/// relative to the origin in permuted order `[x, y, z]`: the scalar
+/// test's expressions in its order.
+#[inline(always)]
+fn lane_test(
+    p: &Packet,
+    i: usize,
+    best: &Best,
+    a: [f32; 3],
+    b: [f32; 3],
+    c: [f32; 3],
+) -> (f32, bool, bool) {
+    let (sx, sy, sz) = (p.sx[i], p.sy[i], p.sz[i]);
+    let ax = a[0] - sx * a[2];
+    let ay = a[1] - sy * a[2];
+    let bx = b[0] - sx * b[2];
+    let by = b[1] - sy * b[2];
+    let cx = c[0] - sx * c[2];
+    let cy = c[1] - sy * c[2];
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    let fallback = (u == 0.0) | (v == 0.0) | (w == 0.0);
+    let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
+    let det = u + v + w;
+    let az = sz * a[2];
+    let bz = sz * b[2];
+    let cz = sz * c[2];
+    let t = (u * az + v * bz + w * cz) / det;
+    let limit = if best.t[i] < p.tmax[i] {
+        best.t[i]
+    } else {
+        p.tmax[i]
+    };
+    let ok = !mixed & (det != 0.0) & (t > p.tmin[i]) & (t <= limit);
+    (t, ok, fallback)
+}
+
+#[inline(always)]
+fn pack(t: Lanes, ok: [bool; LANES], fallback: [bool; LANES]) -> LaneHits {
+    LaneHits {
+        t,
+        ok: bits(ok),
+        fallback: bits(fallback),
+    }
+}
+
+/// The lane mask of 16 flags: bit `i` is `b[i]`. Each 8 flags (bytes of 0
+/// or 1) are gathered into one byte by one multiplication, which every
+/// instruction set does in a few instructions (a shift-and-or loop over
+/// the lanes is 48 instructions without AVX-512's mask registers).
+#[inline(always)]
+fn bits(b: [bool; LANES]) -> u16 {
+    const GATHER: u64 = 0x0102_0408_1020_4080;
+    let x = u128::from_le_bytes(b.map(u8::from));
+    let (lo, hi) = (x as u64, (x >> 64) as u64);
+    ((lo.wrapping_mul(GATHER) >> 56) | ((hi.wrapping_mul(GATHER) >> 56) << 8)) as u16
 }
 
 pub use crate::simd::SimdLevel;
 
 /// Packet traversal of any source; also answers single rays (scalar).
-pub struct PacketTracer<'a, S> {
-    pub src: &'a S,
-    pub level: SimdLevel,
+pub struct PacketTracer<'a, S: KdSource + 'a> {
+    walk: S::Walk<'a>,
+    /// Only [`PacketTracer::with_level`] sets it, to a level this CPU has:
+    /// the dispatch's `unsafe` calls rely on it.
+    level: SimdLevel,
 }
 
 impl<'a, S: KdSource> PacketTracer<'a, S> {
@@ -168,47 +265,88 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         Self::with_level(src, SimdLevel::detect())
     }
 
-    /// Uses `level`, which must be one of [`SimdLevel::available`] (a level
-    /// the CPU lacks falls back to the baseline kernel).
+    /// Uses `level` if this CPU has it ([`SimdLevel::available`]), else
+    /// the baseline kernel.
     pub fn with_level(src: &'a S, level: SimdLevel) -> Self {
         let level = if SimdLevel::available().contains(&level) {
             level
         } else {
             SimdLevel::Baseline
         };
-        PacketTracer { src, level }
-    }
-}
-
-impl<S: KdSource> ClosestHit for PacketTracer<'_, S> {
-    fn closest_hit(&self, ray: &Ray) -> Hit {
-        traverse(self.src, ray)
+        PacketTracer {
+            walk: src.walk(),
+            level,
+        }
     }
 
-    fn closest_hit_4x4(&self, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
+    /// The instruction set the packets run on.
+    pub fn level(&self) -> SimdLevel {
+        self.level
+    }
+
+    /// Traces up to 16 rays as a packet, closest hit (`ANY == false`) or
+    /// any hit in `(tmin, tmax)`, adding the work to `stats` when
+    /// `COUNT`.
+    fn dispatch<const ANY: bool, const COUNT: bool>(
+        &self,
+        rays: &[Ray],
+        out: &mut [Hit],
+        stats: &mut TraceStats,
+    ) {
+        assert!(rays.len() <= LANES && out.len() == rays.len());
+        if rays.is_empty() {
+            return;
+        }
+        let w = self.walk;
         match self.level {
             #[cfg(target_arch = "x86_64")]
             SimdLevel::Avx512 => {
-                // SAFETY: `with_level` keeps a level only if it is in
-                // `SimdLevel::available()`, i.e. the CPU reported avx512f.
-                unsafe { trace_packet_avx512(self.src, rays, out) }
+                // SAFETY: `level` is set only by `with_level`, which keeps a
+                // level only if it is in `SimdLevel::available()`, i.e. the
+                // CPU reported avx512f.
+                unsafe { trace_avx512::<_, ANY, COUNT>(w, rays, out, stats) }
             }
             #[cfg(target_arch = "x86_64")]
             SimdLevel::Avx2 => {
                 // SAFETY: as above, the CPU reported avx2.
-                unsafe { trace_packet_avx2(self.src, rays, out) }
+                unsafe { trace_avx2::<_, ANY, COUNT>(w, rays, out, stats) }
             }
-            _ => trace_packet(self.src, rays, out),
+            _ => trace_rays::<_, ANY, COUNT>(w, rays, out, stats),
+        }
+    }
+
+    /// [`ClosestHit::closest_hit_n`] or [`ClosestHit::occluded_n`] (a hit
+    /// per ray, any hit when `any`) with its work added to `stats`.
+    pub fn trace_counted(&self, rays: &[Ray], any: bool, out: &mut [Hit], stats: &mut TraceStats) {
+        if any {
+            self.dispatch::<true, true>(rays, out, stats)
+        } else {
+            self.dispatch::<false, true>(rays, out, stats)
         }
     }
 }
 
-/// True when all rays share the sign of every direction component.
-fn coherent(rays: &[Ray; LANES]) -> bool {
-    (0..3).all(|k| {
-        let s = rays[0].dir[k].is_sign_negative();
-        rays.iter().all(|r| r.dir[k].is_sign_negative() == s)
-    })
+impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
+    fn closest_hit(&self, ray: &Ray) -> Hit {
+        super::walk_ray::<_, false, false>(self.walk, ray, &mut TraceStats::default())
+    }
+
+    fn occluded(&self, ray: &Ray) -> bool {
+        super::walk_ray::<_, true, false>(self.walk, ray, &mut TraceStats::default()).is_hit()
+    }
+
+    fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
+        self.dispatch::<false, false>(rays, out, &mut TraceStats::default())
+    }
+
+    fn occluded_n(&self, rays: &[Ray], out: &mut [bool]) {
+        let mut hits = [Hit::MISS; LANES];
+        let hits = &mut hits[..rays.len()];
+        self.dispatch::<true, false>(rays, hits, &mut TraceStats::default());
+        for (o, h) in out.iter_mut().zip(hits.iter()) {
+            *o = h.is_hit();
+        }
+    }
 }
 
 struct Entry {
@@ -264,74 +402,197 @@ fn split_lanes(p: &Packet, k: usize, pos: f32, cur: &Entry) -> LaneSplit {
         out.r_tmin[i] = if below_first { far_lo } else { tmin };
         out.r_tmax[i] = if below_first { tmax } else { near_hi };
     }
-    for i in 0..LANES {
-        out.left |= u16::from(l_vis[i]) << i;
-        out.right |= u16::from(r_vis[i]) << i;
-    }
+    out.left = bits(l_vis);
+    out.right = bits(r_vis);
     out
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-fn trace_packet_avx512<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
-    trace_packet(src, rays, out)
+fn trace_avx512<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+    src: W,
+    rays: &[Ray],
+    out: &mut [Hit],
+    stats: &mut TraceStats,
+) {
+    trace_rays::<_, ANY, COUNT>(src, rays, out, stats)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn trace_packet_avx2<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
-    trace_packet(src, rays, out)
+fn trace_avx2<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+    src: W,
+    rays: &[Ray],
+    out: &mut [Hit],
+    stats: &mut TraceStats,
+) {
+    trace_rays::<_, ANY, COUNT>(src, rays, out, stats)
 }
 
-/// The packet traversal; inlined into one copy per instruction set, so
-/// that its lane loops are vectorised for that set.
+/// Splits the rays by octant, walks each octant of at least [`MIN_LANES`]
+/// rays as one packet and the others ray by ray; inlined into one copy per
+/// instruction set, so that its lane loops are vectorised for that set.
 #[inline(always)]
-fn trace_packet<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [Hit; LANES]) {
-    if !coherent(rays) {
-        for (r, h) in rays.iter().zip(out.iter_mut()) {
-            *h = traverse(src, r);
-        }
-        return;
-    }
+fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+    src: W,
+    rays: &[Ray],
+    out: &mut [Hit],
+    stats: &mut TraceStats,
+) {
     let p = Packet::new(rays);
     let mut best = Best {
         t: [f32::INFINITY; LANES],
         id: [u32::MAX; LANES],
     };
+    let mut left: u16 = if rays.len() == LANES {
+        u16::MAX
+    } else {
+        (1u16 << rays.len()) - 1
+    };
+    while left != 0 {
+        let oct = p.octant[left.trailing_zeros() as usize];
+        let mut mask = 0u16;
+        for i in 0..LANES {
+            mask |= u16::from(left & (1 << i) != 0 && p.octant[i] == oct) << i;
+        }
+        left &= !mask;
+        if mask.count_ones() >= MIN_LANES {
+            walk_packet::<_, ANY, COUNT>(src, &p, mask, &mut best, stats);
+        } else {
+            let mut m = mask;
+            while m != 0 {
+                let i = m.trailing_zeros() as usize;
+                m &= m - 1;
+                let h = super::walk_ray::<_, ANY, COUNT>(src, &rays[i], stats);
+                best.t[i] = h.t;
+                best.id[i] = h.tri.0;
+            }
+        }
+    }
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = if best.id[i] == u32::MAX {
+            Hit::MISS
+        } else {
+            Hit {
+                t: best.t[i],
+                tri: TriId(best.id[i]),
+            }
+        };
+    }
+}
+
+/// [`super::clip_ray`] in 16 lanes: the lanes that enter the box, and
+/// their intervals (the same expressions, so the same bits).
+#[inline(always)]
+fn clip_lanes(p: &Packet, bounds: &crate::geom::Aabb) -> (u16, Lanes, Lanes) {
+    let mut t0 = p.tmin;
+    let mut t1 = p.tmax;
+    let mut miss = [false; LANES];
+    for k in 0..3 {
+        let (lo, hi) = (bounds.min[k], bounds.max[k]);
+        for i in 0..LANES {
+            let (o, d, inv) = (p.o[k][i], p.dir[k][i], p.inv[k][i]);
+            // Parallel to the slab: inside it for every t, or never.
+            let parallel = d == 0.0;
+            miss[i] |= parallel & ((o < lo) | (o > hi));
+            let a = (lo - o) * inv;
+            let b = (hi - o) * inv;
+            t0[i] = if parallel { t0[i] } else { t0[i].max(a.min(b)) };
+            t1[i] = if parallel { t1[i] } else { t1[i].min(a.max(b)) };
+        }
+    }
+    let mut enter = [false; LANES];
+    for i in 0..LANES {
+        enter[i] = !(miss[i] | (t1[i] < p.tmin[i]) | (t0[i] > t1[i] + t1[i] * MARGIN));
+    }
+    (bits(enter), t0, t1)
+}
+
+/// Walks the lanes of `mask`, which share one octant, as one packet.
+#[inline(always)]
+fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+    src: W,
+    p: &Packet,
+    mask: u16,
+    best: &mut Best,
+    stats: &mut TraceStats,
+) {
     let mut cur = Entry {
-        node: src.root(),
+        node: 0,
         mask: 0,
         tmin: [0.0; LANES],
         tmax: [0.0; LANES],
     };
-    let bounds = src.bounds();
-    for (i, r) in rays.iter().enumerate() {
-        let inv = Vec3::new(p.inv[0][i], p.inv[1][i], p.inv[2][i]);
-        if let Some((t0, t1)) = clip_ray(&bounds, r, inv) {
-            cur.mask |= 1 << i;
-            cur.tmin[i] = t0;
-            cur.tmax[i] = t1;
-        }
+    let (entered, t0, t1) = clip_lanes(p, &src.bounds());
+    cur.mask = mask & entered;
+    cur.tmin = t0;
+    cur.tmax = t1;
+    if COUNT {
+        stats.packets += 1;
+        stats.rays += u64::from(mask.count_ones());
     }
-    let mut stack: Vec<Entry> = Vec::with_capacity(MAX_STACK);
-    let test = |t_src: u32, mask: u16, best: &mut Best| {
+    let perm = p.shared_permutation(mask);
+    // The lanes that are done (any-hit queries only).
+    let mut done = 0u16;
+    // Tests one triangle in the lanes of `mask`; returns the lanes it hit
+    // (their first hit, for any-hit queries).
+    let test = |t_src: u32, mask: u16, best: &mut Best| -> u16 {
         let tri = src.triangle(t_src);
         let id = src.input_id(t_src).0;
-        let mut fallback = kernel_body(&p, &tri, id, mask, best);
+        let lanes = match perm {
+            Some(k) => kernel_shared_perm(p, &tri, k, best),
+            None => kernel_any_perm(p, &tri, best),
+        };
+        // Keep each lane's hit if it is closer (or, for any-hit queries,
+        // before tmax), all lanes at once.
+        let ok = lanes.ok & mask & !lanes.fallback;
+        let mut take = [false; LANES];
+        for i in 0..LANES {
+            let t = lanes.t[i];
+            let better = if ANY {
+                t < p.tmax[i]
+            } else {
+                (t < best.t[i]) | ((t == best.t[i]) & (id < best.id[i]))
+            };
+            take[i] = (ok & (1 << i) != 0) & better;
+            best.t[i] = if take[i] { t } else { best.t[i] };
+            best.id[i] = if take[i] { id } else { best.id[i] };
+        }
+        let mut hit = bits(take);
+        let mut fallback = lanes.fallback & mask;
         while fallback != 0 {
             let i = fallback.trailing_zeros() as usize;
             fallback &= fallback - 1;
             let limit = best.t[i].min(p.tmax[i]);
-            if let Some(t) = intersect_triangle(&p.rp[i], &tri, p.tmin[i], limit)
-                && (t < best.t[i] || (t == best.t[i] && id < best.id[i]))
-            {
-                best.t[i] = t;
-                best.id[i] = id;
+            if let Some(t) = intersect_triangle(&p.rp[i], &tri, p.tmin[i], limit) {
+                if ANY {
+                    if t < p.tmax[i] {
+                        best.t[i] = t;
+                        best.id[i] = id;
+                        hit |= 1 << i;
+                    }
+                } else if t < best.t[i] || (t == best.t[i] && id < best.id[i]) {
+                    best.t[i] = t;
+                    best.id[i] = id;
+                }
             }
         }
+        hit
     };
+    // All lanes share the direction sign on every axis.
+    let lane0 = mask.trailing_zeros() as usize;
+    let up = [
+        !p.dir[0][lane0].is_sign_negative(),
+        !p.dir[1][lane0].is_sign_negative(),
+        !p.dir[2][lane0].is_sign_negative(),
+    ];
+    let mut stack: ArrayVec<Entry, MAX_STACK> = ArrayVec::new();
     'outer: loop {
         if cur.mask != 0 {
+            if COUNT {
+                stats.nodes += 1;
+                stats.lane_steps += u64::from(cur.mask.count_ones());
+            }
             match src.node(cur.node) {
                 SourceNode::Inner {
                     axis,
@@ -341,15 +602,24 @@ fn trace_packet<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [H
                     t_ref,
                 } => {
                     if let Some(tri) = t_ref {
-                        test(tri, cur.mask, &mut best);
+                        if COUNT {
+                            stats.hoisted += u64::from(cur.mask.count_ones());
+                        }
+                        if ANY {
+                            done |= test(tri, cur.mask, best);
+                            cur.mask &= !done;
+                            if mask & !done == 0 {
+                                return;
+                            }
+                        } else {
+                            test(tri, cur.mask, best);
+                        }
                     }
                     let k = axis as usize;
-                    let split = split_lanes(&p, k, pos, &cur);
+                    let split = split_lanes(p, k, pos, &cur);
                     let (l_mask, r_mask) = (split.left & cur.mask, split.right & cur.mask);
-                    // All lanes share the direction sign: rays going up the
-                    // axis meet the left child first.
-                    let left_first = !p.dir[k][0].is_sign_negative();
-                    let (first, second) = if left_first {
+                    // Rays going up the axis meet the left child first.
+                    let (first, second) = if up[k] {
                         (
                             (left, l_mask, &split.l_tmin, &split.l_tmax),
                             (right, r_mask, &split.r_tmin, &split.r_tmax),
@@ -361,6 +631,8 @@ fn trace_packet<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [H
                         )
                     };
                     if second.1 != 0 {
+                        // One entry per inner node on the path: the depth
+                        // bound (MAX_DEPTH) keeps it below MAX_STACK.
                         stack.push(Entry {
                             node: second.0,
                             mask: second.1,
@@ -376,7 +648,27 @@ fn trace_packet<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [H
                         continue 'outer;
                     }
                 }
-                SourceNode::Leaf(tris) => tris.for_each(|t| test(t, cur.mask, &mut best)),
+                SourceNode::Leaf(tris) => {
+                    if COUNT {
+                        stats.leaves += 1;
+                    }
+                    let all_done = tris.any(|t| {
+                        if COUNT {
+                            stats.tris += u64::from(cur.mask.count_ones());
+                        }
+                        if ANY {
+                            done |= test(t, cur.mask, best);
+                            cur.mask &= !done;
+                            cur.mask == 0
+                        } else {
+                            test(t, cur.mask, best);
+                            false
+                        }
+                    });
+                    if ANY && all_done && mask & !done == 0 {
+                        return;
+                    }
+                }
             }
         }
         // Pop the next cell and keep the lanes that may still find a hit
@@ -385,25 +677,18 @@ fn trace_packet<S: KdSource + ?Sized>(src: &S, rays: &[Ray; LANES], out: &mut [H
             let Some(mut e) = stack.pop() else {
                 break 'outer;
             };
+            let mut keep = [false; LANES];
+            // Written as the negation of the cull test, so that a NaN
+            // keeps the lane, as the per-lane branch did.
+            #[allow(clippy::neg_cmp_op_on_partial_ord)]
             for i in 0..LANES {
-                if e.mask & (1 << i) != 0 && e.tmin[i] - e.tmin[i] * MARGIN > best.t[i] {
-                    e.mask &= !(1 << i);
-                }
+                keep[i] = !(e.tmin[i] - e.tmin[i] * MARGIN > best.t[i]);
             }
+            e.mask &= !done & bits(keep);
             if e.mask != 0 {
                 cur = e;
                 continue 'outer;
             }
         }
-    }
-    for (i, o) in out.iter_mut().enumerate() {
-        *o = if best.id[i] == u32::MAX {
-            Hit::MISS
-        } else {
-            Hit {
-                t: best.t[i],
-                tri: crate::tree::TriId(best.id[i]),
-            }
-        };
     }
 }

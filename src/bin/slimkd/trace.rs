@@ -1,0 +1,195 @@
+//! `slimkd trace`: traces a ray file through a mapped `.kd` file, timed like
+//! the Embree peer program's `--rays` mode, and optionally counts the
+//! traversal's work with a separate, untimed counting pass.
+
+use serde_json::json;
+use slimkd::format::KdFile;
+use slimkd::fsio;
+use slimkd::trace::packet::PacketTracer;
+use slimkd::trace::rays::{self, Query};
+use slimkd::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
+
+#[derive(clap::Args)]
+pub struct TraceArgs {
+    /// A .kd file written by `slimkd build -o`.
+    pub file: PathBuf,
+    /// A ray file: 32-byte records `ox oy oz tmin dx dy dz tmax`, f32
+    /// little-endian, no header.
+    pub rays: PathBuf,
+    /// Any-hit queries: 1 when something lies in (tmin, tmax), else 0.
+    #[arg(long)]
+    pub occluded: bool,
+    /// Traversal: `single` ray at a time, or `packet`s of 16 consecutive
+    /// rays.
+    #[arg(long, value_enum, default_value = "packet")]
+    pub mode: TraceMode,
+    /// Worker threads (default: all cores).
+    #[arg(short = 'j', long)]
+    pub threads: Option<usize>,
+    /// Timed repetitions after one untimed warm-up; the median is reported.
+    #[arg(long, default_value_t = 5)]
+    pub reps: usize,
+    /// Also count the traversal's work per ray (nodes, leaves, triangle
+    /// tests), in an untimed pass of a counting traverser.
+    #[arg(long)]
+    pub stats: bool,
+    /// Write one little-endian f32 result per ray to this file.
+    #[arg(long)]
+    pub dump: Option<PathBuf>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TraceMode {
+    Single,
+    Packet,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        (v[n / 2 - 1] + v[n / 2]) / 2.0
+    }
+}
+
+pub fn cmd_trace(args: &TraceArgs, pool: rayon::ThreadPool) -> Res<()> {
+    if args.reps == 0 {
+        return Err("--reps must be at least 1".into());
+    }
+    let start = Instant::now();
+    let file = KdFile::open(&args.file, false)?;
+    let open_ms = start.elapsed().as_secs_f64() * 1e3;
+    let rays = rays::read_rays(&args.rays)?;
+    let query = if args.occluded {
+        Query::Occluded
+    } else {
+        Query::Closest
+    };
+    let packets = args.mode == TraceMode::Packet;
+    let scalar = Scalar::new(&file);
+    let packet = PacketTracer::new(&file);
+    let tracer: &dyn ClosestHit = if packets { &packet } else { &scalar };
+    let (rates, last) = pool.install(|| {
+        let mut last = rays::trace_batch(tracer, &rays, query, packets);
+        let mut rates = Vec::new();
+        for _ in 0..args.reps {
+            last = rays::trace_batch(tracer, &rays, query, packets);
+            rates.push(last.mrays_per_s());
+        }
+        (rates, last)
+    });
+    let stats = args.stats.then(|| {
+        let any = query == Query::Occluded;
+        let count = |r: &[slimkd::geom::Ray], out: &mut [Hit], s: &mut TraceStats| {
+            if packets {
+                packet.trace_counted(r, any, out, s);
+            } else {
+                for (ray, h) in r.iter().zip(out.iter_mut()) {
+                    *h = tr::traverse_counted(&file, ray, any, s);
+                }
+            }
+        };
+        let (results, stats) = pool.install(|| rays::count_batch(&rays, query, packets, &count));
+        // The counting traversal must answer as the timed one did.
+        let same = results
+            .iter()
+            .zip(&last.results)
+            .all(|(a, b)| a.to_bits() == b.to_bits());
+        (stats, same)
+    });
+    if let Some((_, false)) = stats {
+        return Err("the counting traversal disagrees with the timed one (a bug)".into());
+    }
+    if let Some(path) = &args.dump {
+        fsio::write_atomically(
+            path,
+            |e| format!("cannot write {}: {e}", path.display()),
+            |f| {
+                let bytes: Vec<u8> = last.results.iter().flat_map(|r| r.to_le_bytes()).collect();
+                f.write_all(&bytes)
+                    .map_err(|e| format!("cannot write {}: {e}", path.display()))
+            },
+        )?;
+    }
+    let mrays = median(rates.clone());
+    let simd = if packets {
+        packet.level().name()
+    } else {
+        "scalar"
+    };
+    let mode = if packets { "packet" } else { "single" };
+    let query_name = if args.occluded { "occluded" } else { "closest" };
+    let threads = pool.current_num_threads();
+    let per_ray = |s: &TraceStats, v: u64| v as f64 / (s.rays.max(1)) as f64;
+    if args.json {
+        let mut out = json!({
+            "file": args.file.display().to_string(),
+            "rays_file": args.rays.display().to_string(),
+            "mode": mode,
+            "query": query_name,
+            "simd": simd,
+            "threads": threads,
+            "rays": rays.len(),
+            "mrays_per_s": mrays,
+            "mrays_per_s_reps": rates,
+            "hits": last.hits(query),
+            "checksum": last.checksum(query),
+            "open_ms": open_ms,
+        });
+        if let Some((s, _)) = &stats {
+            out["stats"] = json!({
+                "rays": s.rays,
+                "nodes_per_ray": per_ray(s, s.nodes),
+                "leaves_per_ray": per_ray(s, s.leaves),
+                "tris_per_ray": per_ray(s, s.tris),
+                "hoisted_per_ray": per_ray(s, s.hoisted),
+                "packets": s.packets,
+                "lanes_per_step": if s.nodes > 0 { s.lane_steps as f64 / s.nodes as f64 } else { 0.0 },
+            });
+        }
+        println!("{out}");
+    } else {
+        println!(
+            "{mode} {query_name} ({simd}, {threads} threads): {:.3} Mrays/s (median of {}), {} rays, hits {}, checksum {:.6}",
+            mrays,
+            args.reps,
+            rays.len(),
+            last.hits(query),
+            last.checksum(query)
+        );
+        if let Some((s, _)) = &stats {
+            if packets {
+                println!(
+                    "per ray: {:.2} packet node steps shared, {:.2} leaf triangle tests, {:.2} hoisted tests; {:.2} active lanes per step",
+                    per_ray(s, s.nodes),
+                    per_ray(s, s.tris),
+                    per_ray(s, s.hoisted),
+                    if s.nodes > 0 {
+                        s.lane_steps as f64 / s.nodes as f64
+                    } else {
+                        0.0
+                    }
+                );
+            } else {
+                println!(
+                    "per ray: {:.2} nodes, {:.2} leaves, {:.2} triangle tests, {:.2} hoisted tests",
+                    per_ray(s, s.nodes),
+                    per_ray(s, s.leaves),
+                    per_ray(s, s.tris),
+                    per_ray(s, s.hoisted)
+                );
+            }
+        }
+    }
+    Ok(())
+}

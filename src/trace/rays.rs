@@ -1,0 +1,262 @@
+//! Ray files and tracing a batch of rays: the format and the work split of
+//! the Embree peer program (`../shared/peers/`), so that the two can be
+//! compared ray by ray.
+//!
+//! A ray file is N records of 8 little-endian `f32`, 32 bytes each, no
+//! header: `ox oy oz tmin dx dy dz tmax`. The result of a closest-hit query
+//! is the hit's `t` (`+inf` for a miss); of an any-hit (`occluded`) query,
+//! 1 when something lies in `(tmin, tmax)` and 0 when not. Rays go to the
+//! threads in chunks of [`CHUNK`] consecutive rays; packets are 16
+//! consecutive rays of a chunk (the chunk's last packet may be shorter).
+
+use super::{ClosestHit, Hit, TraceStats};
+use crate::geom::Ray;
+use glam::Vec3;
+use rayon::prelude::*;
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// Bytes of one ray record.
+pub const RECORD: usize = 32;
+
+/// Consecutive rays a thread takes at a time.
+pub const CHUNK: usize = 256;
+
+/// What is wrong with a ray file.
+#[derive(Debug)]
+pub enum RayFileError {
+    Io(PathBuf, std::io::Error),
+    /// The size is not a whole number of records.
+    Size(PathBuf, u64),
+    /// Record `index` (from 0) is not a ray.
+    Record {
+        path: PathBuf,
+        index: usize,
+        what: &'static str,
+    },
+}
+
+impl fmt::Display for RayFileError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            RayFileError::Io(p, e) => write!(f, "{}: {e}", p.display()),
+            RayFileError::Size(p, n) => write!(
+                f,
+                "{}: size {n} bytes is not a multiple of {RECORD} (records are ox oy oz tmin dx dy dz tmax, f32)",
+                p.display()
+            ),
+            RayFileError::Record { path, index, what } => {
+                write!(f, "{}: ray {index}: {what}", path.display())
+            }
+        }
+    }
+}
+
+impl std::error::Error for RayFileError {}
+
+/// Parses ray records; `Err((index, what))` names the first bad record.
+pub fn parse_rays(bytes: &[u8]) -> Result<Vec<Ray>, (usize, &'static str)> {
+    bytes
+        .chunks_exact(RECORD)
+        .enumerate()
+        .map(|(i, rec)| {
+            let f: [f32; 8] = std::array::from_fn(|k| {
+                f32::from_le_bytes(rec[4 * k..4 * k + 4].try_into().expect("4 bytes"))
+            });
+            let origin = Vec3::new(f[0], f[1], f[2]);
+            let dir = Vec3::new(f[4], f[5], f[6]);
+            let (tmin, tmax) = (f[3], f[7]);
+            if !origin.is_finite() {
+                return Err((i, "origin is not finite"));
+            }
+            if !dir.is_finite() {
+                return Err((i, "direction is not finite"));
+            }
+            if dir == Vec3::ZERO {
+                return Err((i, "direction is zero"));
+            }
+            if tmin.is_nan() || tmax.is_nan() {
+                return Err((i, "tmin or tmax is NaN"));
+            }
+            if tmin > tmax {
+                return Err((i, "tmin > tmax"));
+            }
+            Ok(Ray {
+                origin,
+                dir,
+                tmin,
+                tmax,
+            })
+        })
+        .collect()
+}
+
+/// Reads and checks a ray file.
+pub fn read_rays(path: &Path) -> Result<Vec<Ray>, RayFileError> {
+    let bytes = std::fs::read(path).map_err(|e| RayFileError::Io(path.to_path_buf(), e))?;
+    if bytes.len() % RECORD != 0 {
+        return Err(RayFileError::Size(path.to_path_buf(), bytes.len() as u64));
+    }
+    parse_rays(&bytes).map_err(|(index, what)| RayFileError::Record {
+        path: path.to_path_buf(),
+        index,
+        what,
+    })
+}
+
+/// The rays as file bytes.
+pub fn ray_bytes(rays: &[Ray]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(rays.len() * RECORD);
+    for r in rays {
+        for v in [
+            r.origin.x, r.origin.y, r.origin.z, r.tmin, r.dir.x, r.dir.y, r.dir.z, r.tmax,
+        ] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// How a batch is traced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Query {
+    /// Closest hit: each result is `t`, `+inf` for a miss.
+    Closest,
+    /// Any hit in `(tmin, tmax)`: each result is 1 or 0.
+    Occluded,
+}
+
+/// A traced batch.
+pub struct Traced {
+    /// One result per ray (see [`Query`]).
+    pub results: Vec<f32>,
+    pub seconds: f64,
+}
+
+impl Traced {
+    /// Rays hit (closest) or occluded: the peer program's `hits`.
+    pub fn hits(&self, query: Query) -> u64 {
+        match query {
+            Query::Closest => self.results.iter().filter(|t| t.is_finite()).count() as u64,
+            Query::Occluded => self.results.iter().filter(|&&r| r == 1.0).count() as u64,
+        }
+    }
+
+    /// The peer program's `checksum`: the sum of the hits' `t` in ray
+    /// order (closest), or of the occluded rays' indices, in `f64`.
+    pub fn checksum(&self, query: Query) -> f64 {
+        match query {
+            Query::Closest => self
+                .results
+                .iter()
+                .filter(|t| t.is_finite())
+                .map(|&t| f64::from(t))
+                .sum(),
+            Query::Occluded => self
+                .results
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| **r == 1.0)
+                .map(|(i, _)| i as f64)
+                .sum(),
+        }
+    }
+
+    pub fn mrays_per_s(&self) -> f64 {
+        self.results.len() as f64 / self.seconds / 1e6
+    }
+}
+
+fn result(query: Query, hit: Hit) -> f32 {
+    match query {
+        Query::Closest => hit.t,
+        Query::Occluded => f32::from(u8::from(hit.is_hit())),
+    }
+}
+
+/// Traces `rays` in chunks of [`CHUNK`] on the current rayon pool, one by
+/// one or, with `packets`, 16 consecutive rays at a time.
+pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets: bool) -> Traced {
+    let mut results = vec![0f32; rays.len()];
+    let start = Instant::now();
+    results
+        .par_chunks_mut(CHUNK)
+        .zip(rays.par_chunks(CHUNK))
+        .for_each(|(out, rays)| trace_chunk(tracer, rays, query, packets, out));
+    Traced {
+        results,
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}
+
+fn trace_chunk(
+    tracer: &dyn ClosestHit,
+    rays: &[Ray],
+    query: Query,
+    packets: bool,
+    out: &mut [f32],
+) {
+    if !packets {
+        for (r, o) in rays.iter().zip(out.iter_mut()) {
+            *o = match query {
+                Query::Closest => tracer.closest_hit(r).t,
+                Query::Occluded => f32::from(u8::from(tracer.occluded(r))),
+            };
+        }
+        return;
+    }
+    for (rays, out) in rays.chunks(16).zip(out.chunks_mut(16)) {
+        match query {
+            Query::Closest => {
+                let mut hits = [Hit::MISS; 16];
+                tracer.closest_hit_n(rays, &mut hits[..rays.len()]);
+                for (o, h) in out.iter_mut().zip(hits) {
+                    *o = h.t;
+                }
+            }
+            Query::Occluded => {
+                let mut occ = [false; 16];
+                tracer.occluded_n(rays, &mut occ[..rays.len()]);
+                for (o, h) in out.iter_mut().zip(occ) {
+                    *o = f32::from(u8::from(h));
+                }
+            }
+        }
+    }
+}
+
+/// Traces the rays of one piece of a chunk into their hits, counting the
+/// work.
+pub type CountFn<'a> = dyn Fn(&[Ray], &mut [Hit], &mut TraceStats) + Sync + 'a;
+
+/// Traces `rays` like [`trace_batch`] with a counting traversal (`trace`
+/// gets the rays of one chunk piece and returns their hits) and returns the
+/// work done; it is slower, so it is never timed.
+pub fn count_batch(
+    rays: &[Ray],
+    query: Query,
+    packets: bool,
+    trace: &CountFn<'_>,
+) -> (Vec<f32>, TraceStats) {
+    let total = Mutex::new(TraceStats::default());
+    let mut results = vec![0f32; rays.len()];
+    let step = if packets { 16 } else { 1 };
+    results
+        .par_chunks_mut(CHUNK)
+        .zip(rays.par_chunks(CHUNK))
+        .for_each(|(out, rays)| {
+            let mut stats = TraceStats::default();
+            for (rays, out) in rays.chunks(step).zip(out.chunks_mut(step)) {
+                let mut hits = [Hit::MISS; 16];
+                trace(rays, &mut hits[..rays.len()], &mut stats);
+                for (o, h) in out.iter_mut().zip(hits) {
+                    *o = result(query, h);
+                }
+            }
+            total.lock().expect("no panics while held").add(&stats);
+        });
+    let stats = total.into_inner().expect("no panics while held");
+    (results, stats)
+}

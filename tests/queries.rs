@@ -1,0 +1,292 @@
+//! Any-hit queries and packets of any size: `occluded` is exactly
+//! `closest_hit(ray).t < tmax` for the scalar and the packet traverser (every
+//! instruction set, slim trees' hoisted triangles included), packets of 1–16
+//! rays and of mixed octants return the scalar hits, the counting traversal
+//! answers as the fast one, and ray files are read or refused by record.
+
+mod common;
+
+use common::*;
+use glam::Vec3;
+use proptest::prelude::*;
+use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::format::{self, KdFile, WriteOptions};
+use slimkd::geom::Ray;
+use slimkd::slim::{self, HoistRule, SlimParams};
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::rays::{self, Query};
+use slimkd::trace::{self, ClosestHit, Hit, KdSource, Scalar, TraceStats, TreeTracer};
+
+/// Every query of every traverser over `src` against brute force on `rays`.
+fn check_queries(src: &impl KdSource, scene: &slimkd::scene::TriangleColumns, rays: &[Ray]) {
+    let want: Vec<Hit> = rays.iter().map(|r| trace::brute_force(scene, r)).collect();
+    let want_occ: Vec<bool> = want.iter().zip(rays).map(|(h, r)| h.t < r.tmax).collect();
+    let scalar = Scalar::new(src);
+    for (i, r) in rays.iter().enumerate() {
+        assert_eq!(scalar.closest_hit(r), want[i], "scalar ray {i}");
+        assert_eq!(scalar.occluded(r), want_occ[i], "scalar occluded ray {i}");
+        assert_eq!(trace::occluded(src, r), want_occ[i]);
+        let mut stats = TraceStats::default();
+        assert_eq!(trace::traverse_counted(src, r, false, &mut stats), want[i]);
+        assert_eq!(
+            trace::traverse_counted(src, r, true, &mut stats).is_hit(),
+            want_occ[i]
+        );
+        assert_eq!(stats.rays, 2);
+    }
+    for level in SimdLevel::available() {
+        let tracer = PacketTracer::with_level(src, level);
+        assert_eq!(tracer.level(), level);
+        // Every packet length, starting anywhere.
+        for len in [1, 2, 5, 7, 8, 9, 15, 16] {
+            for (c, chunk) in rays.chunks(len).enumerate() {
+                let base = c * len;
+                let mut got = vec![Hit::MISS; chunk.len()];
+                tracer.closest_hit_n(chunk, &mut got);
+                assert_eq!(got, want[base..base + chunk.len()], "{level:?} len {len}");
+                let mut occ = vec![false; chunk.len()];
+                tracer.occluded_n(chunk, &mut occ);
+                assert_eq!(
+                    occ,
+                    want_occ[base..base + chunk.len()],
+                    "{level:?} occluded len {len}"
+                );
+                let mut stats = TraceStats::default();
+                let mut counted = vec![Hit::MISS; chunk.len()];
+                tracer.trace_counted(chunk, false, &mut counted, &mut stats);
+                assert_eq!(counted, got);
+                assert_eq!(stats.rays, chunk.len() as u64);
+                tracer.trace_counted(chunk, true, &mut counted, &mut stats);
+                let occ2: Vec<bool> = counted.iter().map(Hit::is_hit).collect();
+                assert_eq!(occ2, occ);
+            }
+        }
+    }
+}
+
+/// Rays with limited `(tmin, tmax)`, so that occlusion is not just "hit".
+fn with_interval(rays: &[Ray], tmin: f32, span: f32) -> Vec<Ray> {
+    rays.iter()
+        .enumerate()
+        .map(|(i, r)| {
+            if i % 3 == 0 {
+                *r
+            } else {
+                Ray {
+                    tmin,
+                    tmax: tmin + span * (i % 5) as f32,
+                    ..*r
+                }
+            }
+        })
+        .collect()
+}
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    #[test]
+    fn any_hit_and_packets_of_any_size_equal_brute_force(
+        (tris, packets) in (1i32..=6).prop_flat_map(|g| (
+            prop::collection::vec(grid_triangle(g), 0..=60),
+            prop::collection::vec(packet(g), 1..4),
+        )),
+        tmin in 0.0f32..2.0,
+        span in 0.0f32..3.0,
+    ) {
+        let scene = columns(&tris);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        // Coherent and loose packets back to back: chunks of every length
+        // mix octants.
+        let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
+        let rays = with_interval(&rays, tmin, span);
+        check_queries(&TreeTracer { tree: &tree, scene: &scene }, &scene, &rays);
+        for reorder in [false, true] {
+            let bytes = format::write_to_vec(&tree, &scene, &WriteOptions { reorder, ..Default::default() }).unwrap();
+            let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+            check_queries(&file, &scene, &rays);
+        }
+    }
+
+    #[test]
+    fn any_hit_counts_hoisted_triangles(
+        (tris, packets) in (2i32..=6).prop_flat_map(|g| (
+            prop::collection::vec(grid_triangle(g), 8..=60),
+            prop::collection::vec(packet(g), 1..3),
+        )),
+        tmin in 0.0f32..1.0,
+        span in 0.5f32..3.0,
+    ) {
+        let scene = columns(&tris);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let params = SlimParams { tau_occu: 0.0, tau_freq: 0.0, ..SlimParams::SMALL.with_rule(HoistRule::Paper) };
+        let (slim, _) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
+        let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
+        let rays = with_interval(&rays, tmin, span);
+        check_queries(&TreeTracer { tree: &slim, scene: &scene }, &scene, &rays);
+        let bytes = format::write_to_vec(&slim, &scene, &WriteOptions::default()).unwrap();
+        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+        check_queries(&file, &scene, &rays);
+    }
+}
+
+#[test]
+fn hoisted_triangles_are_counted_and_tested() {
+    // A scene whose slim tree hoists: the counting traversal reports hoisted
+    // tests, and the hoisted triangle occludes.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let params = SlimParams::SMALL.with_rule(HoistRule::Paper);
+    let (slim, report) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
+    assert!(report.hoisted > 0);
+    assert!(
+        slim.nodes
+            .iter()
+            .any(|n| matches!(n, slimkd::tree::Node::Inner { t_ref: Some(_), .. }))
+    );
+    let src = TreeTracer {
+        tree: &slim,
+        scene: &scene,
+    };
+    let b = scene.bounds();
+    let mut stats = TraceStats::default();
+    let mut rays = Vec::new();
+    for i in 0..32 {
+        for j in 0..32 {
+            let target = b.min
+                + (b.max - b.min)
+                    * Vec3::new((i as f32 + 0.5) / 32.0, (j as f32 + 0.5) / 32.0, 0.5);
+            let o = b.max + 1.0;
+            rays.push(Ray::new(o, target - o));
+        }
+    }
+    check_queries(&src, &scene, &rays);
+    for r in &rays {
+        trace::traverse_counted(&src, r, false, &mut stats);
+    }
+    assert!(stats.hoisted > 0, "{stats:?}");
+    assert!(stats.nodes > stats.leaves && stats.leaves > 0 && stats.tris > 0);
+}
+
+#[test]
+fn ray_files_round_trip_and_bad_records_are_named() {
+    let rays = vec![
+        Ray::new(Vec3::new(1.0, 2.0, 3.0), Vec3::new(0.0, 0.0, -1.0)),
+        Ray {
+            origin: Vec3::ZERO,
+            dir: Vec3::X,
+            tmin: 0.5,
+            tmax: f32::INFINITY,
+        },
+    ];
+    let bytes = rays::ray_bytes(&rays);
+    assert_eq!(bytes.len(), 64);
+    let back = rays::parse_rays(&bytes).unwrap();
+    assert_eq!(back.len(), 2);
+    for (a, b) in back.iter().zip(&rays) {
+        assert_eq!(
+            (a.origin, a.dir, a.tmin, a.tmax),
+            (b.origin, b.dir, b.tmin, b.tmax)
+        );
+    }
+    let bad = |f: &dyn Fn(&mut Ray)| {
+        let mut rs = rays.clone();
+        f(&mut rs[1]);
+        rays::parse_rays(&rays::ray_bytes(&rs)).unwrap_err()
+    };
+    assert_eq!(bad(&|r| r.origin.y = f32::NAN), (1, "origin is not finite"));
+    assert_eq!(bad(&|r| r.dir.z = f32::NAN), (1, "direction is not finite"));
+    assert_eq!(bad(&|r| r.dir = Vec3::ZERO), (1, "direction is zero"));
+    assert_eq!(
+        bad(&|r| {
+            r.tmin = 2.0;
+            r.tmax = 1.0;
+        }),
+        (1, "tmin > tmax")
+    );
+    assert_eq!(bad(&|r| r.tmax = f32::NAN), (1, "tmin or tmax is NaN"));
+
+    let dir = std::env::temp_dir().join(format!("slimkd-rays-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let short = dir.join("short.rays");
+    std::fs::write(&short, &bytes[..40]).unwrap();
+    let e = rays::read_rays(&short).unwrap_err().to_string();
+    assert!(e.contains("short.rays") && e.contains("size 40"), "{e}");
+    let nan = dir.join("nan.rays");
+    let mut b = bytes.clone();
+    b[32..36].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&nan, &b).unwrap();
+    let e = rays::read_rays(&nan).unwrap_err().to_string();
+    assert!(e.contains("nan.rays") && e.contains("ray 1"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn batches_match_one_by_one_and_the_peer_checksums() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let bytes = format::write_to_vec(
+        &tree,
+        &scene,
+        &WriteOptions {
+            reorder: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+    let b = scene.bounds();
+    // 1000 rays (not a multiple of 16 or 256) from a point; every other one
+    // ends exactly at its closest hit (a hit, but not occluded: the open
+    // interval), every fourth a little beyond it.
+    let o = b.max + (b.max - b.min);
+    let rays: Vec<Ray> = (0..1000)
+        .map(|i| {
+            let target = b.min
+                + (b.max - b.min) * Vec3::new((i % 40) as f32 / 40.0, (i / 40) as f32 / 25.0, 0.5);
+            let mut r = Ray::new(o, target - o);
+            let t = trace::brute_force(&scene, &r).t;
+            if i % 2 == 1 && t.is_finite() {
+                r.tmax = if i % 4 == 1 { t } else { t * 1.01 };
+            }
+            r
+        })
+        .collect();
+    let want: Vec<Hit> = rays.iter().map(|r| trace::brute_force(&scene, r)).collect();
+    let scalar = Scalar::new(&file);
+    let packet = PacketTracer::new(&file);
+    for (tracer, packets) in [
+        (&scalar as &dyn ClosestHit, false),
+        (&packet as &dyn ClosestHit, true),
+    ] {
+        let closest = rays::trace_batch(tracer, &rays, Query::Closest, packets);
+        let t: Vec<f32> = want.iter().map(|h| h.t).collect();
+        assert_eq!(closest.results, t);
+        let hits = want.iter().filter(|h| h.is_hit()).count() as u64;
+        assert!(hits > 100 && hits < 1000);
+        assert_eq!(closest.hits(Query::Closest), hits);
+        let sum: f64 = want
+            .iter()
+            .filter(|h| h.is_hit())
+            .map(|h| f64::from(h.t))
+            .sum();
+        assert_eq!(closest.checksum(Query::Closest), sum);
+        let occ = rays::trace_batch(tracer, &rays, Query::Occluded, packets);
+        let o: Vec<f32> = want
+            .iter()
+            .zip(&rays)
+            .map(|(h, r)| f32::from(u8::from(h.t < r.tmax)))
+            .collect();
+        assert_eq!(occ.results, o);
+        let idx: f64 = o
+            .iter()
+            .enumerate()
+            .filter(|(_, v)| **v == 1.0)
+            .map(|(i, _)| i as f64)
+            .sum();
+        assert_eq!(occ.checksum(Query::Occluded), idx);
+        assert!(occ.hits(Query::Occluded) < hits, "tmax must cut some hits");
+    }
+}
