@@ -194,16 +194,9 @@ pub struct Scratch {
 /// first (a fresh buffer is zeroed lazily by the system, page by page, as
 /// the parallel passes first write it).
 ///
-/// Measured against session 8's start (2 threads, 2 alternating runs
-/// each): stk_all (6.2 M triangles) without a budget 18.9 / 20.8 → 16.3 /
-/// 15.5 s, page faults 2.83 M → 0.74 M, peak RssAnon 1095 → 1234 MiB
-/// (1190 MiB with the headroom an eighth);
-/// with `--mem-budget 1G` 19.8 / 19.7 → 17.8 / 18.2 s, faults 2.83 M →
-/// 1.79 M, RssAnon 1117 → 1102 MiB, nothing spilled either way. On
-/// black_forest the level passes' event phase went 0.65 → 0.50 s (minima
-/// of 5) and its peak RssAnon 342–392 → 229 MiB. Zeroing reused buffers (a first version) gave back most of it
-/// on stk_all under the budget: the classify phase, which makes three
-/// columns, went 2.4 → 3.0 s.
+/// On stk_all (6.2 M triangles, 2 threads, no budget) the pool cuts the
+/// build's page faults from 2.83 M to 0.74 M; the figures, and the
+/// variants not taken, are in `docs/perf-notes.md`.
 #[derive(Debug, Default)]
 struct Pool {
     /// Buffers of `u64`s, so that any `Pod` type of alignment up to 8 can
@@ -217,8 +210,8 @@ impl Pool {
     const MIN_BYTES: u64 = 1 << 20;
     const MAX_BUFFERS: usize = 16;
     /// A fresh buffer's capacity over the request, in eighths. (Five
-    /// quarters made the same page faults on stk_all and black_forest,
-    /// with 3.5% more peak RssAnon on stk_all: 1234 against 1190 MiB.)
+    /// quarters make no fewer page faults, and 3.5% more peak RssAnon on
+    /// stk_all.)
     const HEADROOM: usize = 9;
 
     /// The smallest buffer of at least `words`, if one is kept.

@@ -11,9 +11,8 @@
 //! [`clip_split`], which every builder's straddlers go through, runs in
 //! AVX-512 lanes where the CPU has them (`lanes`), with the same bits as
 //! the scalar code (a proptest holds both equal to the textbook form kept
-//! in the tests). Measured on stk_black_forest (3 alternating runs on 1
-//! thread, 5 on 2, medians): build 6.06 → 5.77 s on 1 thread, 3.52 →
-//! 3.27 s on 2; a clip of a random straddler 161 → 123 ns.
+//! in the tests). On stk_black_forest the lanes take a clip of a random
+//! straddler from 161 to 123 ns.
 
 use super::{Aabb, f32_round_down, f32_round_up};
 use crate::simd::SimdLevel;

@@ -49,271 +49,27 @@
 //! 5. **Child events**: inherited events keep their order through a stable
 //!    parallel partition, with their reference renumbered; the events of
 //!    clipped references are sorted per child and merged in (sort + merge,
-//!    in place from the back of the child's segment). Wu et al.'s bucket
-//!    sort, with the inherited events as buckets, is implemented too
-//!    ([`NewEvents::Bucket`], `slimkd build --new-events bucket`): it gives
-//!    the same lists and was measured slower on CPU cores (stk_black_forest,
-//!    1 thread, 3 alternating runs: events phase median 1.27 s merge vs
-//!    1.59 s bucket, whole build user time 10.3 s vs 11.5 s; a binary search
-//!    per new event and a block move per bucket cost more than one
-//!    predictable comparison per moved event), so sort + merge is the
-//!    default. Since session 5 the merge takes the best of both: it moves
-//!    long runs of inherited events as blocks, found by a galloping search
-//!    from the merge position, and merges element by element elsewhere.
+//!    in place from the back of the child's segment, moving long runs of
+//!    inherited events as blocks found by a galloping search). Wu et al.'s
+//!    bucket sort, with the inherited events as buckets, gives the same
+//!    lists ([`NewEvents::Bucket`], `slimkd build --new-events bucket`)
+//!    but is slower on CPU cores: a binary search per new event and a
+//!    block move per bucket cost more than one predictable comparison per
+//!    moved event (stk_black_forest, 1 thread: events phase 1.27 s merge
+//!    against 1.59 s bucket). Sort + merge is the default.
 //!
 //! The tree is assembled in pre-order at the end (`assemble`), from the
 //! breadth-first records, leaf lists and depth-first subtrees.
 //!
-//! **Where the time goes** (stk_black_forest, 1.09 M triangles, 1 thread):
-//! about 75% in the depth-first finishing of small nodes, which is the
-//! bulk of the work because black_forest's references grow to 7.8 per
-//! triangle at the leaves. The finisher visits 4.3 M nodes averaging 11.5
-//! references (1.6 M of them with fewer than 4), so per-node constants
-//! count as much as per-event work; 32% of the events it sweeps lie on a
-//! face of their node's cell. Profile (perf, 1 thread, session 3): sweeps
-//! and pricing about 23%, the finisher's partitions and merges about 22%,
-//! clipping ([`clip_straddler`]: one parent clip and one split pass per
-//! straddler, in `f64`) about 13%. The threshold was tuned there (256 to
-//! 131072 references); 2048 was fastest on 2 threads, with 1024 to 32768
-//! within the noise (re-checked in session 3 with the overlap of step 1:
-//! 2048, 8192 and 32768 are within the noise).
-//!
-//! Session 3, every change keeping the tree bit for bit (callgrind,
-//! stk_ravenbridge_mansion, 1 thread, whole level build: 16.86 G
-//! instructions, 2.61 G branches, 136 M mispredicted (its model) before;
-//! 16.22 G, 2.25 G and 96 M after):
-//! - the clip without data-dependent branches
-//!   ([`crate::geom::clip_split`]; its mispredictions halved);
-//! - the finisher's stacks stay allocated (no zero-fill per node), new
-//!   events merge without branches, partitions count sides by slot;
-//! - planes whose cost bound reaches the node's leaf cost are not priced
-//!   (62% fewer exact pricings), and pricing converts the cell once per
-//!   sweep ([`sah::AxisPricer`]);
-//! - small nodes overlap the big-node passes (step 1).
-//!
-//! Session 4: tiny nodes (at most 48 references by default; 2.6 M of the
-//! 3.3 M nodes black_forest's finisher sweeps have under 16) have no
-//! events (`tiny`): every candidate plane is counted against every box
-//! (`n · ⌈2n/16⌉` vector steps per axis) and priced in `f64` lanes, and
-//! one pass classifies, clips and writes the children, so they need no
-//! sort, partition or merge of events and no placement bookkeeping. Each
-//! cell face is one candidate however many boxes touch it. The
-//! finisher's partition keeps its cursors in registers. Against the
-//! session's start, alternating runs, medians: stk_black_forest 5.27 →
-//! 4.39 s on 2 threads (5 runs each), 8.77 → 7.89 s on 1 (3 runs);
-//! `tools/icount.sh` on ravenbridge (the build alone, 1 thread): 16.18 G
-//! → 13.87 G instructions, 2.24 G → 1.64 G branches, 95 M → 74 M
-//! mispredicted. Tiny thresholds 32, 48 and 64 are within a few percent
-//! (48 and 64 ahead of 32 in two batches); 48 keeps the `n²` work small.
-//! Tried and dropped: a count without the planar comparison for axes
-//! without flat boxes (two inlined variants; the small-node phase got
-//! 10–15% slower, consistently in two batches); the lane pricing for the
-//! event sweeps of the finisher's bigger nodes too (events turned into
-//! planes by selects, every plane priced in lanes: small-node phase 4.39
-//! → 4.84 s, black_forest, 1 thread, 3 alternating runs; the scalar sweep
-//! prices only 5% of its planes, 12.5 M of 229 M events, because the cost
-//! bound prunes the rest, so pricing all of them costs more than the
-//! mispredictions it saves); prefetching the per-reference lookups of the
-//! level partition 16 events ahead (events phase 3% faster, not worth an
-//! `unsafe` block).
-//!
-//! Session 5: the sweep passes over blocks of 16 events, adding up their
-//! counts, when one lower bound for all their planes (left count at the
-//! block's start, right count at its end, `λ = 1` when both are
-//! occupied) exceeds the best cost (`sweep_events`): 61% of the 229 M
-//! events black_forest sweeps, and the level passes' SAH phase went from
-//! 0.78 to 0.59 s on 1 thread (minima of 3 alternating runs). The merge of clipped copies' events gallops
-//! (doubling steps, then a binary search; a search of the whole list
-//! missed the cache) past runs of 16 or more inherited events, as one
-//! block move. `clip_split` clips only to the cell faces the reference's
-//! box reaches (the others provably cut nothing; all builders change
-//! together, so the trees still agree; aneurysm's tree lost 4 of 355 K
-//! nodes). Tiny nodes price 8 planes at a time (one 512-bit vector) and
-//! skip the second half when it is padding; the `f32` outward rounding
-//! steps by bits. Against the session's start (`tools/icount.sh`,
-//! ravenbridge): 13.87 G → 12.40 G instructions, 1.64 G → 1.41 G
-//! branches, 74 M → 68 M mispredicted; black_forest on 2 threads, two
-//! batches of 5 alternating runs, medians 3.82 → 3.61 s and 4.58 → 4.12 s
-//! (minima 3.71 → 3.21 s and 3.92 → 3.42 s); on 1 thread 6.62 → 6.17 s
-//! (3 runs). Tried and dropped this session (no gain beyond the noise, or
-//! slower): the sweep one event at a time without a branch on where a run
-//! of equal positions ends (33% more instructions, the SAH phase twice as
-//! slow); the three axes' candidates of a tiny node in one pass over its
-//! boxes; tied tiny lanes as a bit mask; sweeping the finisher's longest
-//! axis first (to find a low cost sooner); the root's radix sort parallel
-//! within each axis (the setup stayed at 0.16–0.19 s on 2 threads: it is
-//! bound by memory and page faults, not by the sort's threads); a pool of
-//! freed RAM columns for the next level (more page faults, not fewer, and
-//! 170 MB more peak RSS); building with `-C target-cpu=x86-64-v3` (2–3%);
-//! a larger block of 64 events tried first after a pass-over (the SAH
-//! phase got slower); the level partition's side counts in registers
-//! rather than an array indexed by slot (no change: the per-event lookup
-//! of the reference's placement is what costs); seeding each finisher
-//! sweep's cap with the cost of the plane through the middle of the
-//! longest axis (a valid upper bound of the best cost when references lie
-//! on both sides of it and `λ_empty ≤ 1`: it raised the events passed
-//! over from 61% to 66% and cut exact pricings from 12.5 M to 9.8 M, but
-//! the extra pass over each node's boxes cost as much, and ravenbridge got
-//! no faster).
-//!
-//! Session 6: `clip_split` (every straddler's clip, 7.4 M of them on
-//! black_forest) runs in AVX-512 lanes, the same bits as the scalar clip
-//! (`geom::clip`); a split that cuts off empty space (every reference to
-//! one side, none clipped: 47% of black_forest's inner nodes) costs its
-//! occupied child less: in the finisher that child works on the node's
-//! references and events in place, with no copy or partition, and a tiny
-//! child prices its parent's candidates and counts again instead of
-//! counting (`tiny::Boxes::Same`). Every tree stays byte-identical
-//! (aneurysm, ravenbridge, candela, black_forest, stk_all). Against the
-//! session's start, alternating runs, medians: black_forest 3.72 → 3.42 s
-//! on 2 threads (5 runs each), 6.12 → 5.57 s on 1 (3 runs); ravenbridge
-//! 0.91 → 0.81 s, candela 1.05 → 0.91 s, aneurysm 0.204 s both (2
-//! threads, 5 runs). Tried and dropped: the tiny candidates gathered and
-//! compressed in AVX-512 lanes (the split search's share of the profile
-//! fell from 18.0% to 17.1%, within the wall-time noise over 8 alternating
-//! runs, not worth 80 lines of `unsafe`); the vertices of every triangle
-//! copied into one array for the clipper (no gain beyond the noise: the
-//! straddlers' triangle lookups are not what the clip waits on); small
-//! thresholds 512, 8192 and 32768 against 2048 and tiny thresholds 32 and
-//! 64 against 48, re-checked (within the noise, 48 ahead).
-//!
-//! Session 7: the level passes' sweep tasks of one node (its three axes,
-//! and the parts of a large node) prune against one shared best cost
-//! (`SharedBest`: an atomic minimum that only ever holds the cost of a
-//! real plane of the node, so the split does not depend on the tasks'
-//! timing). Each task used to start from the leaf cost alone, and a part
-//! in which the cost falls towards a best plane elsewhere priced every
-//! plane. A node's last part is no longer counted for carries (no later
-//! part needs them), and the root's boxes and cell are computed in
-//! parallel. Every tree stays byte-identical (aneurysm, ravenbridge,
-//! candela, black_forest, stk_all). Black_forest, alternating runs,
-//! medians: SAH phase 0.49 → 0.35 s on 2 threads (5 runs) and 0.61 →
-//! 0.47 s on 1 (3 runs); build 3.02 → 2.97 s on 2 threads, 5.77 → 5.36 s
-//! on 1. `tools/icount.sh` on ravenbridge: 11.40 G → 11.17 G
-//! instructions, 1.34 G → 1.26 G branches, 65.2 M → 63.4 M mispredicted.
-//! Tried and dropped: two straddlers clipped interleaved in one lane
-//! function (one clip is a chain of dependent steps, 115 ns latency-bound
-//! against 100 ns independent, but the pair ran at 160 ns a clip); the
-//! root's radix sort cut into chunks of all three axes at once, to balance
-//! three axes on two threads (setup unchanged: it waits on page faults,
-//! not on the sort); transparent huge pages for the allocator
-//! (`GLIBC_TUNABLES=glibc.malloc.hugetlb=1`: page faults 184 K → 95 K on
-//! black_forest, but system time rose from 0.64 to 0.86 s); a lower bound
-//! that skips the exact pricing of 8 tiny candidates when all exceed the
-//! best (it skipped 54% of 19.5 M blocks, but cost 2% more instructions
-//! than it saved and no wall time).
-//!
-//! Session 8: the tiny-node split search prices every candidate before
-//! it looks for the least cost (no branch between blocks waits on a
-//! block's costs), with the three axes' candidates packed into the same
-//! vectors (`sah::CellPricer` picks each lane's axis, so a node of one or
-//! two references prices one vector, not three), and finds the planes of
-//! that cost by vector compares. Same trees. Black_forest, 1 thread, the
-//! search's own cycles (`rdtsc` around it): 3.66 G → 2.40 G;
-//! `tools/icount.sh` on ravenbridge (AVX2): 11.16 G → 11.28 G
-//! instructions, 1.265 G → 1.199 G branches, 64.2 M → 47.7 M
-//! mispredicted. Measured and kept as it was: the tiny threshold (48 and
-//! 64 within the noise). Tried and dropped: the level passes' event
-//! partition costs about 12 ns an event on the top four levels against
-//! 2–3 ns below (0.2–0.26 of its 0.6–0.7 s on 1 thread), so each event's
-//! new index, looked up in a 4 MB column in position order, looked like a
-//! cache miss. Ranks in bit masks (half a byte a reference, in cache:
-//! left, right and straddler masks per 64 references with the counts
-//! before them) made the partition slower on every level (3 alternating
-//! runs: top four levels 0.20–0.25 → 0.24–0.30 s, the rest 0.41–0.52 →
-//! 0.63–0.65 s): the popcounts and selects cost more than the misses.
-//! What the top levels do wait on is fresh pages: a page fault costs
-//! 1.8–4.3 µs on this machine, and each level's columns were fresh
-//! memory. Large columns now reuse the memory of dropped ones (the pool
-//! of [`crate::columns`]), unzeroed (`column_for_overwrite`: every
-//! column here is written whole before it is read). Session 8 in all,
-//! against its start, alternating runs, medians: black_forest 3.61 →
-//! 3.22 s on 2 threads (5 runs) and 5.46 → 5.27 s on 1 (3 runs); stk_all 18.9 / 20.8 → 16.3 / 15.5 s
-//! without a budget and 19.8 / 19.7 → 17.8 / 18.2 s with 1 GiB. Tried and
-//! dropped for it: glibc's `mallopt`
-//! (one arena, no `mmap` below 1 GiB, no trimming), which cut
-//! black_forest's page faults from 230 K to 84 K but kept every freed
-//! level in the heap: stk_all peaked at 1.8 GiB of RssAnon. Also tried
-//! and dropped: the finisher merging each side's sorted new events in
-//! during its partition (every event written once; `merge_back` and the
-//! sorts cost 1.25 G cycles on black_forest on 1 thread, the finisher's
-//! merges 0.48 G of it), which was no faster (1 thread 5.07 → 5.06 s,
-//! 2 threads 2.71 → 2.76 s, medians of 3 and 5): the branch per kept
-//! event costs what the moves did.
-//!
-//! Session 9 changed no code path; it measured where black_forest's time
-//! goes and tried seven changes, none faster beyond the noise. On 2
-//! threads the build keeps 1.84–1.85 cores busy (processor time 5.3–5.9 s
-//! against 2.9–3.2 s of wall time, `cpu_s` in the report), so what stands
-//! between it and 1 s is work, not idle time. The work, 1 thread, `rdtsc`
-//! (2.6 GHz) around each part, one run of 4.7 s:
-//! - the finisher's 260 K nodes with events (23.0 M references, 116 M
-//!   events): sweeps 1.02 G ticks, classify and clip 1.05 G, the children's
-//!   lists 1.48 G (the clipped copies' events made and sorted 0.47 G, the
-//!   partition 0.41 G, the merges 0.48 G);
-//! - its 5.05 M tiny nodes (3.18 M split searches, 0.96 M of them pricing a
-//!   parent's counts again at about 330 ticks each): searches 2.1–2.2 G,
-//!   classify, clip and write 1.9 G, of which 5.0 M clips take 1.27 G
-//!   (about 255 ticks, 98 ns, each; 122–129 ns each in a loop over 2 M of
-//!   the same clips alone);
-//! - the level passes: 22 levels, the first 13 with about 1.09 M
-//!   references and 6.5 M events each; per event, SAH about 4 ns,
-//!   partition 4–5 ns (its counting pass 1.1 ns, its writes 3.6 ns), the
-//!   merge of the new events 1–2 ns. Root setup is mostly first touches of
-//!   its six fresh 17 MB event columns (about 20 ms an axis to generate).
-//!
-//! Tried in session 9 and dropped (same trees; alternating runs, medians):
-//! - placement without a branch on the side (`classify` without a `match`,
-//!   a one-sided reference written to both sides and counted by its
-//!   flags): `tools/icount.sh` on ravenbridge 10.84 → 11.31 G
-//!   instructions and 48.9 → 43.9 M mispredicted, black_forest 4.71 →
-//!   4.81 s on 1 thread (3 runs) and 2.76 → 2.81 s on 2 (5 runs);
-//! - a de-indexed copy of the triangles (36 bytes each) for clipping: the
-//!   tiny nodes' clips took the same cycles (1.31 G, 1.28 G), so a clip
-//!   does not wait on its vertices;
-//! - pricing without its two divisions (a timing probe, wrong costs): the
-//!   tiny searches' cycles per node did not move, so pricing is not bound
-//!   by division;
-//! - transparent huge pages for the heap (`GLIBC_TUNABLES=glibc.malloc.hugetlb=1`):
-//!   page faults 123 K → 51 K and 1 thread 5.07 → 4.82 s (3 runs), but 2
-//!   threads 3.26 → 3.27 s (5 runs) with root setup 0.15 → 0.31 s (with
-//!   `defrag` at `madvise`, an advised region's fault compacts memory
-//!   synchronously);
-//! - root setup's radix sort parallel within an axis (per-chunk digit
-//!   offsets, stable): setup on 2 threads 0.167 → 0.162 s (7 runs);
-//! - fat LTO with one codegen unit: 2.615 → 2.613 s on 2 threads, 4.715 →
-//!   4.814 s on 1, for a minute more of compiling;
-//! - small thresholds 512, 2048, 16384 and 131072: processor time 5.01,
-//!   4.79, 4.82 and 4.64 s on 1 thread, within the noise.
-//!
-//! Session 10 changed no build code path. Two findings:
-//! - The CLI's `build_s` (and the main job's build time) included up to
-//!   50 ms of the progress bar's polling: the caller slept in 50 ms steps
-//!   until the worker finished, so small builds read as multiples of 50 ms
-//!   (aneurysm: 0.201 or 0.251 s; 0.169–0.196 s now that the worker wakes
-//!   the caller). Earlier sessions' figures carry that slack, about 25 ms
-//!   on average.
-//! - A straddler's boxes without Sutherland–Hodgman (tried and dropped):
-//!   the bounds of `triangle ∩ cell` taken over the candidate vertices of
-//!   that polygon all at once, with no chain of dependent clips (the
-//!   triangle's vertices in the cell, its edges' crossings of the six
-//!   faces and of the split plane, and the cell's edges' crossings of the
-//!   triangle, each tested with a rounding margin). On 2 M straddlers
-//!   recorded from black_forest's tiny nodes it gave the same boxes but for
-//!   182 (one `f32` step, either way), at 480–550 ns a clip in plain code
-//!   against 120 ns for the vectorized clip: the 40 candidate points cost
-//!   more than the chain they replace, and a hand-vectorized form would at
-//!   best draw level.
-//!
-//! Tried and dropped (measured slower): pricing blocks of 8 events with
-//! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
-//! bound already prunes cheaply: that block still visited every plane,
-//! where session 5's passes over the block's planes without looking); a blocked sweep that writes every plane's
-//! counts, then bounds all planes without branches, then prices (36% more
-//! instructions in the sweep, which outweighed the 45% fewer
-//! mispredictions). Estimated and not built: dropping the events that lie
-//! on a cell face from the finisher's lists (the per-reference bookkeeping
-//! to count them costs about what it saves).
+//! **Where the time goes.** On stk_black_forest (1.09 M triangles) about
+//! 75% of a 1-thread build is the depth-first finishing of small nodes:
+//! millions of nodes of about a dozen references, so per-node constants
+//! count as much as per-event work. Hence the finisher's design (`dfs`, `tiny`): no
+//! allocation per node, no events for tiny nodes, empty-space cuts worked
+//! on in place. The small-node threshold (2048) lies in a broad optimum:
+//! 1024 to 32768 build within the noise of each other. The measurements
+//! behind these choices, and the alternatives measured and not taken, are
+//! in `docs/perf-notes.md`.
 //!
 //! **Memory.** The level columns obey `mem_budget`. The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled, and so
@@ -386,8 +142,8 @@ pub struct LevelOptions {
 }
 
 /// How the events of clipped references (created, unsorted) join the
-/// inherited events of their child (sorted). Both give the same list; the
-/// choice is measured (see the module docs).
+/// inherited events of their child (sorted). Both give the same list;
+/// sort + merge is faster on CPU cores (see the module docs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum NewEvents {
     /// Sort the new events, then merge them in from the back of the
@@ -1359,27 +1115,25 @@ impl<'a> Builder<'a> {
 /// cost: a split that costs at least that much never matters, since if
 /// the best split does, [`sah::is_leaf`] makes the node a leaf whatever
 /// the split (so `best` may stay `None` where pricing every plane would
-/// have found a split, only for nodes that become leaves either way). (An optimisation the paper does not have; it halves
-/// the sweep on large scenes, where most planes are far from the best.)
+/// have found a split, only for nodes that become leaves either way).
+/// (An optimisation the paper does not have; it halves the sweep on large
+/// scenes, where most planes are far from the best.)
 ///
 /// Whole blocks of [`SKIP_BLOCK`] events are passed over, their counts
 /// added without looking at their planes, when one bound for all of their
 /// planes ([`Pricer::block_bound`]) already exceeds the best cost: the
 /// same reasoning, so the same result. On stk_black_forest this passes
-/// over 61% of the events swept (1 thread: the level passes' SAH phase
-/// went from 0.78 to 0.59 s, the whole build from 7.1 to 6.8 s, medians
-/// of 3); blocks of 8 and 32 pass over 65% and 53%.
+/// over 61% of the events swept.
 ///
 /// The best cost pruned against is also `shared`'s: the least cost found
 /// by the other sweeps of the same node ([`SharedBest`]). The level
 /// passes sweep a node's three axes, and each part of a large node, as
-/// separate tasks, each of which started from the leaf cost alone and
-/// priced every plane of a stretch where the cost falls towards a best
-/// plane in another part or on another axis. Sharing it took the level
-/// passes' SAH phase on black_forest from 0.61–0.66 s to 0.46–0.57 s on 1
-/// thread and from 0.50–0.59 to 0.39–0.48 s on 2 (3 alternating runs).
-/// The split found is the same: a plane is still skipped only when its
-/// cost exceeds that of a plane of the node.
+/// separate tasks; without the shared cost each would start from the leaf
+/// cost alone and price every plane of a stretch where the cost falls
+/// towards a best plane in another part or on another axis (sharing it
+/// takes about a quarter off the level passes' SAH phase on
+/// black_forest). The split found is the same: a plane is still skipped
+/// only when its cost exceeds that of a plane of the node.
 #[allow(clippy::too_many_arguments)]
 #[inline]
 fn sweep_events(
@@ -1523,9 +1277,9 @@ const SKIP_BLOCK: usize = 16;
 /// A lower bound of [`sah::split_cost`] for one node and axis, cheaper
 /// than the cost itself: the surface areas as `2(A + d·B)` for the other
 /// two extents' product `A` and sum `B`, divided by one multiplication;
-/// `λ` and the planar side decided as `split_cost` decides them. (A
-/// branch-free bound with `λ = min(1, λ_empty)` throughout was tried: it
-/// prunes so much less that the sweep got 30% slower on black_forest.)
+/// `λ` and the planar side decided as `split_cost` decides them (a bound
+/// with `λ = min(1, λ_empty)` throughout would need no branch, but prunes
+/// so much less that the sweep is slower).
 ///
 /// Both this and `split_cost` sum non-negative `f64` terms, so each is
 /// within a relative 2⁻⁴⁸ of the true value; the bound is shrunk by a
@@ -1586,7 +1340,7 @@ impl Pricer {
     /// position and `P_R` shrinks, planar references only add terms, and
     /// `λ` is 1 at every plane when both counts are non-zero (both sides
     /// stay occupied), else at least `min(1, λ_empty)`. (With that
-    /// minimum throughout, the bound passed over 13% of black_forest's
+    /// minimum throughout, the bound would pass over 13% of black_forest's
     /// events instead of 61%.) Shrunk like [`Pricer::lower_bound`]; `-∞`
     /// when the constants make it invalid.
     #[inline]

@@ -26,9 +26,9 @@
 //! The three axes' candidates lie packed in one array, each lane priced on
 //! its own axis, and every plane is priced before the least cost is looked
 //! for: a node of one or two references prices its planes in one vector,
-//! not three, and no branch waits on a block's costs. (Session 8: the
-//! search took 3.66 G cycles on black_forest with a vector per axis and a
-//! test of each block against the best so far; 2.40 G now.)
+//! not three, and no branch waits on a block's costs (on black_forest this
+//! takes a third off the search's cycles against a vector per axis and a
+//! test of each block against the best so far).
 //!
 //! The best split is the same as the three sweeps': [`Split::keep_best`]
 //! is a total order, so the order the planes are offered in does not
