@@ -4,7 +4,7 @@
 //!
 //! A node's candidate planes on an axis are the positions of its events:
 //! the `min` and `max` of every reference's box there. The sweep
-//! ([`super::sweep_events`]) walks them in sorted order, keeping running
+//! ([`super::sweep::sweep_events`]) walks them in sorted order, keeping running
 //! counts; the counts at plane `p` are, by definition,
 //!
 //! - `N_L(p)`: references whose box starts before `p` (`min < p`),
@@ -43,7 +43,7 @@
 //! (at most [`MAX_TINY`]), and builds no events for children that are
 //! tiny.
 
-use super::event::Box6;
+use super::events::Box6;
 use crate::build::sah::{self, SahParams, Side, Split};
 use crate::geom::Aabb;
 use crate::simd::SimdLevel;
