@@ -72,11 +72,7 @@ fn next_lane(n: u32) -> __m512i {
 /// `crossing` computes it (meaningless where the edge does not cross).
 #[inline]
 #[target_feature(enable = "avx512f")]
-fn crossings<const AXIS: usize>(
-    a: &[__m512d; 3],
-    b: &[__m512d; 3],
-    pl: __m512d,
-) -> [__m512d; 3] {
+fn crossings<const AXIS: usize>(a: &[__m512d; 3], b: &[__m512d; 3], pl: __m512d) -> [__m512d; 3] {
     let t = _mm512_div_pd(_mm512_sub_pd(pl, a[AXIS]), _mm512_sub_pd(b[AXIS], a[AXIS]));
     let mut q = [pl; 3];
     for k in 0..3 {
@@ -122,8 +118,7 @@ fn clip<const AXIS: usize, const ABOVE: bool>(p: &Poly, plane: f64) -> Option<Po
     // j − n_lo of the kept high half (index 8 + j − n_lo).
     let lane = _mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0);
     let from_hi = _mm512_cmpge_epi64_mask(lane, _mm512_set1_epi64(i64::from(n_lo)));
-    let join =
-        _mm512_mask_add_epi64(lane, from_hi, lane, _mm512_set1_epi64(8 - i64::from(n_lo)));
+    let join = _mm512_mask_add_epi64(lane, from_hi, lane, _mm512_set1_epi64(8 - i64::from(n_lo)));
     let c = [0, 1, 2].map(|k| {
         let lo = _mm512_maskz_compress_pd(k_lo, _mm512_permutex2var_pd(a[k], lo_idx, q[k]));
         let hi = _mm512_maskz_compress_pd(k_hi, _mm512_permutex2var_pd(a[k], hi_idx, q[k]));

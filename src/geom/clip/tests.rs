@@ -195,28 +195,26 @@ fn covers_samples(tri: &[Vec3; 3], child: &Aabb, got: Option<Aabb>) -> bool {
     for i in 0..=N {
         for j in 0..=(N - i) {
             let (u, v) = (i as f64 / N as f64, j as f64 / N as f64);
-            let p = tri[0].as_dvec3() * (1.0 - u - v)
-                + tri[1].as_dvec3() * u
-                + tri[2].as_dvec3() * v;
-            let inside = (0..3)
-                .all(|k| p[k] >= f64::from(child.min[k]) && p[k] <= f64::from(child.max[k]));
+            let p =
+                tri[0].as_dvec3() * (1.0 - u - v) + tri[1].as_dvec3() * u + tri[2].as_dvec3() * v;
+            let inside =
+                (0..3).all(|k| p[k] >= f64::from(child.min[k]) && p[k] <= f64::from(child.max[k]));
             if !inside {
                 continue;
             }
             let Some(g) = got else {
                 // A point on the child's face may round out of a touch.
                 let on_face = (0..3).any(|k| {
-                    p[k] - f64::from(child.min[k]) < 1e-9
-                        || f64::from(child.max[k]) - p[k] < 1e-9
+                    p[k] - f64::from(child.min[k]) < 1e-9 || f64::from(child.max[k]) - p[k] < 1e-9
                 });
                 if on_face {
                     continue;
                 }
                 return false;
             };
-            if !(0..3).all(|k| {
-                p[k] >= f64::from(g.min[k]) - 1e-9 && p[k] <= f64::from(g.max[k]) + 1e-9
-            }) {
+            if !(0..3)
+                .all(|k| p[k] >= f64::from(g.min[k]) - 1e-9 && p[k] <= f64::from(g.max[k]) + 1e-9)
+            {
                 return false;
             }
         }
