@@ -132,7 +132,8 @@ pub(super) fn classify_ref(
 
 /// `new_idx` of a clipped straddler, whose events are not inherited. A
 /// one-sided reference's entry is its index in the next level (below
-/// [`MAX_REFS`], so bit 31 is free) with bit 31 set when it goes right.
+/// [`MAX_REFS`](super::events::MAX_REFS), so bit 31 is free) with bit 31
+/// set when it goes right.
 pub(super) const DROPPED: u32 = u32::MAX;
 
 /// The partition slot of a placement code: 0 left, 1 right, 2 dropped (a

@@ -198,7 +198,7 @@ struct LNode {
 /// Invariant: the nodes' reference ranges tile the reference columns in
 /// node order, and their event ranges tile each axis's column likewise;
 /// within a node, references ascend by triangle and events ascend as
-/// `u64` ([`event`]).
+/// `u64` ([`events`]).
 struct Level<'s> {
     /// The depth of every node of the level (root = 0).
     depth: u32,
