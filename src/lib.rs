@@ -45,5 +45,6 @@ pub mod scene;
 pub mod simd;
 pub mod slim;
 pub mod stats;
+pub mod sys;
 pub mod trace;
 pub mod tree;

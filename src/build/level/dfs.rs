@@ -5,12 +5,12 @@
 //! (Wu et al. §4.3), so that the tree stays the same.
 //!
 //! Consumes one small node of a level: its references (ascending by
-//! triangle), its sorted events per axis ([`super::event`]), its cell,
+//! triangle), its sorted events per axis ([`super::events`]), its cell,
 //! depth and progress weight. Produces the node's subtree as nodes and
 //! leaf lists of its own (indices from 0), borrowed from the finisher
 //! until its next node, equal to
 //! what [`crate::build::sweep::build_subtree`] builds for the same node: the
-//! same sweep ([`super::sweep_events`], pricing through
+//! same sweep ([`super::sweep::sweep_events`], pricing through
 //! [`crate::build::sah`]), the same [`classify`] and [`clip_straddler`],
 //! children inheriting their events by stable partition with the clipped
 //! references' events sorted and merged in.
@@ -30,9 +30,11 @@
 //! every node it finishes. A node's children are pushed above it, built
 //! one after the other, and popped.
 
-use super::event::{Box6, ev_ref, push_events, to_aabb, to_box, with_ref};
+use super::NewEvents;
+use super::classify::{DROPPED, SideCounts, classify_ref, goes_to, is_clipped, side_of};
+use super::events::{Box6, ev_ref, push_events, to_aabb, to_box, with_ref};
+use super::sweep::{Alone, sweep_events};
 use super::tiny::{self, MAX_TINY};
-use super::{Alone, CLIPPED, DROPPED, NewEvents, SideCounts, TO_RIGHT, classify_ref, sweep_events};
 use crate::build::sah::{self, SahParams, Split};
 use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
 use crate::geom::Aabb;
@@ -230,12 +232,8 @@ impl<'a> Finisher<'a> {
                 let mut straddler = 0;
                 for i in 0..n {
                     let code = self.place[i];
-                    let goes = if code & CLIPPED == 0 {
-                        usize::from(code == TO_RIGHT) == side
-                    } else {
-                        code & (1 << side) != 0
-                    };
-                    straddler += usize::from(code & CLIPPED != 0);
+                    let goes = goes_to(code, side);
+                    straddler += usize::from(is_clipped(code));
                     if goes {
                         self.leaf_tris.push(TriId(self.tri[r0 + i]));
                     }
@@ -286,8 +284,8 @@ impl<'a> Finisher<'a> {
         let mut straddler = 0;
         for i in 0..n {
             let code = self.place[i];
-            if code & CLIPPED == 0 {
-                let side = usize::from(code == TO_RIGHT);
+            if !is_clipped(code) {
+                let side = side_of(code);
                 let d = at[side];
                 at[side] += 1;
                 self.tri[d] = self.tri[r0 + i];

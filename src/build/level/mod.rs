@@ -14,7 +14,7 @@
 //! ([`crate::columns`]: in RAM below `mem_budget`, in mapped scratch files
 //! above it): each node's references (triangle id and clipped box,
 //! ascending by triangle) and, per axis, its events sorted as in the sweep
-//! builder (`event`). One call of `Builder::level` turns level `d`
+//! builder (`events`). One call of `Builder::level` turns level `d`
 //! into level `d + 1` (the paper's §4, Figure 2):
 //!
 //! 1. **Small nodes** (fewer than `small_threshold` references) are handed
@@ -39,281 +39,38 @@
 //!    best kept by [`Split::keep_best`], whose total order makes the
 //!    reduction over pieces independent of their order. **Not in the
 //!    paper:** a plane whose cost provably exceeds the best so far is not
-//!    priced (`Pricer`); and a node at the depth limit is not swept, since
+//!    priced (`sweep::Pricer`); and a node at the depth limit is not swept, since
 //!    [`sah::is_leaf`] makes it a leaf whatever its best split.
 //! 3. **Leaves** ([`sah::is_leaf`]) stream out: their triangle lists are
 //!    appended to the leaf list at once.
 //! 4. **Classify and clip**: references go left, right or both
-//!    ([`classify`]); straddlers are clipped to each child ([`clip_straddler`],
+//!    ([`super::classify`]); straddlers are clipped to each child
+//!    ([`super::clip_straddler`],
 //!    perfect splits). Prefix counts place each child's references.
 //! 5. **Child events**: inherited events keep their order through a stable
 //!    parallel partition, with their reference renumbered; the events of
 //!    clipped references are sorted per child and merged in (sort + merge,
-//!    in place from the back of the child's segment). Wu et al.'s bucket
-//!    sort, with the inherited events as buckets, is implemented too
-//!    ([`NewEvents::Bucket`], `slimkd build --new-events bucket`): it gives
-//!    the same lists and was measured slower on CPU cores (stk_black_forest,
-//!    1 thread, 3 alternating runs: events phase median 1.27 s merge vs
-//!    1.59 s bucket, whole build user time 10.3 s vs 11.5 s; a binary search
-//!    per new event and a block move per bucket cost more than one
-//!    predictable comparison per moved event), so sort + merge is the
-//!    default. Since session 5 the merge takes the best of both: it moves
-//!    long runs of inherited events as blocks, found by a galloping search
-//!    from the merge position, and merges element by element elsewhere.
+//!    in place from the back of the child's segment, moving long runs of
+//!    inherited events as blocks found by a galloping search). Wu et al.'s
+//!    bucket sort, with the inherited events as buckets, gives the same
+//!    lists ([`NewEvents::Bucket`], `slimkd build --new-events bucket`)
+//!    but is slower on CPU cores: a binary search per new event and a
+//!    block move per bucket cost more than one predictable comparison per
+//!    moved event (stk_black_forest, 1 thread: events phase 1.27 s merge
+//!    against 1.59 s bucket). Sort + merge is the default.
 //!
 //! The tree is assembled in pre-order at the end (`assemble`), from the
 //! breadth-first records, leaf lists and depth-first subtrees.
 //!
-//! **Where the time goes** (stk_black_forest, 1.09 M triangles, 1 thread):
-//! about 75% in the depth-first finishing of small nodes, which is the
-//! bulk of the work because black_forest's references grow to 7.8 per
-//! triangle at the leaves. The finisher visits 4.3 M nodes averaging 11.5
-//! references (1.6 M of them with fewer than 4), so per-node constants
-//! count as much as per-event work; 32% of the events it sweeps lie on a
-//! face of their node's cell. Profile (perf, 1 thread, session 3): sweeps
-//! and pricing about 23%, the finisher's partitions and merges about 22%,
-//! clipping ([`clip_straddler`]: one parent clip and one split pass per
-//! straddler, in `f64`) about 13%. The threshold was tuned there (256 to
-//! 131072 references); 2048 was fastest on 2 threads, with 1024 to 32768
-//! within the noise (re-checked in session 3 with the overlap of step 1:
-//! 2048, 8192 and 32768 are within the noise).
-//!
-//! Session 3, every change keeping the tree bit for bit (callgrind,
-//! stk_ravenbridge_mansion, 1 thread, whole level build: 16.86 G
-//! instructions, 2.61 G branches, 136 M mispredicted (its model) before;
-//! 16.22 G, 2.25 G and 96 M after):
-//! - the clip without data-dependent branches
-//!   ([`crate::geom::clip_split`]; its mispredictions halved);
-//! - the finisher's stacks stay allocated (no zero-fill per node), new
-//!   events merge without branches, partitions count sides by slot;
-//! - planes whose cost bound reaches the node's leaf cost are not priced
-//!   (62% fewer exact pricings), and pricing converts the cell once per
-//!   sweep ([`sah::AxisPricer`]);
-//! - small nodes overlap the big-node passes (step 1).
-//!
-//! Session 4: tiny nodes (at most 48 references by default; 2.6 M of the
-//! 3.3 M nodes black_forest's finisher sweeps have under 16) have no
-//! events (`tiny`): every candidate plane is counted against every box
-//! (`n · ⌈2n/16⌉` vector steps per axis) and priced in `f64` lanes, and
-//! one pass classifies, clips and writes the children, so they need no
-//! sort, partition or merge of events and no placement bookkeeping. Each
-//! cell face is one candidate however many boxes touch it. The
-//! finisher's partition keeps its cursors in registers. Against the
-//! session's start, alternating runs, medians: stk_black_forest 5.27 →
-//! 4.39 s on 2 threads (5 runs each), 8.77 → 7.89 s on 1 (3 runs);
-//! `tools/icount.sh` on ravenbridge (the build alone, 1 thread): 16.18 G
-//! → 13.87 G instructions, 2.24 G → 1.64 G branches, 95 M → 74 M
-//! mispredicted. Tiny thresholds 32, 48 and 64 are within a few percent
-//! (48 and 64 ahead of 32 in two batches); 48 keeps the `n²` work small.
-//! Tried and dropped: a count without the planar comparison for axes
-//! without flat boxes (two inlined variants; the small-node phase got
-//! 10–15% slower, consistently in two batches); the lane pricing for the
-//! event sweeps of the finisher's bigger nodes too (events turned into
-//! planes by selects, every plane priced in lanes: small-node phase 4.39
-//! → 4.84 s, black_forest, 1 thread, 3 alternating runs; the scalar sweep
-//! prices only 5% of its planes, 12.5 M of 229 M events, because the cost
-//! bound prunes the rest, so pricing all of them costs more than the
-//! mispredictions it saves); prefetching the per-reference lookups of the
-//! level partition 16 events ahead (events phase 3% faster, not worth an
-//! `unsafe` block).
-//!
-//! Session 5: the sweep passes over blocks of 16 events, adding up their
-//! counts, when one lower bound for all their planes (left count at the
-//! block's start, right count at its end, `λ = 1` when both are
-//! occupied) exceeds the best cost (`sweep_events`): 61% of the 229 M
-//! events black_forest sweeps, and the level passes' SAH phase went from
-//! 0.78 to 0.59 s on 1 thread (minima of 3 alternating runs). The merge of clipped copies' events gallops
-//! (doubling steps, then a binary search; a search of the whole list
-//! missed the cache) past runs of 16 or more inherited events, as one
-//! block move. `clip_split` clips only to the cell faces the reference's
-//! box reaches (the others provably cut nothing; all builders change
-//! together, so the trees still agree; aneurysm's tree lost 4 of 355 K
-//! nodes). Tiny nodes price 8 planes at a time (one 512-bit vector) and
-//! skip the second half when it is padding; the `f32` outward rounding
-//! steps by bits. Against the session's start (`tools/icount.sh`,
-//! ravenbridge): 13.87 G → 12.40 G instructions, 1.64 G → 1.41 G
-//! branches, 74 M → 68 M mispredicted; black_forest on 2 threads, two
-//! batches of 5 alternating runs, medians 3.82 → 3.61 s and 4.58 → 4.12 s
-//! (minima 3.71 → 3.21 s and 3.92 → 3.42 s); on 1 thread 6.62 → 6.17 s
-//! (3 runs). Tried and dropped this session (no gain beyond the noise, or
-//! slower): the sweep one event at a time without a branch on where a run
-//! of equal positions ends (33% more instructions, the SAH phase twice as
-//! slow); the three axes' candidates of a tiny node in one pass over its
-//! boxes; tied tiny lanes as a bit mask; sweeping the finisher's longest
-//! axis first (to find a low cost sooner); the root's radix sort parallel
-//! within each axis (the setup stayed at 0.16–0.19 s on 2 threads: it is
-//! bound by memory and page faults, not by the sort's threads); a pool of
-//! freed RAM columns for the next level (more page faults, not fewer, and
-//! 170 MB more peak RSS); building with `-C target-cpu=x86-64-v3` (2–3%);
-//! a larger block of 64 events tried first after a pass-over (the SAH
-//! phase got slower); the level partition's side counts in registers
-//! rather than an array indexed by slot (no change: the per-event lookup
-//! of the reference's placement is what costs); seeding each finisher
-//! sweep's cap with the cost of the plane through the middle of the
-//! longest axis (a valid upper bound of the best cost when references lie
-//! on both sides of it and `λ_empty ≤ 1`: it raised the events passed
-//! over from 61% to 66% and cut exact pricings from 12.5 M to 9.8 M, but
-//! the extra pass over each node's boxes cost as much, and ravenbridge got
-//! no faster).
-//!
-//! Session 6: `clip_split` (every straddler's clip, 7.4 M of them on
-//! black_forest) runs in AVX-512 lanes, the same bits as the scalar clip
-//! (`geom::clip`); a split that cuts off empty space (every reference to
-//! one side, none clipped: 47% of black_forest's inner nodes) costs its
-//! occupied child less: in the finisher that child works on the node's
-//! references and events in place, with no copy or partition, and a tiny
-//! child prices its parent's candidates and counts again instead of
-//! counting (`tiny::Boxes::Same`). Every tree stays byte-identical
-//! (aneurysm, ravenbridge, candela, black_forest, stk_all). Against the
-//! session's start, alternating runs, medians: black_forest 3.72 → 3.42 s
-//! on 2 threads (5 runs each), 6.12 → 5.57 s on 1 (3 runs); ravenbridge
-//! 0.91 → 0.81 s, candela 1.05 → 0.91 s, aneurysm 0.204 s both (2
-//! threads, 5 runs). Tried and dropped: the tiny candidates gathered and
-//! compressed in AVX-512 lanes (the split search's share of the profile
-//! fell from 18.0% to 17.1%, within the wall-time noise over 8 alternating
-//! runs, not worth 80 lines of `unsafe`); the vertices of every triangle
-//! copied into one array for the clipper (no gain beyond the noise: the
-//! straddlers' triangle lookups are not what the clip waits on); small
-//! thresholds 512, 8192 and 32768 against 2048 and tiny thresholds 32 and
-//! 64 against 48, re-checked (within the noise, 48 ahead).
-//!
-//! Session 7: the level passes' sweep tasks of one node (its three axes,
-//! and the parts of a large node) prune against one shared best cost
-//! (`SharedBest`: an atomic minimum that only ever holds the cost of a
-//! real plane of the node, so the split does not depend on the tasks'
-//! timing). Each task used to start from the leaf cost alone, and a part
-//! in which the cost falls towards a best plane elsewhere priced every
-//! plane. A node's last part is no longer counted for carries (no later
-//! part needs them), and the root's boxes and cell are computed in
-//! parallel. Every tree stays byte-identical (aneurysm, ravenbridge,
-//! candela, black_forest, stk_all). Black_forest, alternating runs,
-//! medians: SAH phase 0.49 → 0.35 s on 2 threads (5 runs) and 0.61 →
-//! 0.47 s on 1 (3 runs); build 3.02 → 2.97 s on 2 threads, 5.77 → 5.36 s
-//! on 1. `tools/icount.sh` on ravenbridge: 11.40 G → 11.17 G
-//! instructions, 1.34 G → 1.26 G branches, 65.2 M → 63.4 M mispredicted.
-//! Tried and dropped: two straddlers clipped interleaved in one lane
-//! function (one clip is a chain of dependent steps, 115 ns latency-bound
-//! against 100 ns independent, but the pair ran at 160 ns a clip); the
-//! root's radix sort cut into chunks of all three axes at once, to balance
-//! three axes on two threads (setup unchanged: it waits on page faults,
-//! not on the sort); transparent huge pages for the allocator
-//! (`GLIBC_TUNABLES=glibc.malloc.hugetlb=1`: page faults 184 K → 95 K on
-//! black_forest, but system time rose from 0.64 to 0.86 s); a lower bound
-//! that skips the exact pricing of 8 tiny candidates when all exceed the
-//! best (it skipped 54% of 19.5 M blocks, but cost 2% more instructions
-//! than it saved and no wall time).
-//!
-//! Session 8: the tiny-node split search prices every candidate before
-//! it looks for the least cost (no branch between blocks waits on a
-//! block's costs), with the three axes' candidates packed into the same
-//! vectors (`sah::CellPricer` picks each lane's axis, so a node of one or
-//! two references prices one vector, not three), and finds the planes of
-//! that cost by vector compares. Same trees. Black_forest, 1 thread, the
-//! search's own cycles (`rdtsc` around it): 3.66 G → 2.40 G;
-//! `tools/icount.sh` on ravenbridge (AVX2): 11.16 G → 11.28 G
-//! instructions, 1.265 G → 1.199 G branches, 64.2 M → 47.7 M
-//! mispredicted. Measured and kept as it was: the tiny threshold (48 and
-//! 64 within the noise). Tried and dropped: the level passes' event
-//! partition costs about 12 ns an event on the top four levels against
-//! 2–3 ns below (0.2–0.26 of its 0.6–0.7 s on 1 thread), so each event's
-//! new index, looked up in a 4 MB column in position order, looked like a
-//! cache miss. Ranks in bit masks (half a byte a reference, in cache:
-//! left, right and straddler masks per 64 references with the counts
-//! before them) made the partition slower on every level (3 alternating
-//! runs: top four levels 0.20–0.25 → 0.24–0.30 s, the rest 0.41–0.52 →
-//! 0.63–0.65 s): the popcounts and selects cost more than the misses.
-//! What the top levels do wait on is fresh pages: a page fault costs
-//! 1.8–4.3 µs on this machine, and each level's columns were fresh
-//! memory. Large columns now reuse the memory of dropped ones (the pool
-//! of [`crate::columns`]), unzeroed (`column_for_overwrite`: every
-//! column here is written whole before it is read). Session 8 in all,
-//! against its start, alternating runs, medians: black_forest 3.61 →
-//! 3.22 s on 2 threads (5 runs) and 5.46 → 5.27 s on 1 (3 runs); stk_all 18.9 / 20.8 → 16.3 / 15.5 s
-//! without a budget and 19.8 / 19.7 → 17.8 / 18.2 s with 1 GiB. Tried and
-//! dropped for it: glibc's `mallopt`
-//! (one arena, no `mmap` below 1 GiB, no trimming), which cut
-//! black_forest's page faults from 230 K to 84 K but kept every freed
-//! level in the heap: stk_all peaked at 1.8 GiB of RssAnon. Also tried
-//! and dropped: the finisher merging each side's sorted new events in
-//! during its partition (every event written once; `merge_back` and the
-//! sorts cost 1.25 G cycles on black_forest on 1 thread, the finisher's
-//! merges 0.48 G of it), which was no faster (1 thread 5.07 → 5.06 s,
-//! 2 threads 2.71 → 2.76 s, medians of 3 and 5): the branch per kept
-//! event costs what the moves did.
-//!
-//! Session 9 changed no code path; it measured where black_forest's time
-//! goes and tried seven changes, none faster beyond the noise. On 2
-//! threads the build keeps 1.84–1.85 cores busy (processor time 5.3–5.9 s
-//! against 2.9–3.2 s of wall time, `cpu_s` in the report), so what stands
-//! between it and 1 s is work, not idle time. The work, 1 thread, `rdtsc`
-//! (2.6 GHz) around each part, one run of 4.7 s:
-//! - the finisher's 260 K nodes with events (23.0 M references, 116 M
-//!   events): sweeps 1.02 G ticks, classify and clip 1.05 G, the children's
-//!   lists 1.48 G (the clipped copies' events made and sorted 0.47 G, the
-//!   partition 0.41 G, the merges 0.48 G);
-//! - its 5.05 M tiny nodes (3.18 M split searches, 0.96 M of them pricing a
-//!   parent's counts again at about 330 ticks each): searches 2.1–2.2 G,
-//!   classify, clip and write 1.9 G, of which 5.0 M clips take 1.27 G
-//!   (about 255 ticks, 98 ns, each; 122–129 ns each in a loop over 2 M of
-//!   the same clips alone);
-//! - the level passes: 22 levels, the first 13 with about 1.09 M
-//!   references and 6.5 M events each; per event, SAH about 4 ns,
-//!   partition 4–5 ns (its counting pass 1.1 ns, its writes 3.6 ns), the
-//!   merge of the new events 1–2 ns. Root setup is mostly first touches of
-//!   its six fresh 17 MB event columns (about 20 ms an axis to generate).
-//!
-//! Tried in session 9 and dropped (same trees; alternating runs, medians):
-//! - placement without a branch on the side (`classify` without a `match`,
-//!   a one-sided reference written to both sides and counted by its
-//!   flags): `tools/icount.sh` on ravenbridge 10.84 → 11.31 G
-//!   instructions and 48.9 → 43.9 M mispredicted, black_forest 4.71 →
-//!   4.81 s on 1 thread (3 runs) and 2.76 → 2.81 s on 2 (5 runs);
-//! - a de-indexed copy of the triangles (36 bytes each) for clipping: the
-//!   tiny nodes' clips took the same cycles (1.31 G, 1.28 G), so a clip
-//!   does not wait on its vertices;
-//! - pricing without its two divisions (a timing probe, wrong costs): the
-//!   tiny searches' cycles per node did not move, so pricing is not bound
-//!   by division;
-//! - transparent huge pages for the heap (`GLIBC_TUNABLES=glibc.malloc.hugetlb=1`):
-//!   page faults 123 K → 51 K and 1 thread 5.07 → 4.82 s (3 runs), but 2
-//!   threads 3.26 → 3.27 s (5 runs) with root setup 0.15 → 0.31 s (with
-//!   `defrag` at `madvise`, an advised region's fault compacts memory
-//!   synchronously);
-//! - root setup's radix sort parallel within an axis (per-chunk digit
-//!   offsets, stable): setup on 2 threads 0.167 → 0.162 s (7 runs);
-//! - fat LTO with one codegen unit: 2.615 → 2.613 s on 2 threads, 4.715 →
-//!   4.814 s on 1, for a minute more of compiling;
-//! - small thresholds 512, 2048, 16384 and 131072: processor time 5.01,
-//!   4.79, 4.82 and 4.64 s on 1 thread, within the noise.
-//!
-//! Session 10 changed no build code path. Two findings:
-//! - The CLI's `build_s` (and the main job's build time) included up to
-//!   50 ms of the progress bar's polling: the caller slept in 50 ms steps
-//!   until the worker finished, so small builds read as multiples of 50 ms
-//!   (aneurysm: 0.201 or 0.251 s; 0.169–0.196 s now that the worker wakes
-//!   the caller). Earlier sessions' figures carry that slack, about 25 ms
-//!   on average.
-//! - A straddler's boxes without Sutherland–Hodgman (tried and dropped):
-//!   the bounds of `triangle ∩ cell` taken over the candidate vertices of
-//!   that polygon all at once, with no chain of dependent clips (the
-//!   triangle's vertices in the cell, its edges' crossings of the six
-//!   faces and of the split plane, and the cell's edges' crossings of the
-//!   triangle, each tested with a rounding margin). On 2 M straddlers
-//!   recorded from black_forest's tiny nodes it gave the same boxes but for
-//!   182 (one `f32` step, either way), at 480–550 ns a clip in plain code
-//!   against 120 ns for the vectorized clip: the 40 candidate points cost
-//!   more than the chain they replace, and a hand-vectorized form would at
-//!   best draw level.
-//!
-//! Tried and dropped (measured slower): pricing blocks of 8 events with
-//! one bound (session 3, callgrind: 0.5% more instructions; the per-plane
-//! bound already prunes cheaply: that block still visited every plane,
-//! where session 5's passes over the block's planes without looking); a blocked sweep that writes every plane's
-//! counts, then bounds all planes without branches, then prices (36% more
-//! instructions in the sweep, which outweighed the 45% fewer
-//! mispredictions). Estimated and not built: dropping the events that lie
-//! on a cell face from the finisher's lists (the per-reference bookkeeping
-//! to count them costs about what it saves).
+//! **Where the time goes.** On stk_black_forest (1.09 M triangles) about
+//! 75% of a 1-thread build is the depth-first finishing of small nodes:
+//! millions of nodes of about a dozen references, so per-node constants
+//! count as much as per-event work. Hence the finisher's design (`dfs`, `tiny`): no
+//! allocation per node, no events for tiny nodes, empty-space cuts worked
+//! on in place. The small-node threshold (2048) lies in a broad optimum:
+//! 1024 to 32768 build within the noise of each other. The measurements
+//! behind these choices, and the alternatives measured and not taken, are
+//! in `docs/perf-notes.md`.
 //!
 //! **Memory.** The level columns obey `mem_budget`. The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled, and so
@@ -324,186 +81,39 @@
 //! freed.
 
 mod assemble;
+mod classify;
 mod dfs;
-mod event;
+mod events;
+mod options;
 mod pieces;
+mod report;
+mod sweep;
 mod tiny;
 
-use self::assemble::{Rec, SubStore, SubStream, assemble};
-use self::dfs::Finisher;
-use self::event::{
-    Box6, MAX_REFS, ev_key, ev_kind, ev_ref, events_of, key_pos, n_events, push_events, to_aabb,
-    to_box, with_ref,
+pub use self::options::{
+    DEFAULT_SMALL_THRESHOLD, DEFAULT_TINY_THRESHOLD, LevelOptions, LevelStatus, NewEvents,
 };
-use self::pieces::{Piece, carries, pieces};
-use super::sah::{self, PlaneCounts, Split};
-use super::{BuildConfig, Placement, Progress, TriRef, classify, clip_straddler, root_cell};
-use crate::columns::{Column, ColumnsError, ScatterSlice, Scratch, ScratchConfig, ScratchStats};
+pub use self::report::{LevelReport, Phases};
+pub use crate::sys::{cpu_seconds, rss};
+
+use self::assemble::{Rec, SubStore, SubStream, assemble};
+use self::classify::{Classified, SideCounts, classify_pass, piece_carries, write_children};
+use self::dfs::Finisher;
+use self::events::{
+    Box6, MAX_REFS, events_of, merge_new_events, n_events, partition_events, push_events,
+    radix_sort_by_position_and_kind, to_aabb, to_box,
+};
+use self::pieces::{PIECE, Piece, pieces};
+use self::sweep::best_splits;
+use super::sah::{self, Split};
+use super::{BuildConfig, Progress, root_cell};
+use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{TreeIr, TriId};
 use rayon::prelude::*;
-use std::ops::Add;
-use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::time::Instant;
-
-/// Nodes with fewer references than this are finished depth-first by
-/// default (see [`LevelOptions::small_threshold`]).
-pub const DEFAULT_SMALL_THRESHOLD: usize = 2048;
-
-/// The finisher sweeps nodes of at most this many references without
-/// events by default (see [`LevelOptions::tiny_threshold`]).
-pub const DEFAULT_TINY_THRESHOLD: usize = 48;
-
-/// Elements per work piece: large enough that a piece's fixed costs vanish,
-/// small enough that the top levels split into many pieces per thread.
-const PIECE: usize = 1 << 14;
-
-/// How the level builder runs. None of it changes the tree.
-#[derive(Clone, Debug)]
-pub struct LevelOptions {
-    /// Nodes with fewer references are finished depth-first by the sweep
-    /// builder. 0 (or 1) keeps every node breadth-first down to the
-    /// leaves; `usize::MAX` builds everything depth-first.
-    pub small_threshold: usize,
-    /// Bytes of level columns kept in RAM; above it they are mapped
-    /// scratch files. `u64::MAX` keeps everything in RAM.
-    pub mem_budget: u64,
-    /// Where scratch files go; it must exist when `mem_budget` is finite.
-    pub scratch_dir: PathBuf,
-    /// At most this many bytes of scratch files at once.
-    pub scratch_limit: Option<u64>,
-    /// Where a progress display can read the current level.
-    pub status: Option<Arc<LevelStatus>>,
-    /// How clipped references' events join their child's list.
-    pub new_events: NewEvents,
-    /// The depth-first finisher sweeps nodes of at most this many
-    /// references without events (`tiny`; clamped to 64). 0 sweeps
-    /// every node's events.
-    pub tiny_threshold: usize,
-}
-
-/// How the events of clipped references (created, unsorted) join the
-/// inherited events of their child (sorted). Both give the same list; the
-/// choice is measured (see the module docs).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum NewEvents {
-    /// Sort the new events, then merge them in from the back of the
-    /// child's segment, one comparison per moved event (`merge_back`).
-    #[default]
-    SortMerge,
-    /// The bucket sort of Wu et al.: the child's inherited events are the
-    /// buckets. The new events are sorted; each one's bucket is found by a
-    /// binary search among the inherited events, and the inherited events
-    /// between two buckets move up as one block (`bucket_merge`).
-    Bucket,
-}
-
-impl NewEvents {
-    /// `seg` holds sorted events followed by `new.len()` free slots; puts
-    /// the sorted `new` in place.
-    #[inline]
-    pub(crate) fn merge(self, seg: &mut [u64], new: &[u64]) {
-        match self {
-            NewEvents::SortMerge => merge_back(seg, new),
-            NewEvents::Bucket => bucket_merge(seg, new),
-        }
-    }
-}
-
-impl Default for LevelOptions {
-    fn default() -> Self {
-        LevelOptions {
-            small_threshold: DEFAULT_SMALL_THRESHOLD,
-            mem_budget: u64::MAX,
-            scratch_dir: std::env::temp_dir(),
-            scratch_limit: None,
-            status: None,
-            new_events: NewEvents::default(),
-            tiny_threshold: DEFAULT_TINY_THRESHOLD,
-        }
-    }
-}
-
-/// The level being built, for progress displays.
-#[derive(Debug, Default)]
-pub struct LevelStatus {
-    pub level: AtomicU32,
-    /// Open nodes processed breadth-first at this level.
-    pub open_nodes: AtomicU64,
-    /// References at this level.
-    pub refs: AtomicU64,
-}
-
-/// Seconds spent in each phase, summed over the levels.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Phases {
-    /// Root references and the first event sort.
-    pub setup_s: f64,
-    /// The SAH sweeps and the choice of splits.
-    pub sah_s: f64,
-    /// Classification, clipping and writing the child references.
-    pub classify_clip_s: f64,
-    /// Child events: stable partition, sort and merge of new events.
-    pub events_s: f64,
-    /// Leaf output.
-    pub leaves_s: f64,
-    /// Small nodes finished depth-first.
-    pub small_s: f64,
-    /// Pre-order assembly of the tree.
-    pub assemble_s: f64,
-}
-
-impl Phases {
-    pub fn total(&self) -> f64 {
-        self.setup_s
-            + self.sah_s
-            + self.classify_clip_s
-            + self.events_s
-            + self.leaves_s
-            + self.small_s
-            + self.assemble_s
-    }
-}
-
-/// What one build did.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct LevelReport {
-    pub phases: Phases,
-    /// Levels processed breadth-first.
-    pub levels: u32,
-    /// Nodes decided breadth-first (inner nodes and leaves).
-    pub bfs_nodes: u64,
-    /// Subtrees finished depth-first.
-    pub small_nodes: u64,
-    /// The most references of one level.
-    pub max_level_refs: u64,
-    /// The most nodes processed breadth-first in one level.
-    pub max_open_nodes: u64,
-    /// Straddlers clipped breadth-first.
-    pub clipped: u64,
-    /// The largest `RssAnon` seen (sampled from `/proc/self/status` after
-    /// every phase of every level; 0 where there is no such file). It
-    /// includes what the process held before the build: see
-    /// `start_rss_anon_bytes`.
-    pub peak_rss_anon_bytes: u64,
-    /// `RssAnon` when the build started (the scene, and whatever the
-    /// process kept from loading it).
-    pub start_rss_anon_bytes: u64,
-    /// The largest `RssFile` seen, sampled likewise (mapped scratch files
-    /// count here, as does the mapped executable).
-    pub peak_rss_file_bytes: u64,
-    /// Bytes of RAM columns and scratch files.
-    pub scratch: ScratchStats,
-    /// Processor time (user and system, all threads) the process spent
-    /// during the build, from `/proc/self/stat` (0 where it cannot be
-    /// read; the kernel counts it in ticks of 10 ms). Divided by the
-    /// build's wall time, it is the number of cores kept busy on average:
-    /// how far a build on more threads is from perfect scaling.
-    pub cpu_s: f64,
-}
 
 /// Builds the standard tree breadth-first; see the module docs.
 pub fn build(
@@ -567,36 +177,6 @@ fn lap(clock: &mut Instant) -> f64 {
     s
 }
 
-/// This process's processor time so far (user and system, every thread),
-/// in seconds, from `/proc/self/stat`; `None` where it cannot be read.
-pub fn cpu_seconds() -> Option<f64> {
-    let text = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // The command name (field 2) is in parentheses and may hold spaces, so
-    // the fields are counted from the last `)`: there `state` is field 3,
-    // `utime` field 14 and `stime` field 15, in clock ticks (`USER_HZ`,
-    // 100 a second on Linux whatever the kernel's own tick rate).
-    let rest = &text[text.rfind(')')? + 1..];
-    let mut fields = rest.split_whitespace().skip(11);
-    let utime: u64 = fields.next()?.parse().ok()?;
-    let stime: u64 = fields.next()?.parse().ok()?;
-    Some((utime + stime) as f64 / 100.0)
-}
-
-/// This process's `RssAnon` and `RssFile` in bytes, from
-/// `/proc/self/status` (zeros where it cannot be read).
-pub fn rss() -> (u64, u64) {
-    let Ok(text) = std::fs::read_to_string("/proc/self/status") else {
-        return (0, 0);
-    };
-    let field = |name: &str| {
-        text.lines()
-            .find_map(|l| l.strip_prefix(name))
-            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
-            .map_or(0, |kb| kb * 1024)
-    };
-    (field("RssAnon:"), field("RssFile:"))
-}
-
 /// One node of a level.
 #[derive(Clone, Copy, Debug)]
 struct LNode {
@@ -618,7 +198,7 @@ struct LNode {
 /// Invariant: the nodes' reference ranges tile the reference columns in
 /// node order, and their event ranges tile each axis's column likewise;
 /// within a node, references ascend by triangle and events ascend as
-/// `u64` ([`event`]).
+/// `u64` ([`events`]).
 struct Level<'s> {
     /// The depth of every node of the level (root = 0).
     depth: u32,
@@ -766,123 +346,21 @@ impl<'a> SubtreeBuilder<'a> {
     }
 }
 
-/// Counts of a pass over one node's references, per child side.
-#[derive(Clone, Copy, Debug, Default)]
-struct SideCounts {
-    /// References going to each side (clipped ones included).
-    n: [usize; 2],
-    /// Inherited events per side and axis (references wholly on one side).
-    inherited: [[usize; 3]; 2],
-    /// Events of clipped references per side and axis.
-    new: [[usize; 3]; 2],
-}
-
-impl Add for SideCounts {
-    type Output = SideCounts;
-    fn add(mut self, o: SideCounts) -> SideCounts {
-        for s in 0..2 {
-            self.n[s] += o.n[s];
-            for k in 0..3 {
-                self.inherited[s][k] += o.inherited[s][k];
-                self.new[s][k] += o.new[s][k];
-            }
-        }
-        self
-    }
-}
-
-/// A pair of counts with `+`, for carries.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-struct Pair([usize; 2]);
-
-impl Add for Pair {
-    type Output = Pair;
-    fn add(self, o: Pair) -> Pair {
-        Pair([self.0[0] + o.0[0], self.0[1] + o.0[1]])
-    }
-}
-
-/// Where a reference of a split node goes: bit 0 left, bit 1 right, bit 2
-/// clipped (a straddler; its boxes are in the classify pass's list).
-const TO_LEFT: u8 = 1;
-const TO_RIGHT: u8 = 2;
-const CLIPPED: u8 = 4;
-
-/// A straddler's clipped boxes in the left and right child.
-type ChildBoxes = (Option<Aabb>, Option<Aabb>);
-
-/// Classifies one reference (box `b` of triangle `tri`) against `split`,
-/// clips it if it straddles, and adds what each side inherits or gains to
-/// `c`. Returns the placement code and, for a straddler, its clipped boxes
-/// in the two children. The breadth-first pass and the depth-first
-/// finisher share it, so they cannot classify differently.
-fn classify_ref(
-    scene: &TriangleColumns,
-    tri: u32,
-    b: &Box6,
-    split: &Split,
-    lc: &Aabb,
-    rc: &Aabb,
-    c: &mut SideCounts,
-) -> (u8, Option<ChildBoxes>) {
-    let bx = to_aabb(b);
-    match classify(&bx, split) {
-        Placement::Left => {
-            c.n[0] += 1;
-            for k in 0..3 {
-                c.inherited[0][k] += n_events(b, k);
-            }
-            (TO_LEFT, None)
-        }
-        Placement::Right => {
-            c.n[1] += 1;
-            for k in 0..3 {
-                c.inherited[1][k] += n_events(b, k);
-            }
-            (TO_RIGHT, None)
-        }
-        Placement::Both => {
-            let r = TriRef {
-                tri: TriId(tri),
-                bounds: bx,
-            };
-            let (lb, rb) = clip_straddler(scene, &r, split, lc, rc);
-            let mut code = CLIPPED;
-            for (side, cb) in [lb, rb].iter().enumerate() {
-                if let Some(cb) = cb {
-                    code |= 1 << side;
-                    c.n[side] += 1;
-                    let cb = to_box(cb);
-                    for k in 0..3 {
-                        c.new[side][k] += n_events(&cb, k);
-                    }
-                }
-            }
-            (code, Some((lb, rb)))
-        }
-    }
-}
-
-/// `new_idx` of a clipped straddler, whose events are not inherited. A
-/// one-sided reference's entry is its index in the next level (below
-/// [`MAX_REFS`], so bit 31 is free) with bit 31 set when it goes right.
-const DROPPED: u32 = u32::MAX;
-
-/// The partition slot of a placement code: 0 left, 1 right, 2 dropped (a
-/// clipped straddler, whose events are made anew).
-const SLOT: [usize; 8] = {
-    let mut t = [2; 8];
-    t[TO_LEFT as usize] = 0;
-    t[TO_RIGHT as usize] = 1;
-    t
-};
-
-/// What the classify pass found in one piece.
-struct Classified {
-    /// Per node of the piece.
-    counts: Vec<SideCounts>,
-    /// The straddlers in reference order: (reference, left box, right box).
-    clipped: Vec<(u32, Option<Aabb>, Option<Aabb>)>,
+/// The children of a level's split nodes after step 4, for step 5.
+struct Children<'s> {
+    /// The next level's nodes: per split node, left then right.
+    nodes: Vec<LNode>,
+    /// The next level's events per axis.
+    ev_len: [usize; 3],
+    tri: Column<'s, u32>,
+    bounds: Column<'s, Box6>,
+    /// Per reference of the level: its placement code.
+    place: Column<'s, u8>,
+    /// Per reference of the level: its index in the next level and side,
+    /// or [`classify::DROPPED`] (see [`write_children`]).
+    new_idx: Column<'s, u32>,
+    /// The clipped copies, `(child node << 32) | new reference`.
+    copies: Vec<u64>,
 }
 
 impl<'a> Builder<'a> {
@@ -1036,10 +514,39 @@ impl<'a> Builder<'a> {
         let mut clock = Instant::now();
 
         // 2. SAH.
-        let best = self.best_splits(l, big);
+        let best = best_splits(&self.config.sah, self.depth_limit, l, big);
         self.report.phases.sah_s += lap(&mut clock);
 
         // 3. Leaves out; splits kept.
+        let splits = self.leaves(l, big, &best, depth);
+        self.report.phases.leaves_s += lap(&mut clock);
+        self.sample_rss();
+        if splits.is_empty() {
+            return Ok(None);
+        }
+
+        // 4. Classify and clip.
+        let children = self.children(l, &splits)?;
+        self.report.phases.classify_clip_s += lap(&mut clock);
+        self.sample_rss();
+
+        // 5. Child events.
+        let next = self.child_events(l, &splits, children, depth)?;
+        self.report.phases.events_s += lap(&mut clock);
+        self.sample_rss();
+        Ok(Some(next))
+    }
+
+    /// Step 3: the big nodes that are leaves ([`sah::is_leaf`]) append
+    /// their triangle lists to the leaf list; returns the others with
+    /// their splits.
+    fn leaves(
+        &mut self,
+        l: &Level<'a>,
+        big: &[usize],
+        best: &[Option<Split>],
+        depth: u32,
+    ) -> Vec<(usize, Split)> {
         let mut splits: Vec<(usize, Split)> = Vec::new();
         for (bi, &j) in big.iter().enumerate() {
             let nd = &l.nodes[j];
@@ -1066,13 +573,17 @@ impl<'a> Builder<'a> {
                 ));
             }
         }
-        self.report.phases.leaves_s += lap(&mut clock);
-        self.sample_rss();
-        if splits.is_empty() {
-            return Ok(None);
-        }
+        splits
+    }
 
-        // 4. Classify and clip.
+    /// Step 4: classifies the split nodes' references and clips the
+    /// straddlers, opens the children (per split node, left then right)
+    /// and writes their references into the next level's columns.
+    fn children(
+        &mut self,
+        l: &Level<'a>,
+        splits: &[(usize, Split)],
+    ) -> Result<Children<'a>, ColumnsError> {
         let rsegs: Vec<(usize, usize)> = splits
             .iter()
             .map(|&(j, _)| (l.nodes[j].refs, l.nodes[j].n))
@@ -1081,31 +592,62 @@ impl<'a> Builder<'a> {
         let mut place = self
             .scratch
             .column_for_overwrite::<u8>("place", l.tri.len())?;
-        let classified = self.classify_pass(l, &splits, &rsegs, &rpieces, &mut place);
+        let classified = classify_pass(self.scene, l, splits, &rsegs, &rpieces, &mut place);
         self.report.clipped += classified
             .iter()
             .map(|c| c.clipped.len() as u64)
             .sum::<u64>();
 
-        // The children: per split node, left then right.
+        let rcarry = piece_carries(&rpieces, &classified);
+        let (next_nodes, refs_at, ev_at) = self.open_children(l, splits, &rpieces, &classified);
+        Self::capacity(refs_at)?;
+        let mut tri = self.scratch.column_for_overwrite::<u32>("tri", refs_at)?;
+        let mut boxes = self
+            .scratch
+            .column_for_overwrite::<Box6>("bounds", refs_at)?;
+        let mut new_idx = self
+            .scratch
+            .column_for_overwrite::<u32>("new-idx", l.tri.len())?;
+        let copies = write_children(
+            l,
+            &place,
+            &rsegs,
+            &rpieces,
+            &classified,
+            &rcarry,
+            &next_nodes,
+            &mut tri,
+            &mut boxes,
+            &mut new_idx,
+        );
+        Ok(Children {
+            nodes: next_nodes,
+            ev_len: ev_at,
+            tri,
+            bounds: boxes,
+            place,
+            new_idx,
+            copies,
+        })
+    }
+
+    /// The children of the split nodes as the next level's nodes (per
+    /// split node, left then right), their records opened and their
+    /// reference and event ranges laid out in order; returns them with the
+    /// next level's reference and per-axis event counts.
+    fn open_children(
+        &mut self,
+        l: &Level<'a>,
+        splits: &[(usize, Split)],
+        rpieces: &[Piece],
+        classified: &[Classified],
+    ) -> (Vec<LNode>, usize, [usize; 3]) {
         let mut totals = vec![SideCounts::default(); splits.len()];
-        for (p, c) in rpieces.iter().zip(&classified) {
+        for (p, c) in rpieces.iter().zip(classified) {
             for (k, si) in p.nodes.clone().enumerate() {
                 totals[si] = totals[si] + c.counts[k];
             }
         }
-        let part_counts: Vec<SideCounts> = rpieces
-            .iter()
-            .zip(&classified)
-            .map(|(p, c)| {
-                if p.part.is_some() {
-                    c.counts[0]
-                } else {
-                    SideCounts::default()
-                }
-            })
-            .collect();
-        let rcarry = carries(&rpieces, &part_counts);
         let mut next_nodes = Vec::with_capacity(2 * splits.len());
         let (mut refs_at, mut ev_at) = (0usize, [0usize; 3]);
         for (si, &(j, split)) in splits.iter().enumerate() {
@@ -1138,55 +680,44 @@ impl<'a> Builder<'a> {
                 }
             }
         }
-        Self::capacity(refs_at)?;
-        let mut tri = self.scratch.column_for_overwrite::<u32>("tri", refs_at)?;
-        let mut boxes = self
-            .scratch
-            .column_for_overwrite::<Box6>("bounds", refs_at)?;
-        let mut new_idx = self
-            .scratch
-            .column_for_overwrite::<u32>("new-idx", l.tri.len())?;
-        let copies = write_children(
-            l,
-            &place,
-            &rsegs,
-            &rpieces,
-            &classified,
-            &rcarry,
-            &next_nodes,
-            &mut tri,
-            &mut boxes,
-            &mut new_idx,
-        );
-        drop(classified);
-        self.report.phases.classify_clip_s += lap(&mut clock);
-        self.sample_rss();
+        (next_nodes, refs_at, ev_at)
+    }
 
-        // 5. Child events.
+    /// Step 5: the children's event lists (the inherited events
+    /// partitioned, the clipped copies' events sorted and merged in);
+    /// returns the next level.
+    fn child_events(
+        &self,
+        l: &Level<'a>,
+        splits: &[(usize, Split)],
+        children: Children<'a>,
+        depth: u32,
+    ) -> Result<Level<'a>, ColumnsError> {
+        let Children {
+            nodes,
+            ev_len,
+            tri,
+            bounds,
+            place,
+            new_idx,
+            copies,
+        } = children;
         let mut ev = Vec::with_capacity(3);
-        for &len in &ev_at {
+        for &len in &ev_len {
             ev.push(self.scratch.column_for_overwrite::<u64>("ev", len)?);
         }
         let mut ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
-        partition_events(l, &splits, &place, &new_idx, &next_nodes, &mut ev);
+        partition_events(l, splits, &place, &new_idx, &nodes, &mut ev);
         drop(place);
         drop(new_idx);
-        merge_new_events(
-            copies,
-            &boxes,
-            &next_nodes,
-            &mut ev,
-            self.options.new_events,
-        );
-        self.report.phases.events_s += lap(&mut clock);
-        self.sample_rss();
-        Ok(Some(Level {
+        merge_new_events(copies, &bounds, &nodes, &mut ev, self.options.new_events);
+        Ok(Level {
             depth: depth + 1,
-            nodes: next_nodes,
+            nodes,
             tri,
-            bounds: boxes,
+            bounds,
             ev,
-        }))
+        })
     }
 
     /// Files the subtrees of a level's small nodes ([`Finish::runs`]) into
@@ -1212,782 +743,5 @@ impl<'a> Builder<'a> {
         }
         self.report.small_nodes += small.len() as u64;
         Ok(())
-    }
-
-    /// The best split of each of the `big` nodes (`None` for an empty node
-    /// or a flat cell, as in the sweep builder).
-    fn best_splits(&self, l: &Level<'a>, big: &[usize]) -> Vec<Option<Split>> {
-        let sah = &self.config.sah;
-        let sa: Vec<f64> = big
-            .iter()
-            .map(|&j| l.nodes[j].cell.surface_area())
-            .collect();
-        // Nodes at the depth limit are leaves whatever their best split
-        // ([`sah::is_leaf`]): they are not swept.
-        let valid: Vec<usize> = (0..big.len())
-            .filter(|&bi| l.nodes[big[bi]].n > 0 && sa[bi] > 0.0 && l.depth < self.depth_limit)
-            .collect();
-        let mut tasks: Vec<(usize, Piece, Pair)> = Vec::new();
-        for (axis, ev) in l.ev.iter().enumerate() {
-            let segs: Vec<(usize, usize)> = valid
-                .iter()
-                .map(|&bi| {
-                    let nd = &l.nodes[big[bi]];
-                    (nd.ev[axis], nd.nev[axis])
-                })
-                .collect();
-            let ev: &[u64] = ev;
-            // A run of equal positions is priced as one plane, so it must
-            // not be cut.
-            let ps = pieces(&segs, PIECE, |i| ev_key(ev[i]) != ev_key(ev[i - 1]));
-            // Counts of (starts + planars, ends + planars) in each part
-            // (but a node's last, which no carry needs).
-            let counts: Vec<Pair> = ps
-                .par_iter()
-                .map(|p| match &p.part {
-                    Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
-                        let mut c = [0usize; 3];
-                        for &e in &ev[r.clone()] {
-                            c[ev_kind(e)] += 1;
-                        }
-                        Pair([c[2] + c[1], c[0] + c[1]])
-                    }
-                    _ => Pair::default(),
-                })
-                .collect();
-            let carry = carries(&ps, &counts);
-            // Piece node indices refer to `valid`.
-            tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
-        }
-        // Each node's least cost so far, shared by its tasks (every axis,
-        // every part), so that each prunes against the others' planes too.
-        let shared: Vec<AtomicU64> = valid
-            .iter()
-            .map(|&bi| AtomicU64::new(sah.leaf_cost(l.nodes[big[bi]].n).to_bits()))
-            .collect();
-        let found: Vec<Vec<(usize, Split)>> = tasks
-            .par_iter()
-            .map(|(axis, p, carry)| {
-                let mut out = Vec::new();
-                for vi in p.nodes.clone() {
-                    let bi = valid[vi];
-                    let nd = &l.nodes[big[bi]];
-                    let seg = (nd.ev[*axis], nd.nev[*axis]);
-                    let (n_l, n_r) = if p.continues(seg) {
-                        (carry.0[0], nd.n - carry.0[1])
-                    } else {
-                        (0, nd.n)
-                    };
-                    let mut best = None;
-                    sweep_events(
-                        sah,
-                        &nd.cell,
-                        sa[bi],
-                        *axis,
-                        &l.ev[*axis][p.range(seg)],
-                        n_l,
-                        n_r,
-                        sah.leaf_cost(nd.n),
-                        &mut best,
-                        &shared[vi],
-                    );
-                    if let Some(s) = best {
-                        out.push((bi, s));
-                    }
-                }
-                out
-            })
-            .collect();
-        let mut best = vec![None; big.len()];
-        for (bi, s) in found.into_iter().flatten() {
-            s.keep_best(&mut best[bi]);
-        }
-        best
-    }
-
-    /// Classifies the references of the split nodes, clips the straddlers
-    /// and writes each reference's placement into `place`.
-    fn classify_pass(
-        &self,
-        l: &Level<'a>,
-        splits: &[(usize, Split)],
-        rsegs: &[(usize, usize)],
-        rpieces: &[Piece],
-        place: &mut [u8],
-    ) -> Vec<Classified> {
-        let scene = self.scene;
-        let place = ScatterSlice::new(place);
-        // Sliced once: a column's `Deref` matches on where it lives.
-        let (tris, bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
-        rpieces
-            .par_iter()
-            .map(|p| {
-                let mut counts = Vec::with_capacity(p.nodes.len());
-                let mut clipped = Vec::new();
-                for si in p.nodes.clone() {
-                    let (j, split) = splits[si];
-                    let (lc, rc) = l.nodes[j].cell.split(split.axis as usize, split.pos);
-                    let mut c = SideCounts::default();
-                    for i in p.range(rsegs[si]) {
-                        let (code, straddler) =
-                            classify_ref(scene, tris[i], &bounds[i], &split, &lc, &rc, &mut c);
-                        if let Some((lb, rb)) = straddler {
-                            clipped.push((i as u32, lb, rb));
-                        }
-                        // SAFETY: the pieces cover disjoint reference
-                        // ranges, so position `i` is this piece's alone.
-                        unsafe { place.write(i, code) };
-                    }
-                    counts.push(c);
-                }
-                Classified { counts, clipped }
-            })
-            .collect()
-    }
-}
-
-/// Sweeps one node's sorted events (all of them, or one piece starting with
-/// `n_l` references left and `n_r` right of its first plane) and keeps the
-/// best plane: the sweep of [`super::sweep::sweep_axis`], with carried
-/// counts.
-///
-/// Every plane that could win is priced by [`sah::split_cost`]. A plane is
-/// skipped only when a lower bound of its cost ([`Pricer`]) exceeds the
-/// best cost found so far: then its exact cost does too, it would lose the
-/// comparison of [`Split::cmp_order`] on cost alone, and the result is the
-/// same as pricing it. Or when the bound exceeds `cap`, the node's leaf
-/// cost: a split that costs at least that much never matters, since if
-/// the best split does, [`sah::is_leaf`] makes the node a leaf whatever
-/// the split (so `best` may stay `None` where pricing every plane would
-/// have found a split, only for nodes that become leaves either way). (An optimisation the paper does not have; it halves
-/// the sweep on large scenes, where most planes are far from the best.)
-///
-/// Whole blocks of [`SKIP_BLOCK`] events are passed over, their counts
-/// added without looking at their planes, when one bound for all of their
-/// planes ([`Pricer::block_bound`]) already exceeds the best cost: the
-/// same reasoning, so the same result. On stk_black_forest this passes
-/// over 61% of the events swept (1 thread: the level passes' SAH phase
-/// went from 0.78 to 0.59 s, the whole build from 7.1 to 6.8 s, medians
-/// of 3); blocks of 8 and 32 pass over 65% and 53%.
-///
-/// The best cost pruned against is also `shared`'s: the least cost found
-/// by the other sweeps of the same node ([`SharedBest`]). The level
-/// passes sweep a node's three axes, and each part of a large node, as
-/// separate tasks, each of which started from the leaf cost alone and
-/// priced every plane of a stretch where the cost falls towards a best
-/// plane in another part or on another axis. Sharing it took the level
-/// passes' SAH phase on black_forest from 0.61–0.66 s to 0.46–0.57 s on 1
-/// thread and from 0.50–0.59 to 0.39–0.48 s on 2 (3 alternating runs).
-/// The split found is the same: a plane is still skipped only when its
-/// cost exceeds that of a plane of the node.
-#[allow(clippy::too_many_arguments)]
-#[inline]
-fn sweep_events(
-    params: &sah::SahParams,
-    cell: &Aabb,
-    sa: f64,
-    axis: usize,
-    events: &[u64],
-    mut n_l: usize,
-    mut n_r: usize,
-    cap: f64,
-    best: &mut Option<Split>,
-    shared: &impl SharedBest,
-) {
-    let exact = sah::AxisPricer::new(cell, sa, axis);
-    let pricer = Pricer::new(params, &exact, cell, sa, axis);
-    let mut best_cost = best
-        .map_or(f64::INFINITY, |b| b.cost)
-        .min(cap)
-        .min(shared.get());
-    let len = events.len();
-    let mut i = 0;
-    while i < len {
-        best_cost = best_cost.min(shared.get());
-        // Blocks of events whose planes all cost more than the best so far
-        // are passed over with their counts added up: see
-        // [`Pricer::block_bound`]. The block stops before its last run of
-        // equal positions, which may go on past it (a plane is priced with
-        // all of its run's events counted).
-        let mut until = i + 1;
-        if i + SKIP_BLOCK <= len {
-            let blk: &[u64; SKIP_BLOCK] = events[i..i + SKIP_BLOCK]
-                .try_into()
-                .expect("SKIP_BLOCK long");
-            let last_key = ev_key(blk[SKIP_BLOCK - 1]);
-            let mut g = SKIP_BLOCK - 1;
-            while g > 0 && ev_key(blk[g - 1]) == last_key {
-                g -= 1;
-            }
-            if g > 0 {
-                // Ends and planars (they leave the right side), starts and
-                // planars (they join the left side), in the first `g`.
-                let (mut out, mut into) = (0usize, 0usize);
-                for (c, &e) in blk.iter().enumerate() {
-                    let k = ev_kind(e);
-                    let inb = c < g;
-                    out += usize::from(inb & (k <= 1));
-                    into += usize::from(inb & (k >= 1));
-                }
-                let x0 = key_pos(ev_key(blk[0]));
-                let x1 = key_pos(ev_key(blk[g - 1]));
-                if pricer.block_bound(x0, x1, n_l, n_r - out) > best_cost {
-                    n_l += into;
-                    n_r -= out;
-                    i += g;
-                    continue;
-                }
-                until = i + g;
-            }
-        }
-        while i < until {
-            let e = events[i];
-            let key = ev_key(e);
-            let k = ev_kind(e);
-            let (mut ends, mut planar) = (usize::from(k == 0), usize::from(k == 1));
-            let mut j = i + 1;
-            while j < len && ev_key(events[j]) == key {
-                let k = ev_kind(events[j]);
-                ends += usize::from(k == 0);
-                planar += usize::from(k == 1);
-                j += 1;
-            }
-            let starts = (j - i) - ends - planar;
-            i = j;
-            n_r -= planar + ends;
-            let pos = key_pos(key);
-            // With no best yet, `best_cost` is +∞ and nothing is skipped.
-            if pricer.lower_bound(pos, n_l, n_r, planar) <= best_cost {
-                let counts = PlaneCounts {
-                    left: n_l,
-                    right: n_r,
-                    planar,
-                };
-                let cost = exact.cost(params, pos, counts);
-                cost.keep_best(best);
-                if cost.cost < best_cost {
-                    best_cost = cost.cost;
-                    shared.offer(cost.cost);
-                }
-            }
-            n_l += starts + planar;
-        }
-    }
-}
-
-/// The least cost found so far by every sweep of one node (the level
-/// passes sweep a node's axes, and the parts of a large node, as separate
-/// tasks), which [`sweep_events`] prunes against: a plane whose bound
-/// exceeds a cost some plane of the node has is not its best split,
-/// whichever task found that plane, so the split found is the same
-/// whatever the tasks' timing.
-trait SharedBest: Sync {
-    /// The least cost offered so far (`+∞` when none).
-    fn get(&self) -> f64;
-    /// Offers the cost of a plane of the node.
-    fn offer(&self, cost: f64);
-}
-
-/// A sweep that is the only one of its node (the finisher's).
-struct Alone;
-
-impl SharedBest for Alone {
-    #[inline]
-    fn get(&self) -> f64 {
-        f64::INFINITY
-    }
-    #[inline]
-    fn offer(&self, _: f64) {}
-}
-
-/// The bits of a cost, which order as the costs do: costs are sums of
-/// non-negative terms when the SAH constants are (the only case in which
-/// the sweep prunes at all, see [`Pricer`]), and the bits of non-negative
-/// `f64`s order as their values.
-impl SharedBest for AtomicU64 {
-    #[inline]
-    fn get(&self) -> f64 {
-        f64::from_bits(self.load(Ordering::Relaxed))
-    }
-    #[inline]
-    fn offer(&self, cost: f64) {
-        if cost >= 0.0 {
-            self.fetch_min(cost.to_bits(), Ordering::Relaxed);
-        }
-    }
-}
-
-/// Events [`sweep_events`] tries to pass over at once.
-const SKIP_BLOCK: usize = 16;
-
-/// A lower bound of [`sah::split_cost`] for one node and axis, cheaper
-/// than the cost itself: the surface areas as `2(A + d·B)` for the other
-/// two extents' product `A` and sum `B`, divided by one multiplication;
-/// `λ` and the planar side decided as `split_cost` decides them. (A
-/// branch-free bound with `λ = min(1, λ_empty)` throughout was tried: it
-/// prunes so much less that the sweep got 30% slower on black_forest.)
-///
-/// Both this and `split_cost` sum non-negative `f64` terms, so each is
-/// within a relative 2⁻⁴⁸ of the true value; the bound is shrunk by a
-/// relative 10⁻¹⁰, far more than both errors together. With a negative or
-/// non-finite constant the bound would not be valid, and it is `-∞`
-/// (nothing is skipped).
-struct Pricer {
-    valid: bool,
-    k_t: f64,
-    k_i: f64,
-    lambda_empty: f64,
-    /// `2A / SA(V)` and `2B / SA(V)`.
-    a2: f64,
-    b2: f64,
-    lo: f64,
-    hi: f64,
-    lo32: f32,
-    hi32: f32,
-}
-
-impl Pricer {
-    #[inline]
-    fn new(
-        params: &sah::SahParams,
-        exact: &sah::AxisPricer,
-        cell: &Aabb,
-        sa: f64,
-        axis: usize,
-    ) -> Pricer {
-        let d = exact.extents();
-        let (u, v) = (d[(axis + 1) % 3], d[(axis + 2) % 3]);
-        let inv = 1.0 / sa;
-        let valid = params.k_t >= 0.0
-            && params.k_i >= 0.0
-            && params.lambda_empty >= 0.0
-            && params.k_t.is_finite()
-            && params.k_i.is_finite()
-            && params.lambda_empty.is_finite()
-            && inv.is_finite();
-        Pricer {
-            valid,
-            k_t: params.k_t,
-            k_i: params.k_i,
-            lambda_empty: params.lambda_empty,
-            a2: 2.0 * u * v * inv,
-            b2: 2.0 * (u + v) * inv,
-            lo: f64::from(cell.min[axis]),
-            hi: f64::from(cell.max[axis]),
-            lo32: cell.min[axis],
-            hi32: cell.max[axis],
-        }
-    }
-
-    /// A lower bound of the cost of every plane of a block of events
-    /// from position `x0` to `x1`, where `n_l` references are left of the
-    /// first plane and `n_r` right of the last: counts only grow to the
-    /// left and shrink to the right along the sweep, `P_L` grows with the
-    /// position and `P_R` shrinks, planar references only add terms, and
-    /// `λ` is 1 at every plane when both counts are non-zero (both sides
-    /// stay occupied), else at least `min(1, λ_empty)`. (With that
-    /// minimum throughout, the bound passed over 13% of black_forest's
-    /// events instead of 61%.) Shrunk like [`Pricer::lower_bound`]; `-∞`
-    /// when the constants make it invalid.
-    #[inline]
-    fn block_bound(&self, x0: f32, x1: f32, n_l: usize, n_r: usize) -> f64 {
-        if !self.valid {
-            return f64::NEG_INFINITY;
-        }
-        let p_l = self.a2 + (f64::from(x0) - self.lo) * self.b2;
-        let p_r = self.a2 + (self.hi - f64::from(x1)) * self.b2;
-        // Both sides occupied at every plane: λ = 1.
-        let lambda = if n_l > 0 && n_r > 0 {
-            1.0
-        } else {
-            self.lambda_empty.min(1.0)
-        };
-        let c = self.k_t + self.k_i * lambda * (p_l * n_l as f64 + p_r * n_r as f64);
-        c * (1.0 - 1e-10)
-    }
-
-    #[inline]
-    fn lower_bound(&self, pos: f32, n_l: usize, n_r: usize, n_p: usize) -> f64 {
-        if !self.valid {
-            return f64::NEG_INFINITY;
-        }
-        let x = f64::from(pos);
-        let p_l = self.a2 + (x - self.lo) * self.b2;
-        let p_r = self.a2 + (self.hi - x) * self.b2;
-        if n_p == 0 && n_l != 0 && n_r != 0 {
-            // The common case: no planar triangles, both sides occupied, so
-            // λ = 1 and the planar side does not matter.
-            let c = self.k_t + self.k_i * (p_l * n_l as f64 + p_r * n_r as f64);
-            return c * (1.0 - 1e-10);
-        }
-        let on_face = pos == self.lo32 || pos == self.hi32;
-        let cost = |nl: usize, nr: usize| {
-            let lambda = if (nl == 0 || nr == 0) && !on_face {
-                self.lambda_empty
-            } else {
-                1.0
-            };
-            self.k_t + self.k_i * lambda * (p_l * nl as f64 + p_r * nr as f64)
-        };
-        let c = cost(n_l + n_p, n_r).min(cost(n_l, n_r + n_p));
-        c * (1.0 - 1e-10)
-    }
-}
-
-/// Writes the child references (kept boxes and clipped boxes) into the
-/// next level's columns, and into `new_idx` each one-sided reference's new
-/// index and side and each straddler's [`DROPPED`] (so that the event
-/// partition needs one lookup per event). Returns the clipped copies as `(child node << 32) | new
-/// reference`, whose events are not inherited.
-#[allow(clippy::too_many_arguments)]
-fn write_children(
-    l: &Level<'_>,
-    place: &[u8],
-    rsegs: &[(usize, usize)],
-    rpieces: &[Piece],
-    classified: &[Classified],
-    rcarry: &[SideCounts],
-    next: &[LNode],
-    tri: &mut [u32],
-    boxes: &mut [Box6],
-    new_idx: &mut [u32],
-) -> Vec<u64> {
-    let tri = ScatterSlice::new(tri);
-    let boxes = ScatterSlice::new(boxes);
-    let new_idx = ScatterSlice::new(new_idx);
-    // Sliced once: a column's `Deref` matches on where it lives.
-    let (l_tri, l_bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
-    let copies: Vec<Vec<u64>> = rpieces
-        .par_iter()
-        .zip(classified.par_iter())
-        .zip(rcarry.par_iter())
-        .map(|((p, c), carry)| {
-            let mut copies = Vec::new();
-            let mut clipped = c.clipped.iter();
-            for si in p.nodes.clone() {
-                let seg = rsegs[si];
-                let (cl, cr) = (2 * si, 2 * si + 1);
-                let carry = if p.continues(seg) {
-                    *carry
-                } else {
-                    SideCounts::default()
-                };
-                let mut at = [next[cl].refs + carry.n[0], next[cr].refs + carry.n[1]];
-                for i in p.range(seg) {
-                    let code = place[i];
-                    if code & CLIPPED == 0 {
-                        let side = usize::from(code == TO_RIGHT);
-                        let d = at[side];
-                        at[side] += 1;
-                        // SAFETY: `d` is this reference's rank among the
-                        // node's references going to `side`, offset by the
-                        // child's start: distinct for every reference of
-                        // every piece. `i` lies in this piece's range.
-                        unsafe {
-                            tri.write(d, l_tri[i]);
-                            boxes.write(d, l_bounds[i]);
-                            new_idx.write(i, d as u32 | (side as u32) << 31);
-                        }
-                    } else {
-                        // SAFETY: as above.
-                        unsafe { new_idx.write(i, DROPPED) };
-                        let &(ci, lb, rb) = clipped.next().expect("one entry per straddler");
-                        debug_assert_eq!(ci as usize, i);
-                        for (side, cb) in [lb, rb].into_iter().enumerate() {
-                            if let Some(cb) = cb {
-                                let d = at[side];
-                                at[side] += 1;
-                                // SAFETY: as above.
-                                unsafe {
-                                    tri.write(d, l_tri[i]);
-                                    boxes.write(d, to_box(&cb));
-                                }
-                                let child = [cl, cr][side];
-                                copies.push(((child as u64) << 32) | d as u64);
-                            }
-                        }
-                    }
-                }
-            }
-            copies
-        })
-        .collect();
-    copies.concat()
-}
-
-/// The stable partition of the inherited events: each event of a
-/// one-sided reference goes, renumbered, to its child's segment, in the
-/// order it had; the clipped references' events are dropped (they are
-/// made anew in [`merge_new_events`]). A child's inherited events fill the
-/// front of its segment.
-fn partition_events(
-    l: &Level<'_>,
-    splits: &[(usize, Split)],
-    place: &[u8],
-    new_idx: &[u32],
-    next: &[LNode],
-    ev: &mut [Column<'_, u64>; 3],
-) {
-    let [e0, e1, e2] = ev;
-    let dst = [
-        ScatterSlice::new(&mut e0[..]),
-        ScatterSlice::new(&mut e1[..]),
-        ScatterSlice::new(&mut e2[..]),
-    ];
-    let mut tasks: Vec<(usize, Piece, Pair)> = Vec::new();
-    let mut segs_by_axis = Vec::with_capacity(3);
-    for axis in 0..3 {
-        let segs: Vec<(usize, usize)> = splits
-            .iter()
-            .map(|&(j, _)| (l.nodes[j].ev[axis], l.nodes[j].nev[axis]))
-            .collect();
-        let src: &[u64] = &l.ev[axis];
-        let ps = pieces(&segs, PIECE, |_| true);
-        let counts: Vec<Pair> = ps
-            .par_iter()
-            .map(|p| match &p.part {
-                // A node's last part: no carry needs its counts.
-                Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
-                    // Counted by slot, without a branch on the side.
-                    let mut c = [0usize; 3];
-                    for &e in &src[r.clone()] {
-                        c[SLOT[usize::from(place[ev_ref(e) as usize])]] += 1;
-                    }
-                    Pair([c[0], c[1]])
-                }
-                _ => Pair::default(),
-            })
-            .collect();
-        let carry = carries(&ps, &counts);
-        tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
-        segs_by_axis.push(segs);
-    }
-    tasks.par_iter().for_each(|(axis, p, carry)| {
-        let axis = *axis;
-        let src: &[u64] = &l.ev[axis];
-        let dst = &dst[axis];
-        for si in p.nodes.clone() {
-            let seg = segs_by_axis[axis][si];
-            let carry = if p.continues(seg) {
-                *carry
-            } else {
-                Pair::default()
-            };
-            // The two cursors stay in registers (a select, not an array
-            // indexed by the side, whose store and reload per event made a
-            // chain through memory).
-            let mut at_l = next[2 * si].ev[axis] + carry.0[0];
-            let mut at_r = next[2 * si + 1].ev[axis] + carry.0[1];
-            for &e in &src[p.range(seg)] {
-                // One lookup per event: `new_idx` carries the side too
-                // (`write_children`).
-                let dest = new_idx[ev_ref(e) as usize];
-                if dest != DROPPED {
-                    let right = dest >> 31 != 0;
-                    let at = if right { at_r } else { at_l };
-                    // SAFETY: `at` is the event's rank among the node's
-                    // events going to its side (carried over the node's
-                    // earlier pieces), offset by the child's segment
-                    // start: distinct for every event.
-                    unsafe { dst.write(at, with_ref(e, dest & !(1 << 31))) };
-                    at_l += usize::from(!right);
-                    at_r += usize::from(right);
-                }
-            }
-        }
-    });
-}
-
-/// Sorts the events of each child's clipped references and merges them
-/// into the child's segments, behind the inherited events.
-fn merge_new_events(
-    mut copies: Vec<u64>,
-    boxes: &[Box6],
-    next: &[LNode],
-    ev: &mut [Column<'_, u64>; 3],
-    mode: NewEvents,
-) {
-    copies.par_sort_unstable();
-    // Runs of copies of the same child.
-    let mut runs = Vec::new();
-    let mut s = 0;
-    for i in 1..=copies.len() {
-        if i == copies.len() || copies[i] >> 32 != copies[s] >> 32 {
-            runs.push(s..i);
-            s = i;
-        }
-    }
-    let [e0, e1, e2] = ev;
-    let dst = [
-        ScatterSlice::new(&mut e0[..]),
-        ScatterSlice::new(&mut e1[..]),
-        ScatterSlice::new(&mut e2[..]),
-    ];
-    runs.par_iter().for_each_init(Vec::new, |tmp, run| {
-        let child = &next[(copies[run.start] >> 32) as usize];
-        for (axis, dst) in dst.iter().enumerate() {
-            tmp.clear();
-            for &c in &copies[run.clone()] {
-                let r = c as u32;
-                push_events(&boxes[r as usize], axis, r, tmp);
-            }
-            tmp.sort_unstable();
-            // SAFETY: child segments are disjoint, and each child is one
-            // run.
-            let seg = unsafe { dst.range_mut(child.ev[axis], child.ev[axis] + child.nev[axis]) };
-            mode.merge(seg, tmp);
-        }
-    });
-}
-
-/// Sorts events generated in reference order: a stable least-significant
-/// digit radix sort on bits 30–63 (position and kind; the reference bits
-/// are already in order), three passes of 11, 11 and 12 bits, from `a`
-/// through `b` (of the same length). Returns whether the result is in `b`.
-/// About four times faster than a comparison sort of the root's events.
-fn radix_sort_by_position_and_kind(a: &mut [u64], b: &mut [u64]) -> bool {
-    let (mut src, mut dst) = (a, b);
-    let mut in_b = false;
-    for (shift, bits) in [(30u32, 11u32), (41, 11), (52, 12)] {
-        let mask = (1u64 << bits) - 1;
-        let mut count = vec![0usize; (1 << bits) + 1];
-        for &e in src.iter() {
-            count[((e >> shift) & mask) as usize + 1] += 1;
-        }
-        for d in 1..count.len() {
-            count[d] += count[d - 1];
-        }
-        for &e in src.iter() {
-            let d = ((e >> shift) & mask) as usize;
-            dst[count[d]] = e;
-            count[d] += 1;
-        }
-        std::mem::swap(&mut src, &mut dst);
-        in_b = !in_b;
-    }
-    in_b
-}
-
-/// `seg` holds sorted events followed by `new.len()` free slots; merges the
-/// sorted `new` in, from the back, so no element is overwritten before it
-/// is read.
-///
-/// Each step writes the larger of the two candidates and advances the
-/// cursor it came from, without a branch on the comparison (a coin flip
-/// where the two lists interleave). Where at least [`GALLOP`] inherited
-/// events lie above the next new one, which is most of the list when the
-/// new events are few (the clipped copies' events on the other axes) or
-/// bunched (on the split axis, at the child's face by the plane), the
-/// block of them is found by a binary search and moved at once.
-fn merge_back(seg: &mut [u64], new: &[u64]) {
-    let (mut i, mut j) = (seg.len() - new.len(), new.len());
-    let mut w = seg.len();
-    while j > 0 {
-        let b = new[j - 1];
-        if i >= GALLOP && seg[i - GALLOP] > b {
-            // `seg[hi..i]` are all above `b`. Steps doubling downwards
-            // find a `lo` at or below `b` (or the start), then a binary
-            // search between: the probes stay near `i`, where a search of
-            // the whole list would miss the cache on a long segment.
-            let (mut lo, mut hi, mut step) = (0, i - GALLOP, GALLOP);
-            while hi > step {
-                let probe = hi - step;
-                if seg[probe] <= b {
-                    lo = probe;
-                    break;
-                }
-                hi = probe;
-                step *= 2;
-            }
-            let p = lo + seg[lo..hi].partition_point(|&x| x <= b);
-            seg.copy_within(p..i, p + j);
-            w = p + j;
-            i = p;
-        }
-        let a = seg[i.saturating_sub(1)];
-        let take_a = i > 0 && a > b;
-        seg[w - 1] = if take_a { a } else { b };
-        i -= usize::from(take_a);
-        j -= usize::from(!take_a);
-        w -= 1;
-    }
-}
-
-/// Inherited events above a new one from which [`merge_back`] moves them
-/// as a block.
-const GALLOP: usize = 16;
-
-/// [`merge_back`]'s result by Wu et al.'s buckets: for each new event,
-/// last first, the binary search of its bucket among the inherited events
-/// not yet moved, one block move of the inherited events above it, and
-/// one write.
-fn bucket_merge(seg: &mut [u64], new: &[u64]) {
-    let mut hi = seg.len() - new.len();
-    for (j, &e) in new.iter().enumerate().rev() {
-        let b = seg[..hi].partition_point(|&x| x < e);
-        seg.copy_within(b..hi, b + j + 1);
-        seg[b + j] = e;
-        hi = b;
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn radix_sort_sorts_like_a_comparison_sort() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
-        let mut v = Vec::new();
-        for r in 0..5000u64 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            // Few distinct positions, so kinds and references decide ties.
-            v.push((x % 97) << 35 | ((x >> 20) % 3) << 30 | r);
-        }
-        let mut want = v.clone();
-        want.sort_unstable();
-        let mut b = vec![0; v.len()];
-        let in_b = radix_sort_by_position_and_kind(&mut v, &mut b);
-        assert_eq!(if in_b { b } else { v }, want);
-    }
-
-    #[test]
-    fn merge_back_merges() {
-        let mut seg = vec![1, 4, 6, 9, 0, 0, 0];
-        merge_back(&mut seg, &[0, 5, 10]);
-        assert_eq!(seg, vec![0, 1, 4, 5, 6, 9, 10]);
-        let mut seg = vec![0, 0];
-        merge_back(&mut seg, &[2, 3]);
-        assert_eq!(seg, vec![2, 3]);
-    }
-
-    #[test]
-    fn bucket_merge_equals_merge_back() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
-        for case in 0..500 {
-            let (h, m) = ((next() % 200) as usize, (next() % 12) as usize);
-            let range = 1 + next() % if case % 2 == 0 { 8 } else { 1000 };
-            let mut old: Vec<u64> = (0..h).map(|_| next() % range).collect();
-            let mut new: Vec<u64> = (0..m).map(|_| next() % range).collect();
-            old.sort_unstable();
-            new.sort_unstable();
-            let mut a = old.clone();
-            a.resize(h + m, 0);
-            let mut b = a.clone();
-            merge_back(&mut a, &new);
-            bucket_merge(&mut b, &new);
-            let mut want = [old, new].concat();
-            want.sort_unstable();
-            assert_eq!(a, want);
-            assert_eq!(b, want);
-        }
     }
 }

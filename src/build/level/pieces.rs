@@ -12,7 +12,22 @@
 //! element. The cut points depend on the data alone, never on the thread
 //! count.
 
-use std::ops::Range;
+use std::ops::{Add, Range};
+
+/// Elements per work piece: large enough that a piece's fixed costs vanish,
+/// small enough that the top levels split into many pieces per thread.
+pub const PIECE: usize = 1 << 14;
+
+/// A pair of counts with `+`, for carries.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Pair(pub [usize; 2]);
+
+impl Add for Pair {
+    type Output = Pair;
+    fn add(self, o: Pair) -> Pair {
+        Pair([self.0[0] + o.0[0], self.0[1] + o.0[1]])
+    }
+}
 
 /// Part of a pass: the nodes `nodes` (indices into the segment list), and,
 /// when it is a part of one node, the element range of that part.

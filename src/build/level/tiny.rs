@@ -4,7 +4,7 @@
 //!
 //! A node's candidate planes on an axis are the positions of its events:
 //! the `min` and `max` of every reference's box there. The sweep
-//! ([`super::sweep_events`]) walks them in sorted order, keeping running
+//! ([`super::sweep::sweep_events`]) walks them in sorted order, keeping running
 //! counts; the counts at plane `p` are, by definition,
 //!
 //! - `N_L(p)`: references whose box starts before `p` (`min < p`),
@@ -26,9 +26,9 @@
 //! The three axes' candidates lie packed in one array, each lane priced on
 //! its own axis, and every plane is priced before the least cost is looked
 //! for: a node of one or two references prices its planes in one vector,
-//! not three, and no branch waits on a block's costs. (Session 8: the
-//! search took 3.66 G cycles on black_forest with a vector per axis and a
-//! test of each block against the best so far; 2.40 G now.)
+//! not three, and no branch waits on a block's costs (on black_forest this
+//! takes a third off the search's cycles against a vector per axis and a
+//! test of each block against the best so far).
 //!
 //! The best split is the same as the three sweeps': [`Split::keep_best`]
 //! is a total order, so the order the planes are offered in does not
@@ -43,7 +43,7 @@
 //! (at most [`MAX_TINY`]), and builds no events for children that are
 //! tiny.
 
-use super::event::Box6;
+use super::events::Box6;
 use crate::build::sah::{self, SahParams, Side, Split};
 use crate::geom::Aabb;
 use crate::simd::SimdLevel;
