@@ -228,7 +228,7 @@ fn frame_progress_ends_at_one() {
     };
     for (w, h) in [(1, 1), (37, 23), (64, 64), (129, 3)] {
         let cam = Camera::default_for(&tree.bounds, w, h);
-        let progress = build::Progress::default();
+        let progress = slimkd::progress::Progress::default();
         let got = render::trace_frame_with_progress(&tracer, &cam, Some(&progress));
         assert_eq!(progress.fraction(), 1.0, "{w}x{h}");
         assert_eq!(got.hits, render::trace_frame(&tracer, &cam).hits);

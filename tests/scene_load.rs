@@ -1189,7 +1189,7 @@ proptest! {
 #[test]
 fn load_progress_ends_at_one() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
-    let progress = slimkd::build::Progress::default();
+    let progress = slimkd::progress::Progress::default();
     let (watched, _) = slimkd::scene::load_with_progress(&path, Some(&progress)).unwrap();
     assert_eq!(progress.fraction(), 1.0);
     let (plain, _) = load_obj(&path).unwrap();
@@ -1197,7 +1197,7 @@ fn load_progress_ends_at_one() {
     let cache = scratch_dir().join("progress.kds");
     let (_, summary) = load_obj(&path).unwrap();
     slimkd::scene::write_scene_cache(&cache, &plain, &summary).unwrap();
-    let progress = slimkd::build::Progress::default();
+    let progress = slimkd::progress::Progress::default();
     slimkd::scene::load_with_progress(&cache, Some(&progress)).unwrap();
     assert_eq!(progress.fraction(), 1.0);
     std::fs::remove_file(&cache).unwrap();

@@ -698,7 +698,7 @@ fn progress_ends_at_one() {
             SlimParams::FAST,
             no_t2rn,
         ] {
-            let progress = build::Progress::default();
+            let progress = slimkd::progress::Progress::default();
             let (tree, report, _) =
                 slim::slim_with_progress(&std, &scene, &config(), &p, Some(&progress));
             assert_eq!(progress.fraction(), 1.0, "{p:?}: {report:?}");

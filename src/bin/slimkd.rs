@@ -7,8 +7,9 @@
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
-use slimkd::build::{self, BuildConfig, Builder, Progress, level};
+use slimkd::build::{self, BuildConfig, Builder, level};
 use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, WriteOptions};
+use slimkd::progress::Progress;
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::slim::{self, HoistRule, SlimParams, SlimPhases, SlimReport};

@@ -18,8 +18,8 @@ mod image_out;
 
 pub use image_out::{Frame, ImageError, write_depth_f32, write_exr, write_image, write_png};
 
-use crate::build::Progress;
 use crate::geom::{Aabb, Ray};
+use crate::progress::Progress;
 use crate::scene::TriangleColumns;
 use crate::trace::{ClosestHit, Hit};
 use glam::{DVec3, Vec3};

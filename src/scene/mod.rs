@@ -49,8 +49,8 @@ mod obj;
 pub use cache::{is_scene_cache, load_scene_cache, write_scene_cache};
 pub use obj::{embedded_name, load_obj, load_obj_bytes, load_obj_with_progress};
 
-use crate::build::Progress;
 use crate::geom::{Aabb, double_area};
+use crate::progress::Progress;
 use glam::Vec3;
 use rayon::prelude::*;
 use std::fmt;

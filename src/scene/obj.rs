@@ -18,7 +18,7 @@
 //! the line of the face.
 
 use super::{LoadSummary, SceneError, TriangleColumns};
-use crate::build::Progress;
+use crate::progress::Progress;
 use glam::Vec3;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};

@@ -79,9 +79,10 @@
 //!   children of hoisting nodes are redirected.
 
 use crate::build::level::SubtreeBuilder;
-use crate::build::{BuildConfig, Progress, TriRef, sweep};
+use crate::build::{BuildConfig, TriRef, sweep};
 use crate::format::node::leaf_index_bytes;
 use crate::geom::{Aabb, clip_triangle};
+use crate::progress::Progress;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use rayon::prelude::*;
