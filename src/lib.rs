@@ -40,6 +40,7 @@ pub mod columns;
 pub mod format;
 pub mod fsio;
 pub mod geom;
+pub mod pipeline;
 pub mod progress;
 pub mod render;
 pub mod scene;

@@ -355,7 +355,7 @@ fn markdown_and_json_hold_the_numbers() {
         assert_eq!(jr["tree"], row.tree.name());
         assert_eq!(jr["tree_bytes"], row.figures.tree_bytes());
         assert_eq!(jr["idx16"], row.figures.idx16);
-        assert_eq!(jr["t_inner"], row.figures.t_inner);
+        assert_eq!(jr["nodes_t_inner"], row.figures.t_inner);
     }
     assert_eq!(js["table3b"].as_array().unwrap().len(), 3);
     assert_eq!(js["table3b"][0]["hits"], s.table3b[0].hits);

@@ -8,7 +8,8 @@ use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use slimkd::build::{self, BuildConfig, Builder, level};
-use slimkd::format::{self, FileConfig, KdFile, Mapped, Preset, TreeFigures, WriteOptions};
+use slimkd::format::{self, KdFile, Mapped, Preset, WriteOptions};
+use slimkd::pipeline::{self, figures_json, merge_json};
 use slimkd::progress::Progress;
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
@@ -612,22 +613,6 @@ fn build_tree(
     })
 }
 
-fn file_config(built: &Built, n_tris: usize) -> FileConfig {
-    let (tau_occu, tau_freq, max_t2rn) = built.slim.as_ref().map_or((0.0, 0.0, 0), |(p, _, _)| {
-        (p.tau_occu as f32, p.tau_freq as f32, p.max_t2rn)
-    });
-    FileConfig {
-        k_t: built.config.sah.k_t,
-        k_i: built.config.sah.k_i,
-        lambda_empty: built.config.sah.lambda_empty,
-        depth_limit: built.config.sah.depth_limit(n_tris),
-        preset: built.preset,
-        tau_occu,
-        tau_freq,
-        max_t2rn,
-    }
-}
-
 fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
     println!(
         "scene      {} ({}; loaded in {:.3} s)",
@@ -829,25 +814,6 @@ impl Drop for PeakRss {
     }
 }
 
-fn merge(into: &mut serde_json::Value, extra: serde_json::Value) {
-    if let (Some(a), serde_json::Value::Object(b)) = (into.as_object_mut(), extra) {
-        a.extend(b);
-    }
-}
-
-fn figures_json(f: &TreeFigures) -> serde_json::Value {
-    json!({
-        "nodes_inner": f.inner,
-        "nodes_t_inner": f.t_inner,
-        "nodes_leaf": f.leaves,
-        "nodes_total": f.nodes(),
-        "idx32": f.idx32,
-        "idx16": f.idx16,
-        "tree_bytes": f.tree_bytes(),
-        "geometry_bytes": f.geometry_bytes(),
-    })
-}
-
 fn cmd_build(
     path: &Path,
     args: &BuildArgs,
@@ -866,7 +832,12 @@ fn cmd_build(
             let start = Instant::now();
             let options = WriteOptions {
                 reorder,
-                config: file_config(&built, loaded.scene.len()),
+                config: pipeline::file_config(
+                    &built.config,
+                    loaded.scene.len(),
+                    built.preset,
+                    built.slim.as_ref().map(|(p, _, _)| p),
+                ),
             };
             format::write_file(out, &built.tree, &loaded.scene, &options)?;
             let secs = start.elapsed().as_secs_f64();
@@ -883,13 +854,13 @@ fn cmd_build(
         if json {
             let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
             if let Some((out, fig, secs)) = &written {
-                merge(&mut j, figures_json(fig));
-                merge(
+                merge_json(&mut j, figures_json(fig));
+                merge_json(
                     &mut j,
                     json!({"output": out.display().to_string(), "write_s": secs, "reorder": reorder}),
                 );
             }
-            merge(
+            merge_json(
                 &mut j,
                 json!({"peak_rss_anon_bytes": peak_anon, "peak_rss_file_bytes": peak_file}),
             );
@@ -961,7 +932,7 @@ fn cmd_info(path: &Path, json: bool) -> Res<()> {
     let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
     if json {
         let mut j = figures_json(&f);
-        merge(
+        merge_json(
             &mut j,
             json!({
                 "file": path.display().to_string(),
@@ -1179,16 +1150,6 @@ fn camera_for(args: &RenderArgs, scene_path: &Path, bounds: &slimkd::geom::Aabb)
     Ok(cam)
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        (v[n / 2 - 1] + v[n / 2]) / 2.0
-    }
-}
-
 /// What a render traces: a tree built from a scene, or a mapped file.
 enum Source {
     Built {
@@ -1274,7 +1235,7 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
         if let Some(out) = &args.dump_t {
             render::write_depth_f32(out, &frame)?;
         }
-        let mrays = median(rates);
+        let mrays = pipeline::median(&rates);
         let mode = args.mode.name();
         let simd = if args.mode == ModeArg::Packet {
             SimdLevel::detect().name()
@@ -1287,7 +1248,7 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
                 Source::Built { loaded, built, stats } => build_json(loaded, built, stats, threads),
                 Source::File { file, open_ms, .. } => {
                     let mut j = figures_json(&file.figures());
-                    merge(
+                    merge_json(
                         &mut j,
                         json!({"file": args.scene.display().to_string(), "open_ms": open_ms,
                                "triangles": file.figures().triangles, "threads": threads}),
@@ -1295,7 +1256,7 @@ fn cmd_render(args: &RenderArgs) -> Res<()> {
                     j
                 }
             };
-            merge(
+            merge_json(
                 &mut j,
                 json!({
                     "mode": mode,

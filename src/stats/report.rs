@@ -44,6 +44,7 @@ use crate::format::{
     self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, TreeFigures, WriteOptions,
 };
 use crate::geom::Aabb;
+use crate::pipeline::{figures_json, file_config, merge_json};
 use crate::render::{self, Camera, View};
 use crate::scene::TriangleColumns;
 use crate::slim::{self, HoistRule, SlimParams};
@@ -467,17 +468,7 @@ pub fn rule_name(rule: HoistRule) -> &'static str {
     }
 }
 
-/// The median (NaN for none).
-pub fn median(values: &[f64]) -> f64 {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    match n {
-        0 => f64::NAN,
-        _ if n % 2 == 1 => v[n / 2],
-        _ => (v[n / 2 - 1] + v[n / 2]) / 2.0,
-    }
-}
+pub use crate::pipeline::median;
 
 const MIB: f64 = (1u64 << 20) as f64;
 
@@ -485,27 +476,6 @@ const MIB: f64 = (1u64 << 20) as f64;
 struct Written {
     file: KdFile<AlignedBytes>,
     seconds: f64,
-}
-
-fn file_config(
-    config: &BuildConfig,
-    n_tris: usize,
-    preset: Preset,
-    p: Option<SlimParams>,
-) -> FileConfig {
-    let (tau_occu, tau_freq, max_t2rn) = p.map_or((0.0, 0.0, 0), |p| {
-        (p.tau_occu as f32, p.tau_freq as f32, p.max_t2rn)
-    });
-    FileConfig {
-        k_t: config.sah.k_t,
-        k_i: config.sah.k_i,
-        lambda_empty: config.sah.lambda_empty,
-        depth_limit: config.sah.depth_limit(n_tris),
-        preset,
-        tau_occu,
-        tau_freq,
-        max_t2rn,
-    }
 }
 
 /// Serialises a tree (reordered) and opens the bytes.
@@ -675,7 +645,7 @@ fn sweep_point(
         .install(|| slim::slim(std_tree, scene, config, &params));
     let slim_s = start.elapsed().as_secs_f64();
     let label = format!("τ_occu {} τ_freq {}", params.tau_occu, params.tau_freq);
-    let cfg = file_config(config, scene.len(), Preset::Custom, Some(params));
+    let cfg = file_config(config, scene.len(), Preset::Custom, Some(&params));
     let written = write_tree(name, &label, &tree, scene, cfg)?;
     drop(tree);
     let std_tracer = PacketTracer::new(std_file);
@@ -778,7 +748,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
                 &config,
                 scene.len(),
                 kind.preset(),
-                kind.params(options.rule),
+                kind.params(options.rule).as_ref(),
             );
             let w = write_tree(name, kind.name(), tree, scene, cfg)?;
             times.write_s[k] = w.seconds;
@@ -1367,22 +1337,17 @@ fn scene_json(s: &SceneReport) -> Value {
         },
         "table3a": s.table3a.iter().map(|r| {
             let f = &r.figures;
-            json!({
+            let mut row = figures_json(f);
+            merge_json(&mut row, json!({
                 "tree": r.tree.name(),
-                "inner": f.inner,
-                "t_inner": f.t_inner,
-                "leaves": f.leaves,
-                "nodes": f.nodes(),
-                "idx32": f.idx32,
-                "idx16": f.idx16,
-                "tree_bytes": f.tree_bytes(),
                 "mib": f.tree_bytes() as f64 / MIB,
                 "reduction_pct": jnum(s.reduction_pct(r.tree)),
                 "reduction_vs_classic_pct": jnum(s.reduction_vs_classic_pct(r.tree)),
                 "hoisted": r.hoisted,
                 "file_bytes": r.file_bytes,
                 "max_depth": r.max_depth,
-            })
+            }));
+            row
         }).collect::<Vec<_>>(),
         "table3b": s.table3b.iter().map(|v| json!({
             "view": v.view,
@@ -1465,13 +1430,6 @@ fn write_all_atomically(files: &[(PathBuf, String)]) -> std::io::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn median_of_odd_even_and_none() {
-        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
-        assert!(median(&[]).is_nan());
-    }
 
     #[test]
     fn md_table_pads_columns() {
