@@ -147,7 +147,7 @@ fn read(bytes: &[u8]) -> KdFile<format::AlignedBytes> {
 }
 
 fn std_tree(scene: &TriangleColumns) -> TreeIr {
-    build::build(scene, &BuildConfig::default(), Builder::Sweep, None)
+    build::build(scene, &BuildConfig::default(), Builder::Sweep, None).unwrap()
 }
 
 /// A fresh, empty directory for one test.
@@ -2364,7 +2364,7 @@ fn golden_inputs() -> (TriangleColumns, TreeIr, WriteOptions) {
     let scene = load_scene("bunny_npm.obj");
     let mut config = BuildConfig::default();
     config.sah.max_depth = Some(GOLDEN_DEPTH_LIMIT);
-    let std = build::build(&scene, &config, Builder::Sweep, None);
+    let std = build::build(&scene, &config, Builder::Sweep, None).unwrap();
     let (tree, _) = hoist(&std, &scene, 2024, true);
     let options = WriteOptions {
         reorder: true,

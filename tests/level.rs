@@ -319,7 +319,7 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
     let config = BuildConfig::default();
-    let want = b::build(&scene, &config, Builder::Sweep, None);
+    let want = b::build(&scene, &config, Builder::Sweep, None).unwrap();
     want.validate(&scene).unwrap();
     let dir = scratch_dir("nexuiz");
     for (t, budget) in [

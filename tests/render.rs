@@ -27,7 +27,7 @@ fn frames_match_brute_force_on_every_shipped_view() {
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
         let path = manifest(&format!("scenes/{name}.obj"));
         let (scene, _) = scene::load_obj(&path).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
         tree.validate(&scene).unwrap();
         let tracer = TreeTracer {
             tree: &tree,
@@ -221,7 +221,7 @@ fn cli_build_json_has_the_figures() {
 fn frame_progress_ends_at_one() {
     let path = manifest("scenes/bunny_npm.obj");
     let (scene, _) = scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
     let tracer = TreeTracer {
         tree: &tree,
         scene: &scene,

@@ -44,7 +44,9 @@ fn views() -> Vec<View> {
 
 fn std_tree() -> &'static TreeIr {
     static TREE: OnceLock<TreeIr> = OnceLock::new();
-    TREE.get_or_init(|| build::build(bunny(), &BuildConfig::default(), Builder::Sweep, None))
+    TREE.get_or_init(|| {
+        build::build(bunny(), &BuildConfig::default(), Builder::Sweep, None).unwrap()
+    })
 }
 
 /// The report on the bunny with its three views and a 2×2 sweep, and the

@@ -364,7 +364,7 @@ fn config() -> BuildConfig {
 
 /// The standard tree (sweep builder).
 fn std_tree(scene: &TriangleColumns) -> TreeIr {
-    build::build(scene, &config(), Builder::Sweep, None)
+    build::build(scene, &config(), Builder::Sweep, None).unwrap()
 }
 
 /// Runs the fast post-pass and checks what every result must satisfy: the

@@ -568,11 +568,11 @@ fn build_tree(
                 Ok((tree, Some(report)))
             }
             BuilderArg::Sweep => Ok((
-                build::build(scene, &config, Builder::Sweep, Some(&progress)),
+                build::build(scene, &config, Builder::Sweep, Some(&progress))?,
                 None,
             )),
             BuilderArg::Naive => Ok((
-                build::build(scene, &config, Builder::Naive, Some(&progress)),
+                build::build(scene, &config, Builder::Naive, Some(&progress))?,
                 None,
             )),
         },

@@ -50,29 +50,30 @@ pub enum Builder {
     Level,
 }
 
+/// Why a build failed: only the level builder can, with its columns
+/// (with its default options, no scratch files, only when one level holds
+/// more than 2³⁰ references).
+pub type BuildError = crate::columns::ColumnsError;
+
 /// Builds the standard tree with the chosen builder.
 ///
-/// # Panics
+/// # Errors
 ///
-/// With [`Builder::Level`], if the level builder fails: with its default
-/// options (no scratch files) that happens only when one level holds more
-/// than 2³⁰ references. Call [`level::build`] for a fallible build with a
-/// report, a memory budget and scratch files.
+/// With [`Builder::Level`], if the level builder fails (see
+/// [`BuildError`]); [`Builder::Naive`] and [`Builder::Sweep`] always
+/// succeed. Call [`level::build`] for a build with a report, a memory
+/// budget and scratch files.
 pub fn build(
     scene: &TriangleColumns,
     config: &BuildConfig,
     builder: Builder,
     progress: Option<&Progress>,
-) -> TreeIr {
+) -> Result<TreeIr, BuildError> {
     match builder {
-        Builder::Naive => naive::build(scene, config, progress),
-        Builder::Sweep => sweep::build(scene, config, progress),
-        Builder::Level => {
-            match level::build(scene, config, progress, &level::LevelOptions::default()) {
-                Ok((tree, _)) => tree,
-                Err(e) => panic!("level builder failed: {e}"),
-            }
-        }
+        Builder::Naive => Ok(naive::build(scene, config, progress)),
+        Builder::Sweep => Ok(sweep::build(scene, config, progress)),
+        Builder::Level => level::build(scene, config, progress, &level::LevelOptions::default())
+            .map(|(tree, _)| tree),
     }
 }
 

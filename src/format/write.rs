@@ -598,7 +598,7 @@ mod tests {
             })
             .collect();
         let scene = TriangleColumns::from_triangles(&tris).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
         assert!(tree.nodes.len() > 100);
         for reorder in [false, true] {
             let options = WriteOptions {

@@ -74,29 +74,29 @@ impl TriangleColumns {
     pub fn new(
         mut positions: Vec<Vec3>,
         indices: Vec<[u32; 3]>,
-    ) -> Result<TriangleColumns, String> {
+    ) -> Result<TriangleColumns, InvalidColumns> {
         for p in &mut positions {
             *p += 0.0;
         }
         if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
-            return Err(format!("vertex {i} has a non-finite coordinate"));
+            return Err(InvalidColumns::NonFiniteVertex { vertex: i });
         }
         let n = positions.len() as u64;
         if let Some(t) = indices
             .iter()
             .position(|t| t.iter().any(|&i| u64::from(i) >= n))
         {
-            return Err(format!("triangle {t} has a vertex index out of range"));
+            return Err(InvalidColumns::IndexOutOfRange { triangle: t });
         }
         if indices.len() >= u32::MAX as usize {
-            return Err("too many triangles for 32-bit ids".into());
+            return Err(InvalidColumns::TooManyTriangles);
         }
         Ok(TriangleColumns { positions, indices })
     }
 
     /// One vertex column per corner, for tests and generators: triangle `i`
     /// is `tris[i]`.
-    pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<TriangleColumns, String> {
+    pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<TriangleColumns, InvalidColumns> {
         let positions = tris.iter().flatten().copied().collect();
         let indices = (0..tris.len() as u32)
             .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
@@ -189,6 +189,30 @@ impl TriangleColumns {
         before - self.indices.len()
     }
 }
+
+/// Why [`TriangleColumns::new`] refused its columns.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum InvalidColumns {
+    NonFiniteVertex { vertex: usize },
+    IndexOutOfRange { triangle: usize },
+    TooManyTriangles,
+}
+
+impl fmt::Display for InvalidColumns {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            InvalidColumns::NonFiniteVertex { vertex } => {
+                write!(f, "vertex {vertex} has a non-finite coordinate")
+            }
+            InvalidColumns::IndexOutOfRange { triangle } => {
+                write!(f, "triangle {triangle} has a vertex index out of range")
+            }
+            InvalidColumns::TooManyTriangles => write!(f, "too many triangles for 32-bit ids"),
+        }
+    }
+}
+
+impl std::error::Error for InvalidColumns {}
 
 /// What a load did.
 #[derive(Clone, Debug, Default, PartialEq)]

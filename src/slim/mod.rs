@@ -1165,7 +1165,7 @@ mod tests {
         // small triangles and takes more nodes), and the tree never grows.
         let scene = huge_over_grid();
         let config = BuildConfig::default();
-        let std_tree = build::build(&scene, &config, Builder::Sweep, None);
+        let std_tree = build::build(&scene, &config, Builder::Sweep, None).unwrap();
         let paper = SlimParams::SMALL.with_rule(HoistRule::Paper);
         let (slim_tree, report) = slim(&std_tree, &scene, &config, &paper);
         slim_tree.validate(&scene).unwrap();

@@ -127,6 +127,11 @@ pub enum ReportError {
     /// Two trees or two traversal modes disagree on the hits of a frame,
     /// which must never happen (slim trees are exact).
     Mismatch(String),
+    /// The std tree of a scene could not be built.
+    Build {
+        scene: String,
+        source: build::BuildError,
+    },
 }
 
 impl fmt::Display for ReportError {
@@ -143,6 +148,9 @@ impl fmt::Display for ReportError {
                 "report: {scene}: the {tree} tree as a .kd file: {source}"
             ),
             ReportError::Mismatch(m) => write!(f, "report: hits differ: {m}"),
+            ReportError::Build { scene, source } => {
+                write!(f, "report: {scene}: the std build failed: {source}")
+            }
         }
     }
 }
@@ -152,6 +160,7 @@ impl std::error::Error for ReportError {
         match self {
             ReportError::ThreadPool(e) => Some(e),
             ReportError::Format { source, .. } => Some(source),
+            ReportError::Build { source, .. } => Some(source),
             _ => None,
         }
     }
@@ -718,7 +727,11 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
         // build; the slim passes run on the same pool.
         let std_tree = pools
             .all
-            .install(|| build::build(scene, &config, Builder::Level, None));
+            .install(|| build::build(scene, &config, Builder::Level, None))
+            .map_err(|source| ReportError::Build {
+                scene: name.clone(),
+                source,
+            })?;
         let std_build_s = start.elapsed().as_secs_f64();
         let table1 = duplication(&std_tree, scene);
         let mut times = BuildTimes {

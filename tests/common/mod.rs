@@ -53,8 +53,8 @@ pub fn columns(tris: &[[Vec3; 3]]) -> TriangleColumns {
 /// Builds with both builders, asserts they produce the same tree and that
 /// it is valid; returns it.
 pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
-    let sweep = build::build(scene, config, Builder::Sweep, None);
-    let naive = build::build(scene, config, Builder::Naive, None);
+    let sweep = build::build(scene, config, Builder::Sweep, None).unwrap();
+    let naive = build::build(scene, config, Builder::Naive, None).unwrap();
     assert_eq!(sweep, naive, "sweep and naive trees differ");
     if let Err(e) = sweep.validate(scene) {
         panic!("invalid tree: {e}\n{sweep:?}");
