@@ -382,7 +382,7 @@ fn assert_figures<D: AsRef<[u8]>>(file: &KdFile<D>, tree: &TreeIr, scene: &Trian
     assert_eq!(f.idx16, file.idx16().len() as u64);
     assert_eq!(f.idx32 + f.idx16, tree.leaf_tris.len() as u64);
     assert_eq!(f.triangles, scene.len() as u64);
-    assert_eq!(f.vertices, scene.positions.len() as u64);
+    assert_eq!(f.vertices, scene.positions().len() as u64);
     assert_eq!(
         f.tree_bytes(),
         8 * (f.nodes() + f.t_inner) + 4 * f.idx32 + 2 * f.idx16

@@ -165,10 +165,10 @@ fn tables_2_and_3a_equal_the_written_files() {
     assert_eq!(s.leaf_depths[0], std_hist);
     // Table 2.
     assert_eq!(s.triangles, 3674);
-    assert_eq!(s.vertices, scene.positions.len() as u64);
+    assert_eq!(s.vertices, scene.positions().len() as u64);
     assert_eq!(
         s.paper_geometry_bytes(),
-        12 * scene.len() as u64 + 32 * scene.positions.len() as u64
+        12 * scene.len() as u64 + 32 * scene.positions().len() as u64
     );
     assert_eq!(s.std_tree_bytes(), std_fig.tree_bytes());
     assert_eq!(

@@ -50,19 +50,23 @@ fn load(name: &str, text: impl AsRef<[u8]>) -> (PathBuf, Loaded) {
 
 /// Checks the invariant of loaded columns and that the summary matches.
 fn check_columns(columns: &TriangleColumns, summary: &LoadSummary) {
-    let n = columns.positions.len();
+    let n = columns.positions().len();
     assert!(
-        columns.indices.iter().flatten().all(|&i| (i as usize) < n),
+        columns
+            .indices()
+            .iter()
+            .flatten()
+            .all(|&i| (i as usize) < n),
         "index out of range"
     );
     assert!(
-        columns.positions.iter().all(|p| p.is_finite()),
+        columns.positions().iter().all(|p| p.is_finite()),
         "non-finite position"
     );
     assert_eq!(summary.triangles, columns.len());
     assert_eq!(summary.vertices, n);
     for i in 0..columns.len() as u32 {
-        let [a, b, c] = columns.indices[i as usize];
+        let [a, b, c] = columns.indices()[i as usize];
         assert!(a != b && b != c && a != c, "triangle {i} repeats a vertex");
         assert!(
             double_area(&columns.tri(i)) != 0.0,
@@ -260,7 +264,7 @@ fn vertex_coordinates_are_read_exactly() {
     assert_eq!(tris(&c), vec![expect]);
     // -0 is stored as +0 (equal split planes have equal bits).
     assert!(
-        c.positions
+        c.positions()
             .iter()
             .all(|q| q.x.to_bits() != (-0.0f32).to_bits())
     );
@@ -862,10 +866,16 @@ fn check_returns(bytes: &[u8]) -> Result<(), TestCaseError> {
             );
         }
         Ok(Ok((columns, summary))) => {
-            let n = columns.positions.len();
+            let n = columns.positions().len();
             prop_assert!(!columns.is_empty());
-            prop_assert!(columns.indices.iter().flatten().all(|&i| (i as usize) < n));
-            prop_assert!(columns.positions.iter().all(|q| q.is_finite()));
+            prop_assert!(
+                columns
+                    .indices()
+                    .iter()
+                    .flatten()
+                    .all(|&i| (i as usize) < n)
+            );
+            prop_assert!(columns.positions().iter().all(|q| q.is_finite()));
             prop_assert_eq!(summary.triangles, columns.len());
             prop_assert_eq!(summary.lines, lines);
         }

@@ -698,7 +698,7 @@ fn build_json(
     json!({
         "scene": loaded.path.display().to_string(),
         "triangles": loaded.scene.len(),
-        "vertices": loaded.scene.positions.len(),
+        "vertices": loaded.scene.positions().len(),
         "dropped_degenerate": loaded.summary.dropped_degenerate,
         "load_s": loaded.seconds,
         "build_s": built.seconds,

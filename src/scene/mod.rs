@@ -63,8 +63,8 @@ use std::path::PathBuf;
 /// `u32`).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TriangleColumns {
-    pub positions: Vec<Vec3>,
-    pub indices: Vec<[u32; 3]>,
+    positions: Vec<Vec3>,
+    indices: Vec<[u32; 3]>,
 }
 
 impl TriangleColumns {
@@ -102,6 +102,25 @@ impl TriangleColumns {
             .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
             .collect();
         TriangleColumns::new(positions, indices)
+    }
+
+    /// Columns already known to hold the invariant (and no `-0.0`), such
+    /// as those of a validated `.kd` file; nothing is checked.
+    pub(crate) fn from_valid_parts(
+        positions: Vec<Vec3>,
+        indices: Vec<[u32; 3]>,
+    ) -> TriangleColumns {
+        TriangleColumns { positions, indices }
+    }
+
+    /// The vertex positions.
+    pub fn positions(&self) -> &[Vec3] {
+        &self.positions
+    }
+
+    /// The vertex-index triples, one per triangle.
+    pub fn indices(&self) -> &[[u32; 3]] {
+        &self.indices
     }
 
     pub fn len(&self) -> usize {

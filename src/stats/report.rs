@@ -809,7 +809,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
         scenes.push(SceneReport {
             name: name.clone(),
             triangles: scene.len() as u64,
-            vertices: scene.positions.len() as u64,
+            vertices: scene.positions().len() as u64,
             table1,
             table3a,
             table3b,
