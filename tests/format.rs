@@ -150,15 +150,6 @@ fn std_tree(scene: &TriangleColumns) -> TreeIr {
     build::build(scene, &BuildConfig::default(), Builder::Sweep, None).unwrap()
 }
 
-/// A fresh, empty directory for one test.
-fn temp_dir(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("slimkd-test-format-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
 fn dir_entries(dir: &Path) -> Vec<String> {
     let mut names: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
@@ -612,7 +603,7 @@ fn round_trip_bunny_through_mmap() {
     let std = std_tree(&scene);
     let (hoisted, n_hoisted) = hoist(&std, &scene, 7, true);
     assert!(n_hoisted > 100, "{n_hoisted} type II nodes");
-    let dir = temp_dir("bunny");
+    let dir = fresh_temp_dir("bunny");
     let mut rng = Rng(1);
     let rays = rays_at(&scene.bounds(), &mut rng, 300);
     let packets = packets_at(&scene.bounds(), &mut rng, 12);
@@ -2283,7 +2274,7 @@ fn corrupt_targeted_edits() {
 /// the written files; no temporary file remains.
 #[test]
 fn atomic_writes() {
-    let dir = temp_dir("atomic");
+    let dir = fresh_temp_dir("atomic");
     let mut rng = Rng(500);
     let scenes: Vec<TriangleColumns> = (0..4)
         .map(|k| random_grid_scene(&mut rng, 10 + 5 * k, 4))

@@ -2,6 +2,9 @@
 //! small resolutions: the per-pixel hits, the image, `--dump-t`, and the
 //! `hits`/`checksum` figures of `--json`.
 
+mod common;
+
+use common::fresh_temp_dir;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::render::{self, Camera, Shading};
 use slimkd::scene;
@@ -11,12 +14,6 @@ use std::process::Command;
 
 fn manifest(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
-fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("slimkd-test-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 #[test]
@@ -70,7 +67,7 @@ fn slimkd(args: &[&str]) -> std::process::Output {
 
 #[test]
 fn cli_dump_t_and_json_match_brute_force() {
-    let dir = tmp_dir("cli");
+    let dir = fresh_temp_dir("cli");
     let scene_path = manifest("scenes/bunny_npm.obj");
     let views = manifest("scenes/views.txt");
     let dump = dir.join("t.f32");
@@ -175,7 +172,7 @@ fn cli_reports_errors_with_exit_codes() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("/nonexistent/scene.obj"), "{err}");
 
-    let dir = tmp_dir("cli-err");
+    let dir = fresh_temp_dir("cli-err");
     let bad = dir.join("bad.obj");
     std::fs::write(&bad, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n").unwrap();
     let out = slimkd(&["build", bad.to_str().unwrap()]);

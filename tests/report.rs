@@ -3,6 +3,9 @@
 //! the files it writes (Markdown, JSON, SVG figures; atomic, nothing left
 //! behind on failure).
 
+mod common;
+
+use common::fresh_temp_dir;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, View};
@@ -20,13 +23,6 @@ const GRID_FREQ: [f64; 2] = [0.4, 0.7];
 
 fn manifest(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
-fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("slimkd-report-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 fn bunny() -> &'static TriangleColumns {
@@ -395,7 +391,7 @@ fn same_json(a: &serde_json::Value, b: &serde_json::Value) -> bool {
 #[test]
 fn write_puts_every_file_in_place_atomically() {
     let (r, _) = bunny_report();
-    let dir = tmp_dir("write");
+    let dir = fresh_temp_dir("write");
     let md_path = dir.join("report.md");
     let paths = r.write(&md_path).unwrap();
     let expected: Vec<PathBuf> = ["report.md", "report.json", "figure5.svg", "figure6.svg"]
@@ -439,7 +435,7 @@ fn write_puts_every_file_in_place_atomically() {
 #[test]
 fn write_into_a_missing_directory_fails_and_leaves_nothing() {
     let (r, _) = bunny_report();
-    let dir = tmp_dir("missing");
+    let dir = fresh_temp_dir("missing");
     let missing = dir.join("no").join("such");
     let err = r.write(&missing.join("report.md")).unwrap_err();
     assert_eq!(err.kind(), std::io::ErrorKind::NotFound);
@@ -475,7 +471,7 @@ fn scene_without_views_uses_the_default_camera_and_no_sweep_writes_no_figure5() 
     assert!(s.sweep.is_empty());
     let md = r.markdown();
     assert!(!md.contains("## Figure 5") && md.contains("## Figure 6"));
-    let dir = tmp_dir("nosweep");
+    let dir = fresh_temp_dir("nosweep");
     let paths = r.write(&dir.join("out.md")).unwrap();
     assert_eq!(
         paths,

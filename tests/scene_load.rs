@@ -5,6 +5,9 @@
 //! Every text is loaded twice, from a file in a private temporary folder
 //! (`load_obj`) and from memory (`load_obj_bytes`), and both must agree.
 
+mod common;
+
+use common::temp_dir;
 use glam::Vec3;
 use proptest::prelude::*;
 use slimkd::geom::double_area;
@@ -14,18 +17,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 type Loaded = Result<(TriangleColumns, LoadSummary), SceneError>;
 
-/// A folder of our own under the system temporary folder.
-fn scratch_dir() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("slimkd-scene-load-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("create the scratch folder");
-    dir
-}
-
 /// Writes `bytes` to a fresh file named after `name`.
 fn write_temp(name: &str, bytes: &[u8]) -> PathBuf {
     static COUNTER: AtomicUsize = AtomicUsize::new(0);
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    let path = scratch_dir().join(format!("{n}-{name}.obj"));
+    let path = temp_dir("scratch").join(format!("{n}-{name}.obj"));
     std::fs::write(&path, bytes).expect("write the scratch file");
     path
 }
@@ -543,7 +539,7 @@ f 2 -4 3
 
 #[test]
 fn error_nonexistent_file() {
-    let path = scratch_dir().join("there-is-no-such-file.obj");
+    let path = temp_dir("scratch").join("there-is-no-such-file.obj");
     let err = load_obj(&path).unwrap_err();
     let shown = err.to_string();
     match err {
@@ -562,7 +558,7 @@ fn error_nonexistent_file() {
 
 #[test]
 fn error_reading_a_folder() {
-    let dir = scratch_dir().join("a-folder.obj");
+    let dir = temp_dir("scratch").join("a-folder.obj");
     std::fs::create_dir_all(&dir).unwrap();
     let err = load_obj(&dir).unwrap_err();
     let shown = err.to_string();
@@ -1204,7 +1200,7 @@ fn load_progress_ends_at_one() {
     assert_eq!(progress.fraction(), 1.0);
     let (plain, _) = load_obj(&path).unwrap();
     assert_eq!(tris(&watched), tris(&plain));
-    let cache = scratch_dir().join("progress.kds");
+    let cache = temp_dir("scratch").join("progress.kds");
     let (_, summary) = load_obj(&path).unwrap();
     slimkd::scene::write_scene_cache(&cache, &plain, &summary).unwrap();
     let progress = slimkd::progress::Progress::default();
