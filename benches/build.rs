@@ -98,7 +98,7 @@ fn time_build(scene: &TriangleColumns, builder: Builder, reps: usize) -> (f64, T
     let mut tree = None;
     for _ in 0..reps {
         let start = Instant::now();
-        let t = build::build(scene, &config, builder, None);
+        let t = build::build(scene, &config, builder, None).expect("the build");
         times.push(start.elapsed().as_secs_f64());
         tree = Some(t);
     }
@@ -409,7 +409,8 @@ fn main() {
             (!no_check).then(|| {
                 (
                     None,
-                    build::build(&loaded.scene, &BuildConfig::default(), Builder::Sweep, None),
+                    build::build(&loaded.scene, &BuildConfig::default(), Builder::Sweep, None)
+                        .expect("the build"),
                 )
             })
         } else {

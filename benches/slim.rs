@@ -82,7 +82,7 @@ fn bench_scene(name: &str, scene: &TriangleColumns, reps: usize) {
     let mut std_tree = None;
     for _ in 0..reps {
         let (start, cpu) = (Instant::now(), cpu_seconds());
-        let tree = build::build(scene, &config, Builder::Level, None);
+        let tree = build::build(scene, &config, Builder::Level, None).expect("the std build");
         let s = start.elapsed().as_secs_f64();
         let std_cpu = cpu_seconds() - cpu;
         std_s.push(s);

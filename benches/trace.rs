@@ -66,7 +66,8 @@ fn bench_scene(
     reps: usize,
 ) -> Vec<String> {
     let start = Instant::now();
-    let tree = build::build(scene, &BuildConfig::default(), Builder::Sweep, None);
+    let tree =
+        build::build(scene, &BuildConfig::default(), Builder::Sweep, None).expect("the std build");
     println!(
         "{name}: {} triangles, sweep tree built in {:.2} s ({} nodes)",
         scene.len(),

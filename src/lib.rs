@@ -25,7 +25,7 @@
 //! let scene = TriangleColumns::from_triangles(&[[
 //!     Vec3::new(0.0, 0.0, 5.0), Vec3::new(2.0, 0.0, 5.0), Vec3::new(0.0, 2.0, 5.0),
 //! ]]).unwrap();
-//! let tree = build::build(&scene, &build::BuildConfig::default(), build::Builder::Sweep, None);
+//! let tree = build::build(&scene, &build::BuildConfig::default(), build::Builder::Sweep, None).unwrap();
 //! tree.validate(&scene).unwrap();
 //! let hit = trace::closest_hit(&tree, &scene, &Ray::new(Vec3::new(0.5, 0.5, 0.0), Vec3::Z));
 //! assert_eq!(hit.t, 5.0);
@@ -40,6 +40,8 @@ pub mod columns;
 pub mod format;
 pub mod fsio;
 pub mod geom;
+pub mod pipeline;
+pub mod progress;
 pub mod render;
 pub mod scene;
 pub mod simd;

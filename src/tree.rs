@@ -146,13 +146,13 @@ impl TreeIr {
     /// - hoisted triangles overlap their node's cell;
     /// - every triangle is reachable from the root (lies in some leaf or is
     ///   hoisted into some inner node).
-    pub fn validate(&self, scene: &TriangleColumns) -> Result<(), String> {
+    pub fn validate(&self, scene: &TriangleColumns) -> Result<(), TreeError> {
         let n = self.nodes.len();
         if n == 0 {
-            return Err("no nodes".into());
+            return Err(TreeError::NoNodes);
         }
         if n > u32::MAX as usize {
-            return Err("too many nodes".into());
+            return Err(TreeError::TooManyNodes);
         }
         // "Overlaps" is checked against the cell grown by a rounding margin:
         // a triangle that only touches a cell's face may be computed just
@@ -173,12 +173,13 @@ impl TreeIr {
         let mut stack = vec![(0usize, n, self.bounds, 0u32)];
         while let Some((i, end, cell, depth)) = stack.pop() {
             if depth > MAX_DEPTH {
-                return Err(format!("node {i} lies deeper than {MAX_DEPTH}"));
+                return Err(TreeError::TooDeep { node: i });
             }
             if i != expected_next {
-                return Err(format!(
-                    "node {i} is not next in pre-order (expected {expected_next})"
-                ));
+                return Err(TreeError::NotInPreOrder {
+                    node: i,
+                    expected: expected_next,
+                });
             }
             expected_next += 1;
             match self.nodes[i] {
@@ -190,31 +191,31 @@ impl TreeIr {
                 } => {
                     let r = right.0 as usize;
                     if axis > 2 {
-                        return Err(format!("node {i}: axis {axis}"));
+                        return Err(TreeError::BadAxis { node: i, axis });
                     }
                     if let Some(t) = t_ref {
                         if t.0 as usize >= scene.len() {
-                            return Err(format!("node {i}: hoisted triangle {} out of range", t.0));
+                            return Err(TreeError::HoistedOutOfRange { node: i, tri: t.0 });
                         }
                         seen[t.0 as usize] = true;
                         if clip_triangle(&scene.tri(t.0), &grown(&cell)).is_none() {
-                            return Err(format!(
-                                "node {i}: hoisted triangle {} does not overlap the cell",
-                                t.0
-                            ));
+                            return Err(TreeError::HoistedOutsideCell { node: i, tri: t.0 });
                         }
                     }
                     if r <= i + 1 || r >= end {
-                        return Err(format!(
-                            "node {i}: right child {r} outside ({}, {end})",
-                            i + 1
-                        ));
+                        return Err(TreeError::RightChildOutside {
+                            node: i,
+                            right: r,
+                            end,
+                        });
                     }
                     let k = axis as usize;
                     if !(pos >= cell.min[k] && pos <= cell.max[k]) {
-                        return Err(format!(
-                            "node {i}: split {pos} outside its cell on axis {k}"
-                        ));
+                        return Err(TreeError::SplitOutsideCell {
+                            node: i,
+                            pos,
+                            axis: k,
+                        });
                     }
                     let (lc, rc) = cell.split(k, pos);
                     stack.push((r, end, rc, depth + 1));
@@ -222,48 +223,172 @@ impl TreeIr {
                 }
                 Node::Leaf { start, count } => {
                     if i + 1 != end {
-                        return Err(format!("leaf {i} does not end its range"));
+                        return Err(TreeError::LeafNotLast { node: i });
                     }
                     if start != next_leaf_start {
-                        return Err(format!(
-                            "leaf {i}: list starts at {start}, expected {next_leaf_start}"
-                        ));
+                        return Err(TreeError::LeafListStart {
+                            node: i,
+                            start,
+                            expected: next_leaf_start,
+                        });
                     }
                     let stop = start as u64 + count as u64;
                     if stop > self.leaf_tris.len() as u64 {
-                        return Err(format!("leaf {i}: list out of range"));
+                        return Err(TreeError::LeafListOutOfRange { node: i });
                     }
                     next_leaf_start = stop as u32;
                     let list = self.leaf(start, count);
                     for w in list.windows(2) {
                         if w[0] >= w[1] {
-                            return Err(format!("leaf {i}: list not strictly ascending"));
+                            return Err(TreeError::LeafListNotAscending { node: i });
                         }
                     }
                     for &t in list {
                         if t.0 as usize >= scene.len() {
-                            return Err(format!("leaf {i}: triangle {} out of range", t.0));
+                            return Err(TreeError::LeafTriOutOfRange { node: i, tri: t.0 });
                         }
                         seen[t.0 as usize] = true;
                         if clip_triangle(&scene.tri(t.0), &grown(&cell)).is_none() {
-                            return Err(format!(
-                                "leaf {i}: triangle {} does not overlap the cell",
-                                t.0
-                            ));
+                            return Err(TreeError::LeafTriOutsideCell { node: i, tri: t.0 });
                         }
                     }
                 }
             }
         }
         if expected_next != n {
-            return Err(format!("{} nodes unreachable", n - expected_next));
+            return Err(TreeError::Unreachable {
+                count: n - expected_next,
+            });
         }
         if next_leaf_start as usize != self.leaf_tris.len() {
-            return Err("leaf_tris has entries no leaf lists".into());
+            return Err(TreeError::UnlistedLeafTris);
         }
         if let Some(t) = seen.iter().position(|s| !s) {
-            return Err(format!("triangle {t} is in no leaf"));
+            return Err(TreeError::TriangleInNoLeaf { tri: t });
         }
         Ok(())
     }
 }
+
+/// Why [`TreeIr::validate`] refused a tree; the message names the node.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TreeError {
+    NoNodes,
+    TooManyNodes,
+    TooDeep {
+        node: usize,
+    },
+    NotInPreOrder {
+        node: usize,
+        expected: usize,
+    },
+    BadAxis {
+        node: usize,
+        axis: u8,
+    },
+    HoistedOutOfRange {
+        node: usize,
+        tri: u32,
+    },
+    HoistedOutsideCell {
+        node: usize,
+        tri: u32,
+    },
+    /// The right child is not in `(node + 1, end)`.
+    RightChildOutside {
+        node: usize,
+        right: usize,
+        end: usize,
+    },
+    SplitOutsideCell {
+        node: usize,
+        pos: f32,
+        axis: usize,
+    },
+    LeafNotLast {
+        node: usize,
+    },
+    LeafListStart {
+        node: usize,
+        start: u32,
+        expected: u32,
+    },
+    LeafListOutOfRange {
+        node: usize,
+    },
+    LeafListNotAscending {
+        node: usize,
+    },
+    LeafTriOutOfRange {
+        node: usize,
+        tri: u32,
+    },
+    LeafTriOutsideCell {
+        node: usize,
+        tri: u32,
+    },
+    Unreachable {
+        count: usize,
+    },
+    UnlistedLeafTris,
+    TriangleInNoLeaf {
+        tri: usize,
+    },
+}
+
+impl std::fmt::Display for TreeError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            TreeError::NoNodes => write!(f, "no nodes"),
+            TreeError::TooManyNodes => write!(f, "too many nodes"),
+            TreeError::TooDeep { node } => write!(f, "node {node} lies deeper than {MAX_DEPTH}"),
+            TreeError::NotInPreOrder { node, expected } => write!(
+                f,
+                "node {node} is not next in pre-order (expected {expected})"
+            ),
+            TreeError::BadAxis { node, axis } => write!(f, "node {node}: axis {axis}"),
+            TreeError::HoistedOutOfRange { node, tri } => {
+                write!(f, "node {node}: hoisted triangle {tri} out of range")
+            }
+            TreeError::HoistedOutsideCell { node, tri } => write!(
+                f,
+                "node {node}: hoisted triangle {tri} does not overlap the cell"
+            ),
+            TreeError::RightChildOutside { node, right, end } => write!(
+                f,
+                "node {node}: right child {right} outside ({}, {end})",
+                node + 1
+            ),
+            TreeError::SplitOutsideCell { node, pos, axis } => {
+                write!(
+                    f,
+                    "node {node}: split {pos} outside its cell on axis {axis}"
+                )
+            }
+            TreeError::LeafNotLast { node } => write!(f, "leaf {node} does not end its range"),
+            TreeError::LeafListStart {
+                node,
+                start,
+                expected,
+            } => write!(
+                f,
+                "leaf {node}: list starts at {start}, expected {expected}"
+            ),
+            TreeError::LeafListOutOfRange { node } => write!(f, "leaf {node}: list out of range"),
+            TreeError::LeafListNotAscending { node } => {
+                write!(f, "leaf {node}: list not strictly ascending")
+            }
+            TreeError::LeafTriOutOfRange { node, tri } => {
+                write!(f, "leaf {node}: triangle {tri} out of range")
+            }
+            TreeError::LeafTriOutsideCell { node, tri } => {
+                write!(f, "leaf {node}: triangle {tri} does not overlap the cell")
+            }
+            TreeError::Unreachable { count } => write!(f, "{count} nodes unreachable"),
+            TreeError::UnlistedLeafTris => write!(f, "leaf_tris has entries no leaf lists"),
+            TreeError::TriangleInNoLeaf { tri } => write!(f, "triangle {tri} is in no leaf"),
+        }
+    }
+}
+
+impl std::error::Error for TreeError {}

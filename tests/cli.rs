@@ -1,7 +1,10 @@
 //! The command line end to end: `build -o`, `info`, `verify`, and `render`
 //! of a `.kd` file in every mode, against the same scene rendered from OBJ.
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use common::fresh_temp_dir;
+use std::path::Path;
 use std::process::{Command, Output};
 
 fn slimkd(args: &[&str]) -> Output {
@@ -20,12 +23,6 @@ fn json(out: &Output) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).expect("one JSON object")
 }
 
-fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("slimkd-cli-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn manifest(p: &str) -> String {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join(p)
@@ -36,7 +33,7 @@ fn manifest(p: &str) -> String {
 
 #[test]
 fn build_info_verify_render_round_trip() {
-    let dir = tmp_dir("roundtrip");
+    let dir = fresh_temp_dir("roundtrip");
     let scene = manifest("scenes/bunny_npm.obj");
     let views = manifest("scenes/views.txt");
     for preset in ["std", "small"] {
@@ -115,7 +112,7 @@ fn build_info_verify_render_round_trip() {
 
 #[test]
 fn verify_rejects_corrupt_and_truncated_files() {
-    let dir = tmp_dir("corrupt");
+    let dir = fresh_temp_dir("corrupt");
     let kd = dir.join("d.kd");
     let kd_s = kd.to_str().unwrap();
     let out = slimkd(&["build", "default", "-o", kd_s]);
@@ -180,7 +177,7 @@ fn verify_rejects_corrupt_and_truncated_files() {
 /// cache and a corrupted one are clear errors naming the file.
 #[test]
 fn scene_cache_builds_the_same_tree() {
-    let dir = tmp_dir("kds");
+    let dir = fresh_temp_dir("kds");
     let scene = manifest("scenes/bunny_npm.obj");
     let kds = dir.join("bunny.kds");
     let kds_s = kds.to_str().unwrap();
@@ -244,7 +241,7 @@ fn scene_cache_builds_the_same_tree() {
 /// byte. A value above 64 is a usage error (exit 2) that writes nothing.
 #[test]
 fn tiny_threshold_writes_the_same_file() {
-    let dir = tmp_dir("tiny");
+    let dir = fresh_temp_dir("tiny");
     let scene = manifest("scenes/nexuiz_dieselpower.obj");
     let build = |name: &str, extra: &[&str]| {
         let out = dir.join(name);
@@ -270,7 +267,7 @@ fn tiny_threshold_writes_the_same_file() {
 /// miss; and no image is written.
 #[test]
 fn render_refuses_a_degenerate_camera() {
-    let dir = tmp_dir("camera");
+    let dir = fresh_temp_dir("camera");
     let png = dir.join("x.png");
     let png_s = png.to_str().unwrap();
     for (eye, at, up, what) in [

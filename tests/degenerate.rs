@@ -175,5 +175,5 @@ fn deep_scene_respects_the_depth_limit() {
     let tree = build_checked(&scene, &config);
     let stats = slimkd::stats::TreeStats::of(&tree, &config.sah);
     assert!(stats.max_depth <= config.sah.depth_limit(scene.len()));
-    let _ = build::build(&scene, &config, Builder::Sweep, None);
+    let _ = build::build(&scene, &config, Builder::Sweep, None).unwrap();
 }

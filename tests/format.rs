@@ -147,16 +147,7 @@ fn read(bytes: &[u8]) -> KdFile<format::AlignedBytes> {
 }
 
 fn std_tree(scene: &TriangleColumns) -> TreeIr {
-    build::build(scene, &BuildConfig::default(), Builder::Sweep, None)
-}
-
-/// A fresh, empty directory for one test.
-fn temp_dir(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("slimkd-test-format-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    build::build(scene, &BuildConfig::default(), Builder::Sweep, None).unwrap()
 }
 
 fn dir_entries(dir: &Path) -> Vec<String> {
@@ -382,7 +373,7 @@ fn assert_figures<D: AsRef<[u8]>>(file: &KdFile<D>, tree: &TreeIr, scene: &Trian
     assert_eq!(f.idx16, file.idx16().len() as u64);
     assert_eq!(f.idx32 + f.idx16, tree.leaf_tris.len() as u64);
     assert_eq!(f.triangles, scene.len() as u64);
-    assert_eq!(f.vertices, scene.positions.len() as u64);
+    assert_eq!(f.vertices, scene.positions().len() as u64);
     assert_eq!(
         f.tree_bytes(),
         8 * (f.nodes() + f.t_inner) + 4 * f.idx32 + 2 * f.idx16
@@ -612,7 +603,7 @@ fn round_trip_bunny_through_mmap() {
     let std = std_tree(&scene);
     let (hoisted, n_hoisted) = hoist(&std, &scene, 7, true);
     assert!(n_hoisted > 100, "{n_hoisted} type II nodes");
-    let dir = temp_dir("bunny");
+    let dir = fresh_temp_dir("bunny");
     let mut rng = Rng(1);
     let rays = rays_at(&scene.bounds(), &mut rng, 300);
     let packets = packets_at(&scene.bounds(), &mut rng, 12);
@@ -2283,7 +2274,7 @@ fn corrupt_targeted_edits() {
 /// the written files; no temporary file remains.
 #[test]
 fn atomic_writes() {
-    let dir = temp_dir("atomic");
+    let dir = fresh_temp_dir("atomic");
     let mut rng = Rng(500);
     let scenes: Vec<TriangleColumns> = (0..4)
         .map(|k| random_grid_scene(&mut rng, 10 + 5 * k, 4))
@@ -2364,7 +2355,7 @@ fn golden_inputs() -> (TriangleColumns, TreeIr, WriteOptions) {
     let scene = load_scene("bunny_npm.obj");
     let mut config = BuildConfig::default();
     config.sah.max_depth = Some(GOLDEN_DEPTH_LIMIT);
-    let std = build::build(&scene, &config, Builder::Sweep, None);
+    let std = build::build(&scene, &config, Builder::Sweep, None).unwrap();
     let (tree, _) = hoist(&std, &scene, 2024, true);
     let options = WriteOptions {
         reorder: true,

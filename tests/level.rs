@@ -20,14 +20,6 @@ use slimkd::scene::TriangleColumns;
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 
-/// A fresh, empty scratch directory of this test process.
-fn scratch_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("slimkd-level-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn is_empty_dir(d: &Path) -> bool {
     std::fs::read_dir(d).unwrap().next().is_none()
 }
@@ -85,7 +77,7 @@ proptest! {
         tiny in 0..TINY.len(),
     ) {
         let scene = columns(&tris);
-        let dir = scratch_dir("prop");
+        let dir = fresh_temp_dir("prop");
         let budget = if tiny_budget { 0 } else { u64::MAX };
         let new_events = if bucket { NewEvents::Bucket } else { NewEvents::SortMerge };
         let options = LevelOptions {
@@ -110,7 +102,7 @@ proptest! {
         let config = BuildConfig {
             sah: SahParams { max_depth: Some(depth), k_t, k_i, ..SahParams::default() },
         };
-        let dir = scratch_dir("prop-depth");
+        let dir = fresh_temp_dir("prop-depth");
         let options = LevelOptions {
             tiny_threshold: TINY[tiny],
             ..opts(THRESHOLDS[t], u64::MAX, &dir)
@@ -122,7 +114,7 @@ proptest! {
     #[test]
     fn one_thread_and_two_threads_write_the_same_file(tris in grid_scene(60), t in 0..3usize) {
         let scene = columns(&tris);
-        let dir = scratch_dir("threads");
+        let dir = fresh_temp_dir("threads");
         let o = opts([0, 4, 64][t], 0, &dir);
         let run = |n: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
@@ -153,7 +145,7 @@ proptest! {
         tiny in 0..TINY.len(),
     ) {
         let scene = columns(&tris);
-        let dir = scratch_dir("float");
+        let dir = fresh_temp_dir("float");
         let options = LevelOptions { tiny_threshold: TINY[tiny], ..opts(THRESHOLDS[t], 0, &dir) };
         check_with(&scene, &BuildConfig::default(), &options);
         std::fs::remove_dir_all(dir).unwrap();
@@ -236,7 +228,7 @@ fn degenerate_scenes() -> Vec<(&'static str, Vec<[Vec3; 3]>)> {
 
 #[test]
 fn degenerate_scenes_build_the_same_tree() {
-    let dir = scratch_dir("degenerate");
+    let dir = fresh_temp_dir("degenerate");
     for (name, tris) in degenerate_scenes() {
         let scene = columns(&tris);
         let want = build_checked(&scene, &BuildConfig::default());
@@ -274,7 +266,7 @@ fn unwritable_scratch_dir_is_a_clear_error() {
     let scene = columns(&[[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]);
     // A regular file where a directory should be: refused even for root,
     // whom permission bits do not stop.
-    let parent = scratch_dir("unwritable");
+    let parent = fresh_temp_dir("unwritable");
     let file = parent.join("not-a-dir");
     std::fs::write(&file, b"x").unwrap();
     let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &file)).unwrap_err();
@@ -302,7 +294,7 @@ fn unwritable_scratch_dir_is_a_clear_error() {
 fn scratch_limit_mid_build_is_an_error_and_leaves_nothing() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let dir = scratch_dir("limit");
+    let dir = fresh_temp_dir("limit");
     let o = LevelOptions {
         scratch_limit: Some(64 << 10),
         ..opts(0, 0, &dir)
@@ -319,9 +311,9 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
     let config = BuildConfig::default();
-    let want = b::build(&scene, &config, Builder::Sweep, None);
+    let want = b::build(&scene, &config, Builder::Sweep, None).unwrap();
     want.validate(&scene).unwrap();
-    let dir = scratch_dir("nexuiz");
+    let dir = fresh_temp_dir("nexuiz");
     for (t, budget) in [
         (level::DEFAULT_SMALL_THRESHOLD, u64::MAX),
         (0, u64::MAX),

@@ -95,7 +95,7 @@ proptest! {
         span in 0.0f32..3.0,
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
         // Coherent and loose packets back to back: chunks of every length
         // mix octants.
         let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
@@ -118,7 +118,7 @@ proptest! {
         span in 0.5f32..3.0,
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
         let params = SlimParams { tau_occu: 0.0, tau_freq: 0.0, ..SlimParams::SMALL.with_rule(HoistRule::Paper) };
         let (slim, _) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
         let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
@@ -136,7 +136,7 @@ fn hoisted_triangles_are_counted_and_tested() {
     // tests, and the hoisted triangle occludes.
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
     let params = SlimParams::SMALL.with_rule(HoistRule::Paper);
     let (slim, report) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
     assert!(report.hoisted > 0);
@@ -226,7 +226,7 @@ fn ray_files_round_trip_and_bad_records_are_named() {
 fn batches_match_one_by_one_and_the_peer_checksums() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
     let bytes = format::write_to_vec(
         &tree,
         &scene,

@@ -2,6 +2,9 @@
 //! small resolutions: the per-pixel hits, the image, `--dump-t`, and the
 //! `hits`/`checksum` figures of `--json`.
 
+mod common;
+
+use common::fresh_temp_dir;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::render::{self, Camera, Shading};
 use slimkd::scene;
@@ -13,12 +16,6 @@ fn manifest(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
 }
 
-fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("slimkd-test-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 #[test]
 fn frames_match_brute_force_on_every_shipped_view() {
     let views =
@@ -27,7 +24,7 @@ fn frames_match_brute_force_on_every_shipped_view() {
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
         let path = manifest(&format!("scenes/{name}.obj"));
         let (scene, _) = scene::load_obj(&path).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
         tree.validate(&scene).unwrap();
         let tracer = TreeTracer {
             tree: &tree,
@@ -70,7 +67,7 @@ fn slimkd(args: &[&str]) -> std::process::Output {
 
 #[test]
 fn cli_dump_t_and_json_match_brute_force() {
-    let dir = tmp_dir("cli");
+    let dir = fresh_temp_dir("cli");
     let scene_path = manifest("scenes/bunny_npm.obj");
     let views = manifest("scenes/views.txt");
     let dump = dir.join("t.f32");
@@ -175,7 +172,7 @@ fn cli_reports_errors_with_exit_codes() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("/nonexistent/scene.obj"), "{err}");
 
-    let dir = tmp_dir("cli-err");
+    let dir = fresh_temp_dir("cli-err");
     let bad = dir.join("bad.obj");
     std::fs::write(&bad, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n").unwrap();
     let out = slimkd(&["build", bad.to_str().unwrap()]);
@@ -221,14 +218,14 @@ fn cli_build_json_has_the_figures() {
 fn frame_progress_ends_at_one() {
     let path = manifest("scenes/bunny_npm.obj");
     let (scene, _) = scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
     let tracer = TreeTracer {
         tree: &tree,
         scene: &scene,
     };
     for (w, h) in [(1, 1), (37, 23), (64, 64), (129, 3)] {
         let cam = Camera::default_for(&tree.bounds, w, h);
-        let progress = build::Progress::default();
+        let progress = slimkd::progress::Progress::default();
         let got = render::trace_frame_with_progress(&tracer, &cam, Some(&progress));
         assert_eq!(progress.fraction(), 1.0, "{w}x{h}");
         assert_eq!(got.hits, render::trace_frame(&tracer, &cam).hits);

@@ -3,6 +3,9 @@
 //! the files it writes (Markdown, JSON, SVG figures; atomic, nothing left
 //! behind on failure).
 
+mod common;
+
+use common::fresh_temp_dir;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, View};
@@ -22,13 +25,6 @@ fn manifest(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
 }
 
-fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("slimkd-report-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn bunny() -> &'static TriangleColumns {
     static SCENE: OnceLock<TriangleColumns> = OnceLock::new();
     SCENE.get_or_init(|| {
@@ -44,7 +40,9 @@ fn views() -> Vec<View> {
 
 fn std_tree() -> &'static TreeIr {
     static TREE: OnceLock<TreeIr> = OnceLock::new();
-    TREE.get_or_init(|| build::build(bunny(), &BuildConfig::default(), Builder::Sweep, None))
+    TREE.get_or_init(|| {
+        build::build(bunny(), &BuildConfig::default(), Builder::Sweep, None).unwrap()
+    })
 }
 
 /// The report on the bunny with its three views and a 2×2 sweep, and the
@@ -163,10 +161,10 @@ fn tables_2_and_3a_equal_the_written_files() {
     assert_eq!(s.leaf_depths[0], std_hist);
     // Table 2.
     assert_eq!(s.triangles, 3674);
-    assert_eq!(s.vertices, scene.positions.len() as u64);
+    assert_eq!(s.vertices, scene.positions().len() as u64);
     assert_eq!(
         s.paper_geometry_bytes(),
-        12 * scene.len() as u64 + 32 * scene.positions.len() as u64
+        12 * scene.len() as u64 + 32 * scene.positions().len() as u64
     );
     assert_eq!(s.std_tree_bytes(), std_fig.tree_bytes());
     assert_eq!(
@@ -355,7 +353,7 @@ fn markdown_and_json_hold_the_numbers() {
         assert_eq!(jr["tree"], row.tree.name());
         assert_eq!(jr["tree_bytes"], row.figures.tree_bytes());
         assert_eq!(jr["idx16"], row.figures.idx16);
-        assert_eq!(jr["t_inner"], row.figures.t_inner);
+        assert_eq!(jr["nodes_t_inner"], row.figures.t_inner);
     }
     assert_eq!(js["table3b"].as_array().unwrap().len(), 3);
     assert_eq!(js["table3b"][0]["hits"], s.table3b[0].hits);
@@ -393,7 +391,7 @@ fn same_json(a: &serde_json::Value, b: &serde_json::Value) -> bool {
 #[test]
 fn write_puts_every_file_in_place_atomically() {
     let (r, _) = bunny_report();
-    let dir = tmp_dir("write");
+    let dir = fresh_temp_dir("write");
     let md_path = dir.join("report.md");
     let paths = r.write(&md_path).unwrap();
     let expected: Vec<PathBuf> = ["report.md", "report.json", "figure5.svg", "figure6.svg"]
@@ -437,7 +435,7 @@ fn write_puts_every_file_in_place_atomically() {
 #[test]
 fn write_into_a_missing_directory_fails_and_leaves_nothing() {
     let (r, _) = bunny_report();
-    let dir = tmp_dir("missing");
+    let dir = fresh_temp_dir("missing");
     let missing = dir.join("no").join("such");
     let err = r.write(&missing.join("report.md")).unwrap_err();
     assert_eq!(err.kind(), std::io::ErrorKind::NotFound);
@@ -473,7 +471,7 @@ fn scene_without_views_uses_the_default_camera_and_no_sweep_writes_no_figure5() 
     assert!(s.sweep.is_empty());
     let md = r.markdown();
     assert!(!md.contains("## Figure 5") && md.contains("## Figure 6"));
-    let dir = tmp_dir("nosweep");
+    let dir = fresh_temp_dir("nosweep");
     let paths = r.write(&dir.join("out.md")).unwrap();
     assert_eq!(
         paths,

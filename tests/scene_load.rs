@@ -5,6 +5,9 @@
 //! Every text is loaded twice, from a file in a private temporary folder
 //! (`load_obj`) and from memory (`load_obj_bytes`), and both must agree.
 
+mod common;
+
+use common::temp_dir;
 use glam::Vec3;
 use proptest::prelude::*;
 use slimkd::geom::double_area;
@@ -14,18 +17,11 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 type Loaded = Result<(TriangleColumns, LoadSummary), SceneError>;
 
-/// A folder of our own under the system temporary folder.
-fn scratch_dir() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("slimkd-scene-load-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("create the scratch folder");
-    dir
-}
-
 /// Writes `bytes` to a fresh file named after `name`.
 fn write_temp(name: &str, bytes: &[u8]) -> PathBuf {
     static COUNTER: AtomicUsize = AtomicUsize::new(0);
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    let path = scratch_dir().join(format!("{n}-{name}.obj"));
+    let path = temp_dir("scratch").join(format!("{n}-{name}.obj"));
     std::fs::write(&path, bytes).expect("write the scratch file");
     path
 }
@@ -50,19 +46,23 @@ fn load(name: &str, text: impl AsRef<[u8]>) -> (PathBuf, Loaded) {
 
 /// Checks the invariant of loaded columns and that the summary matches.
 fn check_columns(columns: &TriangleColumns, summary: &LoadSummary) {
-    let n = columns.positions.len();
+    let n = columns.positions().len();
     assert!(
-        columns.indices.iter().flatten().all(|&i| (i as usize) < n),
+        columns
+            .indices()
+            .iter()
+            .flatten()
+            .all(|&i| (i as usize) < n),
         "index out of range"
     );
     assert!(
-        columns.positions.iter().all(|p| p.is_finite()),
+        columns.positions().iter().all(|p| p.is_finite()),
         "non-finite position"
     );
     assert_eq!(summary.triangles, columns.len());
     assert_eq!(summary.vertices, n);
     for i in 0..columns.len() as u32 {
-        let [a, b, c] = columns.indices[i as usize];
+        let [a, b, c] = columns.indices()[i as usize];
         assert!(a != b && b != c && a != c, "triangle {i} repeats a vertex");
         assert!(
             double_area(&columns.tri(i)) != 0.0,
@@ -260,7 +260,7 @@ fn vertex_coordinates_are_read_exactly() {
     assert_eq!(tris(&c), vec![expect]);
     // -0 is stored as +0 (equal split planes have equal bits).
     assert!(
-        c.positions
+        c.positions()
             .iter()
             .all(|q| q.x.to_bits() != (-0.0f32).to_bits())
     );
@@ -539,7 +539,7 @@ f 2 -4 3
 
 #[test]
 fn error_nonexistent_file() {
-    let path = scratch_dir().join("there-is-no-such-file.obj");
+    let path = temp_dir("scratch").join("there-is-no-such-file.obj");
     let err = load_obj(&path).unwrap_err();
     let shown = err.to_string();
     match err {
@@ -558,7 +558,7 @@ fn error_nonexistent_file() {
 
 #[test]
 fn error_reading_a_folder() {
-    let dir = scratch_dir().join("a-folder.obj");
+    let dir = temp_dir("scratch").join("a-folder.obj");
     std::fs::create_dir_all(&dir).unwrap();
     let err = load_obj(&dir).unwrap_err();
     let shown = err.to_string();
@@ -862,10 +862,16 @@ fn check_returns(bytes: &[u8]) -> Result<(), TestCaseError> {
             );
         }
         Ok(Ok((columns, summary))) => {
-            let n = columns.positions.len();
+            let n = columns.positions().len();
             prop_assert!(!columns.is_empty());
-            prop_assert!(columns.indices.iter().flatten().all(|&i| (i as usize) < n));
-            prop_assert!(columns.positions.iter().all(|q| q.is_finite()));
+            prop_assert!(
+                columns
+                    .indices()
+                    .iter()
+                    .flatten()
+                    .all(|&i| (i as usize) < n)
+            );
+            prop_assert!(columns.positions().iter().all(|q| q.is_finite()));
             prop_assert_eq!(summary.triangles, columns.len());
             prop_assert_eq!(summary.lines, lines);
         }
@@ -1189,15 +1195,15 @@ proptest! {
 #[test]
 fn load_progress_ends_at_one() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
-    let progress = slimkd::build::Progress::default();
+    let progress = slimkd::progress::Progress::default();
     let (watched, _) = slimkd::scene::load_with_progress(&path, Some(&progress)).unwrap();
     assert_eq!(progress.fraction(), 1.0);
     let (plain, _) = load_obj(&path).unwrap();
     assert_eq!(tris(&watched), tris(&plain));
-    let cache = scratch_dir().join("progress.kds");
+    let cache = temp_dir("scratch").join("progress.kds");
     let (_, summary) = load_obj(&path).unwrap();
     slimkd::scene::write_scene_cache(&cache, &plain, &summary).unwrap();
-    let progress = slimkd::build::Progress::default();
+    let progress = slimkd::progress::Progress::default();
     slimkd::scene::load_with_progress(&cache, Some(&progress)).unwrap();
     assert_eq!(progress.fraction(), 1.0);
     std::fs::remove_file(&cache).unwrap();

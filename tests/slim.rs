@@ -364,7 +364,7 @@ fn config() -> BuildConfig {
 
 /// The standard tree (sweep builder).
 fn std_tree(scene: &TriangleColumns) -> TreeIr {
-    build::build(scene, &config(), Builder::Sweep, None)
+    build::build(scene, &config(), Builder::Sweep, None).unwrap()
 }
 
 /// Runs the fast post-pass and checks what every result must satisfy: the
@@ -698,7 +698,7 @@ fn progress_ends_at_one() {
             SlimParams::FAST,
             no_t2rn,
         ] {
-            let progress = build::Progress::default();
+            let progress = slimkd::progress::Progress::default();
             let (tree, report, _) =
                 slim::slim_with_progress(&std, &scene, &config(), &p, Some(&progress));
             assert_eq!(progress.fraction(), 1.0, "{p:?}: {report:?}");

@@ -14,19 +14,8 @@ pub fn quick() -> bool {
     std::env::args().skip(1).any(|a| a == "--quick")
 }
 
-/// The median of some timings; the mean of the middle two for an even
-/// count.
-pub fn median(values: &[f64]) -> f64 {
-    assert!(!values.is_empty(), "the median of nothing");
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        (v[n / 2 - 1] + v[n / 2]) / 2.0
-    }
-}
+/// The median of some timings (the one the CLI and the report use).
+pub use slimkd::pipeline::median;
 
 /// A path relative to the crate root.
 pub fn crate_path(rel: &str) -> PathBuf {

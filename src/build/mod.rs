@@ -27,12 +27,13 @@ pub mod naive;
 pub mod sah;
 pub mod sweep;
 
+pub use crate::progress::Progress;
+
 use crate::geom::{Aabb, clip_split};
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use glam::Vec3;
 use sah::{SahParams, Side, Split};
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What every builder needs to know.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -49,29 +50,30 @@ pub enum Builder {
     Level,
 }
 
+/// Why a build failed: only the level builder can, with its columns
+/// (with its default options, no scratch files, only when one level holds
+/// more than 2³⁰ references).
+pub type BuildError = crate::columns::ColumnsError;
+
 /// Builds the standard tree with the chosen builder.
 ///
-/// # Panics
+/// # Errors
 ///
-/// With [`Builder::Level`], if the level builder fails: with its default
-/// options (no scratch files) that happens only when one level holds more
-/// than 2³⁰ references. Call [`level::build`] for a fallible build with a
-/// report, a memory budget and scratch files.
+/// With [`Builder::Level`], if the level builder fails (see
+/// [`BuildError`]); [`Builder::Naive`] and [`Builder::Sweep`] always
+/// succeed. Call [`level::build`] for a build with a report, a memory
+/// budget and scratch files.
 pub fn build(
     scene: &TriangleColumns,
     config: &BuildConfig,
     builder: Builder,
     progress: Option<&Progress>,
-) -> TreeIr {
+) -> Result<TreeIr, BuildError> {
     match builder {
-        Builder::Naive => naive::build(scene, config, progress),
-        Builder::Sweep => sweep::build(scene, config, progress),
-        Builder::Level => {
-            match level::build(scene, config, progress, &level::LevelOptions::default()) {
-                Ok((tree, _)) => tree,
-                Err(e) => panic!("level builder failed: {e}"),
-            }
-        }
+        Builder::Naive => Ok(naive::build(scene, config, progress)),
+        Builder::Sweep => Ok(sweep::build(scene, config, progress)),
+        Builder::Level => level::build(scene, config, progress, &level::LevelOptions::default())
+            .map(|(tree, _)| tree),
     }
 }
 
@@ -197,55 +199,5 @@ impl TreeWriter {
         if let Node::Inner { right, .. } = &mut self.tree.nodes[inner] {
             *right = next;
         }
-    }
-}
-
-/// The progress of a long job, for a progress bar: a fraction from 0 to 1
-/// that other threads may read while the job runs.
-///
-/// In a build, each node carries a weight; the root's is
-/// [`Progress::TOTAL`] and a split shares a node's weight between its
-/// children in proportion to their triangle counts. A leaf adds its
-/// weight, so the sum reaches `TOTAL` exactly when the build ends. The
-/// slim pass ([`crate::slim::slim_with_progress`]) shares weights the same
-/// way over subtrees; loading an OBJ file counts bytes read and rendering
-/// counts tiles ([`Progress::advance`]).
-#[derive(Debug, Default)]
-pub struct Progress {
-    done: AtomicU64,
-}
-
-impl Progress {
-    pub const TOTAL: u64 = 1 << 40;
-
-    pub fn fraction(&self) -> f64 {
-        self.done.load(Ordering::Relaxed) as f64 / Self::TOTAL as f64
-    }
-
-    pub(crate) fn add(progress: Option<&Progress>, weight: u64) {
-        if let Some(p) = progress {
-            p.done.fetch_add(weight, Ordering::Relaxed);
-        }
-    }
-
-    /// Marks the whole job done (for one that finishes at once).
-    pub fn add_all(progress: Option<&Progress>) {
-        Progress::add(progress, Self::TOTAL);
-    }
-
-    /// Adds the share of the work between `before` and `after` units of
-    /// `whole` (which must not be 0). Shares of consecutive ranges sum to
-    /// exactly `TOTAL` over `0..whole`, with no rounding lost.
-    pub fn advance(progress: Option<&Progress>, before: u64, after: u64, whole: u64) {
-        let at =
-            |units: u64| (u128::from(Self::TOTAL) * u128::from(units) / u128::from(whole)) as u64;
-        Progress::add(progress, at(after) - at(before));
-    }
-
-    /// Shares `weight` between children of `n_left` and `n_right` triangles.
-    fn share(weight: u64, n_left: usize, n_right: usize) -> (u64, u64) {
-        let total = (n_left + n_right).max(1) as u128;
-        let left = (weight as u128 * n_left as u128 / total) as u64;
-        (left, weight - left)
     }
 }

@@ -629,7 +629,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         for (t, tri) in tris.iter().enumerate() {
             indices[self.input_id(t as u32) as usize] = *tri;
         }
-        crate::scene::TriangleColumns { positions, indices }
+        crate::scene::TriangleColumns::from_valid_parts(positions, indices)
     }
 }
 

@@ -286,21 +286,21 @@ fn check_scene(tree: &TreeIr, scene: &TriangleColumns) -> Result<(), FormatError
             "scene bounds are not a finite box".into(),
         ));
     }
-    if scene.len() > u32::MAX as usize || scene.positions.len() > u32::MAX as usize {
+    if scene.len() > u32::MAX as usize || scene.positions().len() > u32::MAX as usize {
         return Err(FormatError::TooLarge(
             "more than 2^32 triangles or vertices".into(),
         ));
     }
-    if let Some(p) = scene.positions.iter().position(|p| !p.is_finite()) {
+    if let Some(p) = scene.positions().iter().position(|p| !p.is_finite()) {
         return Err(FormatError::Index {
             section: "vertices",
             position: p as u64,
             message: "non-finite coordinate".into(),
         });
     }
-    let n_vertices = scene.positions.len() as u64;
+    let n_vertices = scene.positions().len() as u64;
     if let Some(p) = scene
-        .indices
+        .indices()
         .iter()
         .position(|t| t.iter().any(|&v| u64::from(v) >= n_vertices))
     {
@@ -452,14 +452,14 @@ fn write_kd<W: Read + Write + Seek>(
                 .idx16
                 .iter()
                 .try_for_each(|w| sink.put(&w.to_le_bytes())),
-            Section::Vertices => scene.positions.iter().try_for_each(|p| {
+            Section::Vertices => scene.positions().iter().try_for_each(|p| {
                 [p.x, p.y, p.z]
                     .iter()
                     .try_for_each(|v| sink.put(&v.to_le_bytes()))
             }),
             Section::Triangles => (0..n_tris).try_for_each(|new| {
                 let old = perm.as_ref().map_or(new, |p| p[new] as usize);
-                scene.indices[old]
+                scene.indices()[old]
                     .iter()
                     .try_for_each(|v| sink.put(&v.to_le_bytes()))
             }),
@@ -502,7 +502,7 @@ fn write_kd<W: Read + Write + Seek>(
     put_u64(&mut header, 104, lay.idx32.len() as u64);
     put_u64(&mut header, 112, lay.idx16.len() as u64);
     put_u64(&mut header, 120, n_tris as u64);
-    put_u64(&mut header, 128, scene.positions.len() as u64);
+    put_u64(&mut header, 128, scene.positions().len() as u64);
     for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
         .into_iter()
         .enumerate()
@@ -598,7 +598,7 @@ mod tests {
             })
             .collect();
         let scene = TriangleColumns::from_triangles(&tris).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
         assert!(tree.nodes.len() > 100);
         for reorder in [false, true] {
             let options = WriteOptions {

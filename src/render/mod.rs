@@ -18,8 +18,8 @@ mod image_out;
 
 pub use image_out::{Frame, ImageError, write_depth_f32, write_exr, write_image, write_png};
 
-use crate::build::Progress;
 use crate::geom::{Aabb, Ray};
+use crate::progress::Progress;
 use crate::scene::TriangleColumns;
 use crate::trace::{ClosestHit, Hit};
 use glam::{DVec3, Vec3};
@@ -97,30 +97,30 @@ impl Camera {
     /// rounding error, so the image would depend on the last bits of the
     /// inputs (decided here; pbrt's `LookAt` likewise refuses a parallel
     /// `up`).
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), CameraError> {
         let finite = |v: DVec3| v.x.is_finite() && v.y.is_finite() && v.z.is_finite();
         if !(finite(self.eye) && finite(self.at) && finite(self.up)) {
-            return Err("the camera's eye, at and up must be finite".into());
+            return Err(CameraError::NotFinite);
         }
         if !(self.fov_deg > 0.0 && self.fov_deg < 180.0) {
-            return Err(format!("fov {} is not in (0, 180)", self.fov_deg));
+            return Err(CameraError::BadFov { fov: self.fov_deg });
         }
         if self.width == 0 || self.height == 0 {
-            return Err(format!(
-                "image size {}x{} is empty",
-                self.width, self.height
-            ));
+            return Err(CameraError::EmptyImage {
+                width: self.width,
+                height: self.height,
+            });
         }
         let d = self.at - self.eye;
         if d.length() == 0.0 {
-            return Err("eye and at are the same point: no view direction".into());
+            return Err(CameraError::SamePoint);
         }
         let up_len = self.up.length();
         if cross(normalize(d), self.up).length() <= 1e-9 * up_len {
-            return Err(format!(
-                "up ({}, {}, {}) is zero or parallel to the view direction (at - eye = {}, {}, {})",
-                self.up.x, self.up.y, self.up.z, d.x, d.y, d.z
-            ));
+            return Err(CameraError::UpParallel {
+                up: self.up,
+                dir: d,
+            });
         }
         Ok(())
     }
@@ -139,6 +139,98 @@ impl Camera {
     }
 }
 
+/// Why [`Camera::check`] refused a camera.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CameraError {
+    NotFinite,
+    BadFov {
+        fov: f64,
+    },
+    EmptyImage {
+        width: u32,
+        height: u32,
+    },
+    SamePoint,
+    /// `up` is zero or parallel to `dir = at - eye`.
+    UpParallel {
+        up: DVec3,
+        dir: DVec3,
+    },
+}
+
+impl std::fmt::Display for CameraError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            CameraError::NotFinite => write!(f, "the camera's eye, at and up must be finite"),
+            CameraError::BadFov { fov } => write!(f, "fov {fov} is not in (0, 180)"),
+            CameraError::EmptyImage { width, height } => {
+                write!(f, "image size {width}x{height} is empty")
+            }
+            CameraError::SamePoint => write!(f, "eye and at are the same point: no view direction"),
+            CameraError::UpParallel { up, dir: d } => write!(
+                f,
+                "up ({}, {}, {}) is zero or parallel to the view direction (at - eye = {}, {}, {})",
+                up.x, up.y, up.z, d.x, d.y, d.z
+            ),
+        }
+    }
+}
+
+impl std::error::Error for CameraError {}
+
+/// A line of a views file that [`parse_views`] refused: its number
+/// (1-based), what is wrong, and its text.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewsError {
+    pub line: usize,
+    pub problem: ViewProblem,
+    pub text: String,
+}
+
+/// What is wrong with a line of a views file.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ViewProblem {
+    NoSceneName,
+    NoViewId,
+    NotKeyValue,
+    /// The value of this key does not parse.
+    Bad(&'static str),
+    UnknownKey(String),
+    /// This key is missing.
+    Missing(&'static str),
+    /// The view's camera does not define rays.
+    Camera(CameraError),
+}
+
+impl std::fmt::Display for ViewProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ViewProblem::NoSceneName => write!(f, "no scene name"),
+            ViewProblem::NoViewId => write!(f, "no view id"),
+            ViewProblem::NotKeyValue => write!(f, "expected key=value"),
+            ViewProblem::Bad(key) => write!(f, "bad {key}"),
+            ViewProblem::UnknownKey(key) => write!(f, "unknown key `{key}`"),
+            ViewProblem::Missing(key) => write!(f, "missing {key}"),
+            ViewProblem::Camera(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+impl std::fmt::Display for ViewsError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "line {}: {}: {}", self.line, self.problem, self.text)
+    }
+}
+
+impl std::error::Error for ViewsError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match &self.problem {
+            ViewProblem::Camera(e) => Some(e),
+            _ => None,
+        }
+    }
+}
+
 /// One line of a views file:
 /// `SCENE VIEW_ID eye=x,y,z at=x,y,z up=x,y,z fov=DEG  # comment`.
 #[derive(Clone, Debug, PartialEq)]
@@ -152,42 +244,57 @@ pub struct View {
 }
 
 /// Parses a views file; errors name the line.
-pub fn parse_views(text: &str) -> Result<Vec<View>, String> {
+pub fn parse_views(text: &str) -> Result<Vec<View>, ViewsError> {
     let mut views = Vec::new();
     for (i, raw) in text.lines().enumerate() {
         let line = raw.split('#').next().unwrap_or("").trim();
         if line.is_empty() {
             continue;
         }
-        let bad = |what: &str| format!("line {}: {what}: {raw}", i + 1);
+        let bad = |problem: ViewProblem| ViewsError {
+            line: i + 1,
+            problem,
+            text: raw.to_string(),
+        };
         let mut words = line.split_whitespace();
         let scene = words
             .next()
-            .ok_or_else(|| bad("no scene name"))?
+            .ok_or_else(|| bad(ViewProblem::NoSceneName))?
             .to_string();
-        let id = words.next().ok_or_else(|| bad("no view id"))?.to_string();
+        let id = words
+            .next()
+            .ok_or_else(|| bad(ViewProblem::NoViewId))?
+            .to_string();
         let (mut eye, mut at, mut up, mut fov) = (None, None, None, None);
         for w in words {
-            let (key, value) = w.split_once('=').ok_or_else(|| bad("expected key=value"))?;
+            let (key, value) = w
+                .split_once('=')
+                .ok_or_else(|| bad(ViewProblem::NotKeyValue))?;
             match key {
-                "eye" => eye = Some(parse_vec3(value).ok_or_else(|| bad("bad eye"))?),
-                "at" => at = Some(parse_vec3(value).ok_or_else(|| bad("bad at"))?),
-                "up" => up = Some(parse_vec3(value).ok_or_else(|| bad("bad up"))?),
-                "fov" => fov = Some(value.parse::<f64>().map_err(|_| bad("bad fov"))?),
-                _ => return Err(bad(&format!("unknown key `{key}`"))),
+                "eye" => eye = Some(parse_vec3(value).ok_or_else(|| bad(ViewProblem::Bad("eye")))?),
+                "at" => at = Some(parse_vec3(value).ok_or_else(|| bad(ViewProblem::Bad("at")))?),
+                "up" => up = Some(parse_vec3(value).ok_or_else(|| bad(ViewProblem::Bad("up")))?),
+                "fov" => {
+                    fov = Some(
+                        value
+                            .parse::<f64>()
+                            .map_err(|_| bad(ViewProblem::Bad("fov")))?,
+                    )
+                }
+                _ => return Err(bad(ViewProblem::UnknownKey(key.to_string()))),
             }
         }
         let view = View {
             scene,
             id,
-            eye: eye.ok_or_else(|| bad("missing eye"))?,
-            at: at.ok_or_else(|| bad("missing at"))?,
-            up: up.ok_or_else(|| bad("missing up"))?,
-            fov_deg: fov.ok_or_else(|| bad("missing fov"))?,
+            eye: eye.ok_or_else(|| bad(ViewProblem::Missing("eye")))?,
+            at: at.ok_or_else(|| bad(ViewProblem::Missing("at")))?,
+            up: up.ok_or_else(|| bad(ViewProblem::Missing("up")))?,
+            fov_deg: fov.ok_or_else(|| bad(ViewProblem::Missing("fov")))?,
         };
         Camera::from_view(&view, 1, 1)
             .check()
-            .map_err(|e| bad(&e))?;
+            .map_err(|e| bad(ViewProblem::Camera(e)))?;
         views.push(view);
     }
     Ok(views)
@@ -416,7 +523,7 @@ mod tests {
         let with = |f: &dyn Fn(&mut Camera)| {
             let mut c = good;
             f(&mut c);
-            c.check().unwrap_err()
+            c.check().unwrap_err().to_string()
         };
         // Looking straight down (−y) with up = +y: no right vector, and
         // the rays would be NaN.
@@ -439,12 +546,16 @@ mod tests {
         assert_eq!(tilted.check(), Ok(()));
         assert!(tilted.ray(1, 2).dir.is_finite());
         // A views file line with such a camera is refused, naming the line.
-        let err = parse_views("a 1 eye=0,0,0 at=0,0,0 up=0,1,0 fov=60\n").unwrap_err();
+        let err = parse_views("a 1 eye=0,0,0 at=0,0,0 up=0,1,0 fov=60\n")
+            .unwrap_err()
+            .to_string();
         assert!(
             err.contains("line 1") && err.contains("same point"),
             "{err}"
         );
-        let err = parse_views("\na 2 eye=0,5,0 at=0,0,0 up=0,1,0 fov=60").unwrap_err();
+        let err = parse_views("\na 2 eye=0,5,0 at=0,0,0 up=0,1,0 fov=60")
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("line 2") && err.contains("parallel"), "{err}");
         assert!(parse_views("a 1 eye=1,2,3 at=0,0,0 up=0,1,0 fov=200").is_err());
     }
@@ -468,11 +579,13 @@ mod tests {
         assert!(
             parse_views("a 1 eye=1,2 at=0,0,0 up=0,1,0 fov=60")
                 .unwrap_err()
+                .to_string()
                 .contains("line 1")
         );
         assert!(
             parse_views("a 1 at=0,0,0 up=0,1,0 fov=60")
                 .unwrap_err()
+                .to_string()
                 .contains("missing eye")
         );
     }

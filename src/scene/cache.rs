@@ -149,7 +149,7 @@ pub fn load_scene_cache(path: &Path) -> Result<(TriangleColumns, LoadSummary), S
         return Err(bad("checksum mismatch (the file is corrupt)".into()));
     }
     let positions = positions.into_iter().map(Vec3::from_array).collect();
-    let mut scene = TriangleColumns::new(positions, indices).map_err(bad)?;
+    let mut scene = TriangleColumns::new(positions, indices).map_err(|e| bad(e.to_string()))?;
     if scene.is_empty() {
         return Err(bad("no triangles".into()));
     }

@@ -49,8 +49,8 @@ mod obj;
 pub use cache::{is_scene_cache, load_scene_cache, write_scene_cache};
 pub use obj::{embedded_name, load_obj, load_obj_bytes, load_obj_with_progress};
 
-use crate::build::Progress;
 use crate::geom::{Aabb, double_area};
+use crate::progress::Progress;
 use glam::Vec3;
 use rayon::prelude::*;
 use std::fmt;
@@ -63,8 +63,8 @@ use std::path::PathBuf;
 /// `u32`).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TriangleColumns {
-    pub positions: Vec<Vec3>,
-    pub indices: Vec<[u32; 3]>,
+    positions: Vec<Vec3>,
+    indices: Vec<[u32; 3]>,
 }
 
 impl TriangleColumns {
@@ -74,34 +74,53 @@ impl TriangleColumns {
     pub fn new(
         mut positions: Vec<Vec3>,
         indices: Vec<[u32; 3]>,
-    ) -> Result<TriangleColumns, String> {
+    ) -> Result<TriangleColumns, InvalidColumns> {
         for p in &mut positions {
             *p += 0.0;
         }
         if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
-            return Err(format!("vertex {i} has a non-finite coordinate"));
+            return Err(InvalidColumns::NonFiniteVertex { vertex: i });
         }
         let n = positions.len() as u64;
         if let Some(t) = indices
             .iter()
             .position(|t| t.iter().any(|&i| u64::from(i) >= n))
         {
-            return Err(format!("triangle {t} has a vertex index out of range"));
+            return Err(InvalidColumns::IndexOutOfRange { triangle: t });
         }
         if indices.len() >= u32::MAX as usize {
-            return Err("too many triangles for 32-bit ids".into());
+            return Err(InvalidColumns::TooManyTriangles);
         }
         Ok(TriangleColumns { positions, indices })
     }
 
     /// One vertex column per corner, for tests and generators: triangle `i`
     /// is `tris[i]`.
-    pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<TriangleColumns, String> {
+    pub fn from_triangles(tris: &[[Vec3; 3]]) -> Result<TriangleColumns, InvalidColumns> {
         let positions = tris.iter().flatten().copied().collect();
         let indices = (0..tris.len() as u32)
             .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
             .collect();
         TriangleColumns::new(positions, indices)
+    }
+
+    /// Columns already known to hold the invariant (and no `-0.0`), such
+    /// as those of a validated `.kd` file; nothing is checked.
+    pub(crate) fn from_valid_parts(
+        positions: Vec<Vec3>,
+        indices: Vec<[u32; 3]>,
+    ) -> TriangleColumns {
+        TriangleColumns { positions, indices }
+    }
+
+    /// The vertex positions.
+    pub fn positions(&self) -> &[Vec3] {
+        &self.positions
+    }
+
+    /// The vertex-index triples, one per triangle.
+    pub fn indices(&self) -> &[[u32; 3]] {
+        &self.indices
     }
 
     pub fn len(&self) -> usize {
@@ -189,6 +208,30 @@ impl TriangleColumns {
         before - self.indices.len()
     }
 }
+
+/// Why [`TriangleColumns::new`] refused its columns.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum InvalidColumns {
+    NonFiniteVertex { vertex: usize },
+    IndexOutOfRange { triangle: usize },
+    TooManyTriangles,
+}
+
+impl fmt::Display for InvalidColumns {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            InvalidColumns::NonFiniteVertex { vertex } => {
+                write!(f, "vertex {vertex} has a non-finite coordinate")
+            }
+            InvalidColumns::IndexOutOfRange { triangle } => {
+                write!(f, "triangle {triangle} has a vertex index out of range")
+            }
+            InvalidColumns::TooManyTriangles => write!(f, "too many triangles for 32-bit ids"),
+        }
+    }
+}
+
+impl std::error::Error for InvalidColumns {}
 
 /// What a load did.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -18,7 +18,7 @@
 //! the line of the face.
 
 use super::{LoadSummary, SceneError, TriangleColumns};
-use crate::build::Progress;
+use crate::progress::Progress;
 use glam::Vec3;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
@@ -140,9 +140,9 @@ fn load_obj_reader<R: BufRead>(
         }
     }
     let mut columns =
-        TriangleColumns::new(positions, indices).map_err(|message| SceneError::Invalid {
+        TriangleColumns::new(positions, indices).map_err(|e| SceneError::Invalid {
             path: path.to_path_buf(),
-            message,
+            message: e.to_string(),
         })?;
     let dropped = columns.drop_degenerate();
     if columns.is_empty() {

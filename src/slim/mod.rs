@@ -79,9 +79,10 @@
 //!   children of hoisting nodes are redirected.
 
 use crate::build::level::SubtreeBuilder;
-use crate::build::{BuildConfig, Progress, TriRef, sweep};
+use crate::build::{BuildConfig, TriRef, sweep};
 use crate::format::node::leaf_index_bytes;
 use crate::geom::{Aabb, clip_triangle};
+use crate::progress::Progress;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use rayon::prelude::*;
@@ -1164,7 +1165,7 @@ mod tests {
         // small triangles and takes more nodes), and the tree never grows.
         let scene = huge_over_grid();
         let config = BuildConfig::default();
-        let std_tree = build::build(&scene, &config, Builder::Sweep, None);
+        let std_tree = build::build(&scene, &config, Builder::Sweep, None).unwrap();
         let paper = SlimParams::SMALL.with_rule(HoistRule::Paper);
         let (slim_tree, report) = slim(&std_tree, &scene, &config, &paper);
         slim_tree.validate(&scene).unwrap();

@@ -1,6 +1,6 @@
 //! Shared test helpers: grid-snapped scenes and rays (vertices on integers,
-//! rays through half-integers, as svenstaro/bvh's test base does), and the
-//! checks every test ends with.
+//! rays through half-integers, as svenstaro/bvh's test base does), the
+//! checks every test ends with, and temporary directories.
 
 #![allow(dead_code)]
 
@@ -53,8 +53,8 @@ pub fn columns(tris: &[[Vec3; 3]]) -> TriangleColumns {
 /// Builds with both builders, asserts they produce the same tree and that
 /// it is valid; returns it.
 pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
-    let sweep = build::build(scene, config, Builder::Sweep, None);
-    let naive = build::build(scene, config, Builder::Naive, None);
+    let sweep = build::build(scene, config, Builder::Sweep, None).unwrap();
+    let naive = build::build(scene, config, Builder::Naive, None).unwrap();
     assert_eq!(sweep, naive, "sweep and naive trees differ");
     if let Err(e) = sweep.validate(scene) {
         panic!("invalid tree: {e}\n{sweep:?}");
@@ -146,4 +146,25 @@ pub fn packet(g: i32) -> impl Strategy<Value = [Ray; 16]> {
     });
     let loose = prop::collection::vec(grid_ray(g), 16).prop_map(|v| std::array::from_fn(|i| v[i]));
     prop_oneof![3 => coherent, 1 => loose]
+}
+
+/// A directory of this test process (named after the test file, the
+/// process and `name`) under the system temporary directory, made if
+/// missing; what is in it stays.
+pub fn temp_dir(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "slimkd-{}-{}-{name}",
+        env!("CARGO_CRATE_NAME"),
+        std::process::id()
+    ));
+    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
+    dir
+}
+
+/// [`temp_dir`], emptied first: a fresh, empty directory for one test.
+pub fn fresh_temp_dir(name: &str) -> std::path::PathBuf {
+    let dir = temp_dir(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
+    dir
 }

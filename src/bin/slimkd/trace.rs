@@ -12,7 +12,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
-type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
+use crate::Res;
 
 #[derive(clap::Args)]
 pub struct TraceArgs {
@@ -50,16 +50,6 @@ pub struct TraceArgs {
 pub enum TraceMode {
     Single,
     Packet,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        (v[n / 2 - 1] + v[n / 2]) / 2.0
-    }
 }
 
 pub fn cmd_trace(args: &TraceArgs, pool: rayon::ThreadPool) -> Res<()> {
@@ -121,7 +111,7 @@ pub fn cmd_trace(args: &TraceArgs, pool: rayon::ThreadPool) -> Res<()> {
             },
         )?;
     }
-    let mrays = median(rates.clone());
+    let mrays = slimkd::pipeline::median(&rates);
     let simd = if packets {
         packet.level().name()
     } else {

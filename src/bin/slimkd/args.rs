@@ -1,0 +1,352 @@
+//! The command line's `clap` types and their value parsers.
+
+use clap::{Parser, Subcommand, ValueEnum};
+use slimkd::build::level;
+use slimkd::format::Preset;
+use slimkd::render::{self};
+use slimkd::slim::{HoistRule, SlimParams};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(
+    name = "slimkd",
+    version,
+    about = "Build, store and trace SAH kd-trees for large triangle scenes.",
+    long_about = "Build, store and trace SAH kd-trees for large triangle scenes.\n\n\
+        Without a command, builds the tree of the embedded default scene, prints a summary, \
+        renders slimkd.png into the current directory and prints Mrays/s.\n\n\
+        SCENE is an OBJ file, a scene cache (.kds, made by `slimkd convert`), or `default` \
+        for the embedded scene."
+)]
+pub(crate) struct Cli {
+    #[command(subcommand)]
+    pub(crate) command: Option<Command>,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum Command {
+    /// Build the standard SAH kd-tree of a scene; print its figures and
+    /// optionally write it as a .kd file.
+    Build {
+        /// OBJ file, scene cache (.kds, see `convert`), or `default`.
+        scene: PathBuf,
+        #[command(flatten)]
+        build: BuildArgs,
+        /// Write the tree and its geometry to this .kd file (atomically).
+        #[arg(short = 'o', long)]
+        output: Option<PathBuf>,
+        /// Renumber triangles in Morton order before writing, so that most
+        /// leaves fit 2-byte mode.
+        #[arg(long)]
+        reorder: bool,
+        /// Print one JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Render a scene (built on the fly) or a .kd file.
+    Render(Box<RenderArgs>),
+    /// Print the header and figures of a .kd file.
+    Info {
+        file: PathBuf,
+        /// Print one JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check a .kd file completely, checksums included; exit 0 if valid.
+    Verify { file: PathBuf },
+    /// Parse a scene once and write it as a binary scene cache (.kds),
+    /// which every command reads instead of the OBJ in a fraction of the
+    /// time (the same triangles, bit for bit).
+    Convert {
+        /// OBJ file, or `default`.
+        scene: PathBuf,
+        /// The scene cache to write (atomically); its name must end in .kds.
+        #[arg(short = 'o', long)]
+        output: PathBuf,
+    },
+    /// Write the paper's tables and figures (Choi et al. 2013, Tables 1–4,
+    /// Figures 5–6) for std, fast and small trees of the given scenes.
+    Report(ReportArgs),
+    /// Trace a ray file (closest hit or any hit) through a .kd file and
+    /// print Mrays/s, hits and a checksum comparable with the Embree peer
+    /// program's `--rays` mode.
+    Trace(Box<crate::trace::TraceArgs>),
+}
+
+#[derive(clap::Args)]
+pub(crate) struct ReportArgs {
+    /// OBJ files or scene caches (.kds), or `default`.
+    #[arg(required = true)]
+    pub(crate) scenes: Vec<PathBuf>,
+    /// Views file; each scene is matched by its file stem. Without it the
+    /// embedded views are used (and scenes without views get the default
+    /// camera).
+    #[arg(long)]
+    pub(crate) views: Option<PathBuf>,
+    /// Image size WxH of the timed frames.
+    #[arg(long, value_parser = parse_size, default_value = "512x512")]
+    pub(crate) size: (u32, u32),
+    /// Frames per measurement (median).
+    #[arg(long, default_value_t = 3)]
+    pub(crate) reps: usize,
+    /// Threads for the "all threads" columns (default: all cores).
+    #[arg(long)]
+    pub(crate) threads: Option<usize>,
+    /// Also run the τ_occu × τ_freq threshold sweep (Figure 5).
+    #[arg(long)]
+    pub(crate) sweep: bool,
+    /// The hoist rule of the fast, small and sweep trees (see `build
+    /// --hoist-rule`; the report writes reordered files).
+    #[arg(long, value_enum, default_value_t = HoistRuleArg::Bytes)]
+    pub(crate) hoist_rule: HoistRuleArg,
+    /// The Markdown report; report.json and the SVG figures go beside it.
+    #[arg(short = 'o', long, default_value = "report.md")]
+    pub(crate) output: PathBuf,
+}
+
+#[derive(clap::Args, Clone)]
+pub(crate) struct BuildArgs {
+    /// Which builder to run (all produce the same tree).
+    #[arg(long, value_enum, default_value_t = BuilderArg::Level)]
+    pub(crate) builder: BuilderArg,
+    /// Level builder: bytes of per-level columns kept in RAM (e.g. 1G,
+    /// 512M); above it they go to mapped scratch files. Default: no limit.
+    #[arg(long, value_parser = parse_bytes)]
+    pub(crate) mem_budget: Option<u64>,
+    /// Level builder: directory for scratch files (default: the system
+    /// temporary directory).
+    #[arg(long)]
+    pub(crate) scratch: Option<PathBuf>,
+    /// Level builder: how the events of clipped references join their
+    /// child's sorted list (the same tree either way; for measurements).
+    #[arg(long, value_enum, default_value_t = NewEventsArg::Merge)]
+    pub(crate) new_events: NewEventsArg,
+    /// Level builder: the depth-first finisher sweeps nodes of at most this
+    /// many references without event lists (0 to 64; the same tree either
+    /// way; for measurements).
+    #[arg(long, default_value_t = level::DEFAULT_TINY_THRESHOLD as u8,
+          value_parser = clap::value_parser!(u8).range(0..=64))]
+    pub(crate) tiny: u8,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub(crate) threads: Option<usize>,
+    /// Depth limit (default: 8 + 1.3·log2 N).
+    #[arg(long)]
+    pub(crate) max_depth: Option<u32>,
+    /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
+    /// `small` (0.5, 0.4); max_t2rn 4 (Choi et al. 2013), with the hoist
+    /// rule of --hoist-rule.
+    #[arg(long, value_enum, default_value_t = PresetArg::Std)]
+    pub(crate) preset: PresetArg,
+    /// When a picked triangle is hoisted. `bytes` (the presets' rule, a
+    /// deviation from the paper): only if the rebuilt subtree plus the
+    /// 8-byte T-reference is smaller than the subtree it replaces, counted
+    /// as the file stores it (2-byte leaves with the file's triangle
+    /// numbering, so --reorder matters); otherwise the node keeps its
+    /// subtree. `paper`: always (Algorithm 1 as published). With `paper`,
+    /// the file records the preset as custom.
+    #[arg(long, value_enum, default_value_t = HoistRuleArg::Bytes)]
+    pub(crate) hoist_rule: HoistRuleArg,
+    /// Occupancy threshold (overrides the preset's; implies hoisting).
+    #[arg(long)]
+    pub(crate) tau_occu: Option<f64>,
+    /// Frequency threshold (overrides the preset's; implies hoisting).
+    #[arg(long)]
+    pub(crate) tau_freq: Option<f64>,
+    /// Most hoisted triangles on a root path (overrides the preset's).
+    #[arg(long)]
+    pub(crate) max_t2rn: Option<u32>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum HoistRuleArg {
+    /// Keep a hoist only if it makes the tree smaller in bytes.
+    Bytes,
+    /// Hoist every picked triangle (the paper's Algorithm 1).
+    Paper,
+}
+
+impl HoistRuleArg {
+    /// The rule, counting bytes for a file written with or without
+    /// reordering.
+    pub(crate) fn rule(self, reordered: bool) -> HoistRule {
+        match self {
+            HoistRuleArg::Bytes => HoistRule::Bytes { reordered },
+            HoistRuleArg::Paper => HoistRule::Paper,
+        }
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum PresetArg {
+    Std,
+    Fast,
+    Small,
+}
+
+impl BuildArgs {
+    /// The slim parameters, if any hoisting is asked for, and the preset
+    /// recorded in the file; `reordered`: whether the tree will be written
+    /// with reordering (for the byte rule).
+    pub(crate) fn slim(&self, reordered: bool) -> (Option<SlimParams>, Preset) {
+        let base = match self.preset {
+            PresetArg::Std => None,
+            PresetArg::Fast => Some(SlimParams::FAST),
+            PresetArg::Small => Some(SlimParams::SMALL),
+        };
+        let custom = self.tau_occu.is_some()
+            || self.tau_freq.is_some()
+            || self.max_t2rn.is_some()
+            || self.hoist_rule == HoistRuleArg::Paper;
+        let mut p = base.unwrap_or(SlimParams::SMALL);
+        p.rule = self.hoist_rule.rule(reordered);
+        if let Some(v) = self.tau_occu {
+            p.tau_occu = v;
+        }
+        if let Some(v) = self.tau_freq {
+            p.tau_freq = v;
+        }
+        if let Some(v) = self.max_t2rn {
+            p.max_t2rn = v;
+        }
+        match (base, custom) {
+            (None, false) => (None, Preset::Std),
+            (_, true) => (Some(p), Preset::Custom),
+            (Some(_), false) => (
+                Some(p),
+                if self.preset == PresetArg::Fast {
+                    Preset::Fast
+                } else {
+                    Preset::Small
+                },
+            ),
+        }
+    }
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum BuilderArg {
+    /// Breadth-first, parallel (Wu, Zhao & Liu 2011).
+    Level,
+    /// Sequential O(N log N) sweep (Wald & Havran 2006).
+    Sweep,
+    /// The O(N²)-per-node reference.
+    Naive,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum NewEventsArg {
+    /// Sort them and merge them in from the back.
+    Merge,
+    /// Wu et al.'s bucket sort, the inherited events as buckets.
+    Bucket,
+}
+
+/// Parses a byte count: a number with an optional K, M, G or T suffix
+/// (powers of 1024).
+pub(crate) fn parse_bytes(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let (num, shift) = match t.chars().last().map(|c| c.to_ascii_uppercase()) {
+        Some('K') => (&t[..t.len() - 1], 10),
+        Some('M') => (&t[..t.len() - 1], 20),
+        Some('G') => (&t[..t.len() - 1], 30),
+        Some('T') => (&t[..t.len() - 1], 40),
+        _ => (t, 0),
+    };
+    let n: f64 = num
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a size like 512M or 2G, got `{s}`"))?;
+    if !(n >= 0.0 && n.is_finite()) {
+        return Err(format!("size `{s}` out of range"));
+    }
+    Ok((n * (1u64 << shift) as f64) as u64)
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum ShadingArg {
+    EyeLight,
+    Normals,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum ModeArg {
+    /// Scalar traversal, one ray at a time.
+    Single,
+    /// 4×4 SIMD ray packets.
+    Packet,
+    /// Brute force: every ray against every triangle (reference).
+    Brute,
+}
+
+impl ModeArg {
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            ModeArg::Single => "single",
+            ModeArg::Packet => "packet",
+            ModeArg::Brute => "brute",
+        }
+    }
+}
+
+#[derive(clap::Args)]
+pub(crate) struct RenderArgs {
+    /// OBJ file, scene cache (.kds), `default`, or a .kd file written by
+    /// `slimkd build -o`.
+    pub(crate) scene: PathBuf,
+    #[command(flatten)]
+    pub(crate) build: BuildArgs,
+    /// Camera position x,y,z.
+    #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
+    pub(crate) eye: Option<glam::DVec3>,
+    /// Point looked at x,y,z.
+    #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
+    pub(crate) at: Option<glam::DVec3>,
+    /// Up vector x,y,z.
+    #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
+    pub(crate) up: Option<glam::DVec3>,
+    /// Vertical field of view in degrees.
+    #[arg(long)]
+    pub(crate) fov: Option<f64>,
+    /// Image size WxH.
+    #[arg(long, value_parser = parse_size, default_value = "1024x1024")]
+    pub(crate) size: (u32, u32),
+    /// Views file (`SCENE VIEW_ID eye=… at=… up=… fov=…`); the embedded
+    /// scene's views are used when omitted.
+    #[arg(long)]
+    pub(crate) views: Option<PathBuf>,
+    /// View id in the views file, matched with the scene file's stem.
+    #[arg(long)]
+    pub(crate) view: Option<String>,
+    /// Traversal mode.
+    #[arg(long, value_enum, default_value_t = ModeArg::Single)]
+    pub(crate) mode: ModeArg,
+    /// Frames to trace; Mrays/s is the median.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) reps: usize,
+    /// Output image (.png, or .exr with a depth channel).
+    #[arg(short = 'o', long)]
+    pub(crate) output: Option<PathBuf>,
+    /// Write W·H little-endian f32 hit distances (+inf for a miss).
+    #[arg(long)]
+    pub(crate) dump_t: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
+    pub(crate) shading: ShadingArg,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub(crate) json: bool,
+}
+
+pub(crate) fn parse_dvec3(s: &str) -> Result<glam::DVec3, String> {
+    render::parse_vec3(s).ok_or_else(|| format!("expected x,y,z with finite numbers, got `{s}`"))
+}
+
+pub(crate) fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or("expected WxH")?;
+    let w: u32 = w.parse().map_err(|_| format!("bad width in `{s}`"))?;
+    let h: u32 = h.parse().map_err(|_| format!("bad height in `{s}`"))?;
+    if w == 0 || h == 0 || u64::from(w) * u64::from(h) > 1 << 28 {
+        return Err(format!("size `{s}` out of range"));
+    }
+    Ok((w, h))
+}

@@ -1,0 +1,434 @@
+//! `slimkd build`, and the loading and building that `render`, `convert`
+//! and `report` share: a scene loaded, a tree built (and slimmed), its
+//! summary and JSON, and the peak memory of the command.
+
+use crate::*;
+use serde_json::json;
+use slimkd::build::{self, BuildConfig, Builder, level};
+use slimkd::format::{self, KdFile, Preset, WriteOptions};
+use slimkd::pipeline::{self, figures_json, merge_json};
+use slimkd::progress::Progress;
+use slimkd::scene::{self, LoadSummary, TriangleColumns};
+use slimkd::slim::{self, SlimParams, SlimPhases, SlimReport};
+use slimkd::stats::{TreeStats, report};
+use slimkd::tree::TreeIr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+pub(crate) struct Loaded {
+    pub(crate) path: PathBuf,
+    pub(crate) scene: TriangleColumns,
+    pub(crate) summary: LoadSummary,
+    pub(crate) seconds: f64,
+}
+
+/// Loads a scene; a progress bar shows the bytes read once loading has
+/// taken a second, unless `quiet`.
+pub(crate) fn load(path: &Path, quiet: bool) -> Res<Loaded> {
+    let start = Instant::now();
+    let (scene, summary, path) = if path.as_os_str() == DEFAULT_ARG {
+        let name = scene::embedded_name(DEFAULT_SCENE_NAME);
+        let (s, m) = scene::load_obj_bytes(&name, DEFAULT_SCENE)?;
+        (s, m, PathBuf::from(DEFAULT_SCENE_NAME))
+    } else {
+        let progress = Progress::default();
+        let (s, m) = with_bar(quiet, "loading", &progress, &String::new, || {
+            Ok(scene::load_with_progress(path, Some(&progress))?)
+        })?;
+        (s, m, path.to_path_buf())
+    };
+    Ok(Loaded {
+        path,
+        scene,
+        summary,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+pub(crate) struct Built {
+    pub(crate) tree: TreeIr,
+    pub(crate) config: BuildConfig,
+    /// Wall seconds of the whole build (standard tree + slim pass).
+    pub(crate) seconds: f64,
+    /// Seconds of the standard build alone.
+    pub(crate) std_seconds: f64,
+    pub(crate) slim: Option<(SlimParams, SlimReport, SlimPhases)>,
+    pub(crate) preset: Preset,
+    pub(crate) level: Option<level::LevelReport>,
+    pub(crate) builder: &'static str,
+}
+
+/// Builds on a worker thread; shows a progress bar once the build has
+/// taken a second (on a terminal), and another for the slim pass.
+/// `reordered`: whether the tree will be written with reordering (what the
+/// byte rule of the slim pass counts with).
+pub(crate) fn build_tree(
+    scene: &TriangleColumns,
+    args: &BuildArgs,
+    quiet: bool,
+    reordered: bool,
+) -> Res<Built> {
+    let mut config = BuildConfig::default();
+    config.sah.max_depth = args.max_depth;
+    let progress = Progress::default();
+    let status = Arc::new(level::LevelStatus::default());
+    let mut options = level::LevelOptions {
+        status: Some(status.clone()),
+        new_events: match args.new_events {
+            NewEventsArg::Merge => level::NewEvents::SortMerge,
+            NewEventsArg::Bucket => level::NewEvents::Bucket,
+        },
+        tiny_threshold: usize::from(args.tiny),
+        ..level::LevelOptions::default()
+    };
+    if let Some(b) = args.mem_budget {
+        options.mem_budget = b;
+    }
+    if let Some(d) = &args.scratch {
+        options.scratch_dir = d.clone();
+    }
+    let start = Instant::now();
+    let level_message = || {
+        use std::sync::atomic::Ordering::Relaxed;
+        match args.builder {
+            BuilderArg::Level => format!(
+                "level {}, {} open nodes, {} refs",
+                status.level.load(Relaxed),
+                status.open_nodes.load(Relaxed),
+                status.refs.load(Relaxed)
+            ),
+            _ => String::new(),
+        }
+    };
+    let built = with_bar(
+        quiet,
+        "building",
+        &progress,
+        &level_message,
+        || match args.builder {
+            BuilderArg::Level => {
+                let (tree, report) = level::build(scene, &config, Some(&progress), &options)?;
+                Ok((tree, Some(report)))
+            }
+            BuilderArg::Sweep => Ok((
+                build::build(scene, &config, Builder::Sweep, Some(&progress))?,
+                None,
+            )),
+            BuilderArg::Naive => Ok((
+                build::build(scene, &config, Builder::Naive, Some(&progress))?,
+                None,
+            )),
+        },
+    );
+    let (tree, level_report) = built?;
+    let std_seconds = start.elapsed().as_secs_f64();
+    let (params, preset) = args.slim(reordered);
+    let (tree, slim) = match params {
+        Some(p) => {
+            let progress = Progress::default();
+            let (t, report, phases) =
+                with_bar(quiet, "slim pass", &progress, &String::new, || {
+                    Ok(slim::slim_with_progress(
+                        &tree,
+                        scene,
+                        &config,
+                        &p,
+                        Some(&progress),
+                    ))
+                })?;
+            (t, Some((p, report, phases)))
+        }
+        None => (tree, None),
+    };
+    Ok(Built {
+        tree,
+        config,
+        seconds: start.elapsed().as_secs_f64(),
+        std_seconds,
+        slim,
+        preset,
+        level: level_report,
+        builder: match args.builder {
+            BuilderArg::Level => "level",
+            BuilderArg::Sweep => "sweep",
+            BuilderArg::Naive => "naive",
+        },
+    })
+}
+
+pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
+    println!(
+        "scene      {} ({}; loaded in {:.3} s)",
+        loaded.path.display(),
+        loaded.summary,
+        loaded.seconds
+    );
+    println!(
+        "tree       {} nodes ({} inner, {} leaves, {} empty), {} triangle references ({:.2} per triangle)",
+        stats.nodes,
+        stats.inner + stats.t_inner,
+        stats.leaves,
+        stats.empty_leaves,
+        stats.refs,
+        stats.refs as f64 / loaded.scene.len().max(1) as f64
+    );
+    println!(
+        "           max depth {}, mean leaf depth {:.1}, SAH cost {:.2}",
+        stats.max_depth, stats.mean_leaf_depth, stats.sah_cost
+    );
+    println!(
+        "build      {:.3} s with the {} builder on {} threads ({:.2} Mtris/s)",
+        built.std_seconds,
+        built.builder,
+        rayon::current_num_threads(),
+        loaded.scene.len() as f64 / built.std_seconds / 1e6
+    );
+    if let Some(r) = &built.level {
+        let p = &r.phases;
+        println!(
+            "           phases: SAH {:.3} s, classify+clip {:.3} s, events {:.3} s, leaves {:.3} s, small nodes {:.3} s, setup+assembly {:.3} s",
+            p.sah_s,
+            p.classify_clip_s,
+            p.events_s,
+            p.leaves_s,
+            p.small_s,
+            p.setup_s + p.assemble_s
+        );
+        if r.cpu_s > 0.0 {
+            println!(
+                "           processor time {:.3} s: {:.2} cores busy on average",
+                r.cpu_s,
+                r.cpu_s / built.std_seconds
+            );
+        }
+        println!(
+            "           peak RssAnon {:.1} MiB (start {:.1} MiB), peak RssFile {:.1} MiB, scratch written {:.1} MiB",
+            r.peak_rss_anon_bytes as f64 / (1 << 20) as f64,
+            r.start_rss_anon_bytes as f64 / (1 << 20) as f64,
+            r.peak_rss_file_bytes as f64 / (1 << 20) as f64,
+            r.scratch.file_bytes_total as f64 / (1 << 20) as f64
+        );
+    }
+    if let Some((p, r, ph)) = &built.slim {
+        println!(
+            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
+            built.preset.name(),
+            p.tau_occu,
+            p.tau_freq,
+            p.max_t2rn,
+            report::rule_name(p.rule),
+            r.hoisted,
+            r.rebuilds,
+            r.rejected,
+            r.cancelled,
+            built.std_seconds,
+            built.seconds - built.std_seconds,
+            built.seconds / built.std_seconds
+        );
+        println!(
+            "           phases: {} passes; analysis {:.3} s, rebuilds {:.3} s, apply {:.3} s, assembly {:.3} s",
+            ph.passes, ph.analysis_s, ph.rebuild_s, ph.apply_s, ph.assemble_s
+        );
+    }
+}
+
+pub(crate) fn build_json(
+    loaded: &Loaded,
+    built: &Built,
+    stats: &TreeStats,
+    threads: usize,
+) -> serde_json::Value {
+    json!({
+        "scene": loaded.path.display().to_string(),
+        "triangles": loaded.scene.len(),
+        "vertices": loaded.scene.positions().len(),
+        "dropped_degenerate": loaded.summary.dropped_degenerate,
+        "load_s": loaded.seconds,
+        "build_s": built.seconds,
+        "threads": threads,
+        "nodes": stats.nodes,
+        "inner": stats.inner,
+        "t_inner": stats.t_inner,
+        "leaves": stats.leaves,
+        "empty_leaves": stats.empty_leaves,
+        "refs": stats.refs,
+        "max_depth": stats.max_depth,
+        "mean_leaf_depth": stats.mean_leaf_depth,
+        "sah_cost": stats.sah_cost,
+        "leaf_depth_histogram": stats.leaf_depths,
+        "k_t": built.config.sah.k_t,
+        "k_i": built.config.sah.k_i,
+        "preset": built.preset.name(),
+        "builder": built.builder,
+        "std_build_s": built.std_seconds,
+        "level": built.level.as_ref().map(|r| json!({
+            "sah_s": r.phases.sah_s,
+            "classify_clip_s": r.phases.classify_clip_s,
+            "events_s": r.phases.events_s,
+            "leaves_s": r.phases.leaves_s,
+            "small_nodes_s": r.phases.small_s,
+            "setup_s": r.phases.setup_s,
+            "assemble_s": r.phases.assemble_s,
+            "levels": r.levels,
+            "small_nodes": r.small_nodes,
+            "start_rss_anon_bytes": r.start_rss_anon_bytes,
+            "peak_rss_anon_bytes": r.peak_rss_anon_bytes,
+            "peak_rss_file_bytes": r.peak_rss_file_bytes,
+            "scratch_bytes_written": r.scratch.file_bytes_total,
+            "cpu_s": r.cpu_s,
+        })),
+        // The builder's figure; `build` replaces it with the whole command's.
+        "peak_rss_anon_bytes": built.level.as_ref().map_or_else(rss_anon_bytes, |r| r.peak_rss_anon_bytes),
+        "hoisted": built.slim.as_ref().map_or(0, |(_, r, _)| r.hoisted),
+        "tau_occu": built.slim.as_ref().map(|(p, _, _)| p.tau_occu),
+        "tau_freq": built.slim.as_ref().map(|(p, _, _)| p.tau_freq),
+        "max_t2rn": built.slim.as_ref().map(|(p, _, _)| p.max_t2rn),
+        "hoist_rule": built.slim.as_ref().map(|(p, _, _)| report::rule_name(p.rule)),
+        "slim": built.slim.as_ref().map(|(_, r, ph)| json!({
+            "hoisted": r.hoisted,
+            "cancelled": r.cancelled,
+            "rejected": r.rejected,
+            "rebuilds": r.rebuilds,
+            "rebuilt_refs": r.rebuilt_refs,
+            "passes": ph.passes,
+            "analysis_s": ph.analysis_s,
+            "rebuild_s": ph.rebuild_s,
+            "apply_s": ph.apply_s,
+            "assemble_s": ph.assemble_s,
+        })),
+    })
+}
+
+/// The current `RssAnon` of this process (0 where /proc is missing).
+pub(crate) fn rss_anon_bytes() -> u64 {
+    level::rss().0
+}
+
+/// The peak `RssAnon` and `RssFile` of this process from its creation on:
+/// a thread samples `/proc/self/status` every 10 ms until it is dropped.
+pub(crate) struct PeakRss {
+    pub(crate) peak: Arc<[AtomicU64; 2]>,
+    pub(crate) stop: Arc<AtomicBool>,
+    pub(crate) thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl PeakRss {
+    pub(crate) fn start() -> PeakRss {
+        let peak = Arc::new([AtomicU64::new(0), AtomicU64::new(0)]);
+        let stop = Arc::new(AtomicBool::new(false));
+        let thread = {
+            let (peak, stop) = (peak.clone(), stop.clone());
+            std::thread::spawn(move || {
+                while !stop.load(Ordering::Relaxed) {
+                    PeakRss::sample(&peak);
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+            })
+        };
+        PeakRss {
+            peak,
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    pub(crate) fn sample(peak: &[AtomicU64; 2]) {
+        let (anon, file) = level::rss();
+        peak[0].fetch_max(anon, Ordering::Relaxed);
+        peak[1].fetch_max(file, Ordering::Relaxed);
+    }
+
+    /// (RssAnon, RssFile) peaks so far, now included.
+    pub(crate) fn peaks(&self) -> (u64, u64) {
+        PeakRss::sample(&self.peak);
+        (
+            self.peak[0].load(Ordering::Relaxed),
+            self.peak[1].load(Ordering::Relaxed),
+        )
+    }
+}
+
+impl Drop for PeakRss {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+pub(crate) fn cmd_build(
+    path: &Path,
+    args: &BuildArgs,
+    output: Option<&Path>,
+    reorder: bool,
+    json: bool,
+) -> Res<()> {
+    let pool = pool(args.threads)?;
+    let watch = PeakRss::start();
+    pool.install(|| {
+        let loaded = load(path, json)?;
+        let mut built = build_tree(&loaded.scene, args, json, reorder)?;
+        let stats = TreeStats::of(&built.tree, &built.config.sah);
+        let mut written = None;
+        if let Some(out) = output {
+            let start = Instant::now();
+            let options = WriteOptions {
+                reorder,
+                config: pipeline::file_config(
+                    &built.config,
+                    loaded.scene.len(),
+                    built.preset,
+                    built.slim.as_ref().map(|(p, _, _)| p),
+                ),
+            };
+            format::write_file(out, &built.tree, &loaded.scene, &options)?;
+            let secs = start.elapsed().as_secs_f64();
+            // Only figures are left to print: free the tree before the file
+            // is mapped and checked, so that the two never add up.
+            built.tree.nodes = Vec::new();
+            built.tree.leaf_tris = Vec::new();
+            let file = KdFile::open(out, false)?;
+            written = Some((out.to_path_buf(), file.figures(), secs));
+        }
+        // The whole command: loading, building, writing.
+        let (peak_anon, peak_file) = watch.peaks();
+        let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
+        if json {
+            let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
+            if let Some((out, fig, secs)) = &written {
+                merge_json(&mut j, figures_json(fig));
+                merge_json(
+                    &mut j,
+                    json!({"output": out.display().to_string(), "write_s": secs, "reorder": reorder}),
+                );
+            }
+            merge_json(
+                &mut j,
+                json!({"peak_rss_anon_bytes": peak_anon, "peak_rss_file_bytes": peak_file}),
+            );
+            println!("{j}");
+        } else {
+            print_summary(&loaded, &built, &stats);
+            if let Some((out, fig, secs)) = &written {
+                println!(
+                    "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
+                    out.display(),
+                    secs,
+                    fig.tree_bytes() as f64 / (1 << 20) as f64,
+                    fig.idx32,
+                    fig.idx16,
+                    fig.geometry_bytes() as f64 / (1 << 20) as f64
+                );
+            }
+            println!(
+                "memory     peak RssAnon {:.1} MiB, peak RssFile {:.1} MiB (load, build and write)",
+                peak_anon as f64 / (1 << 20) as f64,
+                peak_file as f64 / (1 << 20) as f64
+            );
+        }
+        Ok(())
+    })
+}

@@ -1,0 +1,172 @@
+//! `slimkd info`, `verify` and `convert`.
+
+use crate::*;
+use serde_json::json;
+use slimkd::format::{self, KdFile};
+use slimkd::pipeline::{figures_json, merge_json};
+use slimkd::scene::{self};
+use slimkd::stats::bytes::ByteSplit;
+use std::path::Path;
+use std::time::Instant;
+
+pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
+    if !scene::is_scene_cache(output) {
+        return Err(format!(
+            "{}: a scene cache's name must end in .kds (that is how commands recognise it)",
+            output.display()
+        )
+        .into());
+    }
+    let loaded = load(scene, false)?;
+    let start = Instant::now();
+    scene::write_scene_cache(output, &loaded.scene, &loaded.summary)?;
+    let write_s = start.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(output).map(|m| m.len()).unwrap_or(0);
+    println!("scene:   {} ({})", loaded.path.display(), loaded.summary);
+    println!("load:    {:.3} s", loaded.seconds);
+    println!(
+        "written: {} ({:.1} MiB) in {write_s:.3} s",
+        output.display(),
+        bytes as f64 / (1 << 20) as f64
+    );
+    Ok(())
+}
+
+pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
+    let start = Instant::now();
+    let file = KdFile::open(path, false)?;
+    let open_ms = start.elapsed().as_secs_f64() * 1e3;
+    let f = file.figures();
+    let c = file.config();
+    let hist = file.leaf_depth_histogram();
+    let split = ByteSplit::of(&file);
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
+    if json {
+        let mut j = figures_json(&f);
+        merge_json(
+            &mut j,
+            json!({
+                "file": path.display().to_string(),
+                "file_bytes": file.as_bytes().len(),
+                "version": format::VERSION,
+                "preset": c.preset.name(),
+                "k_t": c.k_t, "k_i": c.k_i, "lambda_empty": c.lambda_empty,
+                "depth_limit": c.depth_limit,
+                "tau_occu": c.tau_occu, "tau_freq": c.tau_freq, "max_t2rn": c.max_t2rn,
+                "reordered": file.is_reordered(),
+                "triangles": f.triangles,
+                "vertices": f.vertices,
+                "tree_bytes_per_triangle": per_tri(f.tree_bytes()),
+                "max_depth": file.max_depth(),
+                "leaf_depth_histogram": hist,
+                "bytes": json!({
+                    "inner": split.inner_bytes,
+                    "t_inner": split.t_inner_bytes,
+                    "leaves": split.leaf_bytes,
+                    "empty_leaves": split.empty_leaf_bytes,
+                    "idx32": split.idx32_bytes,
+                    "idx16": split.idx16_bytes,
+                    "duplicates": split.duplicate_bytes,
+                    "hoist_bound": split.hoist_bound_bytes,
+                }),
+                "open_ms": open_ms,
+            }),
+        );
+        println!("{j}");
+        return Ok(());
+    }
+    let b = file.bounds();
+    println!(
+        "file        {} ({} bytes, format version {})",
+        path.display(),
+        file.as_bytes().len(),
+        format::VERSION
+    );
+    println!(
+        "build       preset {}, K_T {}, K_I {}, λ {}, depth limit {}, τ_occu {}, τ_freq {}, max_t2rn {}",
+        c.preset.name(),
+        c.k_t,
+        c.k_i,
+        c.lambda_empty,
+        c.depth_limit,
+        c.tau_occu,
+        c.tau_freq,
+        c.max_t2rn
+    );
+    println!(
+        "scene       {} triangles{}, {} vertices, bounds ({}, {}, {}) – ({}, {}, {})",
+        f.triangles,
+        if file.is_reordered() {
+            " (Morton-reordered)"
+        } else {
+            ""
+        },
+        f.vertices,
+        b.min.x,
+        b.min.y,
+        b.min.z,
+        b.max.x,
+        b.max.y,
+        b.max.z
+    );
+    println!(
+        "table 3(a)  inner      t-inner     leaf       total      4-byte idx  2-byte idx  memory (MiB)"
+    );
+    println!(
+        "            {:<10} {:<11} {:<10} {:<10} {:<11} {:<11} {:.2}",
+        f.inner,
+        f.t_inner,
+        f.leaves,
+        f.nodes(),
+        f.idx32,
+        f.idx16,
+        mib(f.tree_bytes())
+    );
+    println!(
+        "bytes       tree {} ({:.1} per triangle), geometry {} ({:.1} per triangle)",
+        f.tree_bytes(),
+        per_tri(f.tree_bytes()),
+        f.geometry_bytes(),
+        per_tri(f.geometry_bytes())
+    );
+    let pct = |b: u64| 100.0 * b as f64 / split.total().max(1) as f64;
+    println!(
+        "split       inner {:.1}%, t-inner + T-ref {:.1}%, leaves {:.1}%, empty leaves {:.1}%, idx32 {:.1}%, idx16 {:.1}%",
+        pct(split.inner_bytes),
+        pct(split.t_inner_bytes),
+        pct(split.leaf_bytes),
+        pct(split.empty_leaf_bytes),
+        pct(split.idx32_bytes),
+        pct(split.idx16_bytes)
+    );
+    println!(
+        "bound       with the nodes unchanged: duplicate references {} bytes ({:.1}%), hoisting saves at most {} bytes ({:.1}%)",
+        split.duplicate_bytes,
+        pct(split.duplicate_bytes),
+        split.hoist_bound_bytes,
+        pct(split.hoist_bound_bytes)
+    );
+    println!("depth       max {}; leaves per depth:", file.max_depth());
+    let peak = hist.iter().copied().max().unwrap_or(1).max(1);
+    for (d, &n) in hist.iter().enumerate() {
+        if n > 0 {
+            let bar = "#".repeat(((n as f64 / peak as f64) * 50.0).ceil() as usize);
+            println!("            {d:>3} {n:>10} {bar}");
+        }
+    }
+    println!("open        {open_ms:.3} ms (mmap + validation)");
+    Ok(())
+}
+
+pub(crate) fn cmd_verify(path: &Path) -> Res<()> {
+    let file = KdFile::open(path, true).map_err(|e| format!("{}: invalid: {e}", path.display()))?;
+    let f = file.figures();
+    println!(
+        "{}: ok ({} nodes, {} triangles, all checksums match)",
+        path.display(),
+        f.nodes(),
+        f.triangles
+    );
+    Ok(())
+}

@@ -1,0 +1,221 @@
+//! `slimkd render` and the main job's render: the camera, the source of
+//! the tree (built or a mapped file), frames and their figures.
+
+use crate::*;
+use serde_json::json;
+use slimkd::format::{self, KdFile, Mapped};
+use slimkd::pipeline::{self, figures_json, merge_json};
+use slimkd::progress::Progress;
+use slimkd::render::{self, Camera, HitBuffer, Shading, View};
+use slimkd::scene::TriangleColumns;
+use slimkd::stats::TreeStats;
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
+use std::path::Path;
+use std::time::Instant;
+
+pub(crate) fn is_kd_file(path: &Path) -> bool {
+    let mut magic = [0u8; 8];
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("kd"))
+        || std::fs::File::open(path)
+            .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic))
+            .is_ok_and(|()| magic == format::MAGIC)
+}
+
+/// The camera: explicit flags override a view, a view overrides the
+/// default camera of the scene box.
+pub(crate) fn camera_for(
+    args: &RenderArgs,
+    scene_path: &Path,
+    bounds: &slimkd::geom::Aabb,
+) -> Res<Camera> {
+    let (w, h) = args.size;
+    let mut cam = Camera::default_for(bounds, w, h);
+    if let Some(id) = &args.view {
+        let views: Vec<View> = match &args.views {
+            Some(file) => {
+                let text = std::fs::read_to_string(file)
+                    .map_err(|e| format!("{}: {e}", file.display()))?;
+                render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
+            }
+            None => render::parse_views(DEFAULT_VIEWS)?,
+        };
+        let view = render::find_view(&views, scene_path, id).ok_or_else(|| {
+            format!(
+                "no view `{id}` for scene `{}` in the views file",
+                scene_path.file_stem().unwrap_or_default().to_string_lossy()
+            )
+        })?;
+        cam = Camera::from_view(view, w, h);
+    } else if args.views.is_some() {
+        return Err("--views needs --view ID".into());
+    }
+    if let Some(v) = args.eye {
+        cam.eye = v;
+    }
+    if let Some(v) = args.at {
+        cam.at = v;
+    }
+    if let Some(v) = args.up {
+        cam.up = v;
+    }
+    if let Some(v) = args.fov {
+        if !(v > 0.0 && v < 180.0) {
+            return Err(format!("--fov {v} is not in (0, 180)").into());
+        }
+        cam.fov_deg = v;
+    }
+    cam.check()?;
+    Ok(cam)
+}
+
+/// What a render traces: a tree built from a scene, or a mapped file.
+pub(crate) enum Source {
+    Built {
+        loaded: Loaded,
+        built: Box<Built>,
+        stats: TreeStats,
+    },
+    File {
+        file: KdFile<Mapped>,
+        columns: TriangleColumns,
+        open_ms: f64,
+    },
+}
+
+pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
+    if args.reps == 0 {
+        return Err("--reps must be at least 1".into());
+    }
+    let pool = pool(args.build.threads)?;
+    pool.install(|| {
+        let source = if args.scene.as_os_str() != DEFAULT_ARG && is_kd_file(&args.scene) {
+            let start = Instant::now();
+            let file = KdFile::open(&args.scene, false)?;
+            let open_ms = start.elapsed().as_secs_f64() * 1e3;
+            let columns = file.to_columns();
+            Source::File { file, columns, open_ms }
+        } else {
+            let loaded = load(&args.scene, args.json)?;
+            // Not written: bytes are counted as in a reordered file.
+            let built = build_tree(&loaded.scene, &args.build, args.json, true)?;
+            let stats = TreeStats::of(&built.tree, &built.config.sah);
+            Source::Built {
+                loaded,
+                built: Box::new(built),
+                stats,
+            }
+        };
+        let (scene_path, columns, bounds) = match &source {
+            Source::Built { loaded, built, .. } => (loaded.path.clone(), &loaded.scene, built.tree.bounds),
+            Source::File { file, columns, .. } => (args.scene.clone(), columns, file.bounds()),
+        };
+        let camera = camera_for(args, &scene_path, &bounds)?;
+        let tree_tracer = match &source {
+            Source::Built { loaded, built, .. } => Some(TreeTracer {
+                tree: &built.tree,
+                scene: &loaded.scene,
+            }),
+            Source::File { .. } => None,
+        };
+        let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode) {
+            (_, ModeArg::Brute) => Box::new(BruteForce(columns)),
+            (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar::new(tree_tracer.as_ref().expect("built"))),
+            (Source::Built { .. }, ModeArg::Packet) => {
+                Box::new(PacketTracer::new(tree_tracer.as_ref().expect("built")))
+            }
+            (Source::File { file, .. }, ModeArg::Single) => Box::new(Scalar::new(file)),
+            (Source::File { file, .. }, ModeArg::Packet) => Box::new(PacketTracer::new(file)),
+        };
+        let mut rates = Vec::new();
+        let mut last: Option<HitBuffer> = None;
+        for rep in 0..args.reps {
+            let progress = Progress::default();
+            let rep_message = || format!("frame {} of {}", rep + 1, args.reps);
+            let buf = with_bar(args.json, "rendering", &progress, &rep_message, || {
+                Ok(render::trace_frame_with_progress(
+                    tracer.as_ref(),
+                    &camera,
+                    Some(&progress),
+                ))
+            })?;
+            rates.push(buf.mrays_per_s());
+            last = Some(buf);
+        }
+        let buf = last.expect("reps >= 1");
+        let shading = match args.shading {
+            ShadingArg::EyeLight => Shading::EyeLight,
+            ShadingArg::Normals => Shading::Normals,
+        };
+        let frame = render::shade(&buf, &camera, columns, shading);
+        if let Some(out) = &args.output {
+            render::write_image(out, &frame)?;
+        }
+        if let Some(out) = &args.dump_t {
+            render::write_depth_f32(out, &frame)?;
+        }
+        let mrays = pipeline::median(&rates);
+        let mode = args.mode.name();
+        let simd = if args.mode == ModeArg::Packet {
+            SimdLevel::detect().name()
+        } else {
+            "scalar"
+        };
+        let threads = pool.current_num_threads();
+        if args.json {
+            let mut j = match &source {
+                Source::Built { loaded, built, stats } => build_json(loaded, built, stats, threads),
+                Source::File { file, open_ms, .. } => {
+                    let mut j = figures_json(&file.figures());
+                    merge_json(
+                        &mut j,
+                        json!({"file": args.scene.display().to_string(), "open_ms": open_ms,
+                               "triangles": file.figures().triangles, "threads": threads}),
+                    );
+                    j
+                }
+            };
+            merge_json(
+                &mut j,
+                json!({
+                    "mode": mode,
+                    "simd": simd,
+                    "width": camera.width,
+                    "height": camera.height,
+                    "reps": args.reps,
+                    "mrays_per_s": mrays,
+                    "hits": buf.n_hits(),
+                    "checksum": buf.checksum(),
+                    "eye": [camera.eye.x, camera.eye.y, camera.eye.z],
+                    "at": [camera.at.x, camera.at.y, camera.at.z],
+                    "up": [camera.up.x, camera.up.y, camera.up.z],
+                    "fov": camera.fov_deg,
+                }),
+            );
+            println!("{j}");
+        } else {
+            match &source {
+                Source::Built { loaded, built, stats } => print_summary(loaded, built, stats),
+                Source::File { file, open_ms, .. } => println!(
+                    "file       {} ({} triangles), opened in {open_ms:.3} ms",
+                    args.scene.display(),
+                    file.figures().triangles
+                ),
+            }
+            println!(
+                "render     {}x{} {mode} ({simd}), {threads} threads: {:.2} Mrays/s (median of {}), {} hits, checksum {:.6}",
+                camera.width,
+                camera.height,
+                mrays,
+                args.reps,
+                buf.n_hits(),
+                buf.checksum()
+            );
+            if let Some(out) = &args.output {
+                println!("wrote      {}", out.display());
+            }
+        }
+        Ok(())
+    })
+}

@@ -1,0 +1,209 @@
+//! The experiment driver: build, slim, write and trace every scene.
+
+use super::tables::{duplication, measure_views, sweep_point};
+use super::*;
+use crate::pipeline::file_config;
+
+/// A tree written and opened again.
+pub(super) struct Written {
+    pub(super) file: KdFile<AlignedBytes>,
+    pub(super) seconds: f64,
+}
+
+/// Serialises a tree (reordered) and opens the bytes.
+pub(super) fn write_tree(
+    name: &str,
+    label: &str,
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    config: FileConfig,
+) -> Result<Written, ReportError> {
+    let err = |source| ReportError::Format {
+        scene: name.to_string(),
+        tree: label.to_string(),
+        source,
+    };
+    let start = Instant::now();
+    let bytes = format::write_to_vec(
+        tree,
+        scene,
+        &WriteOptions {
+            reorder: true,
+            config,
+        },
+    )
+    .map_err(err)?;
+    let seconds = start.elapsed().as_secs_f64();
+    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).map_err(err)?;
+    Ok(Written { file, seconds })
+}
+
+/// The cameras of a scene: its views 1–3, or the default camera.
+fn cameras(options: &ReportOptions, name: &str, bounds: &Aabb) -> Vec<(String, Camera)> {
+    let (w, h) = options.size;
+    let found: Vec<(String, Camera)> = VIEW_IDS
+        .iter()
+        .filter_map(|id| {
+            render::find_view(&options.views, Path::new(name), id)
+                .map(|v| (id.to_string(), Camera::from_view(v, w, h)))
+        })
+        .collect();
+    if found.is_empty() {
+        vec![("default".to_string(), Camera::default_for(bounds, w, h))]
+    } else {
+        found
+    }
+}
+
+/// The two thread pools: one thread and all threads.
+pub(super) struct Pools {
+    pub(super) one: rayon::ThreadPool,
+    pub(super) all: rayon::ThreadPool,
+}
+
+impl Pools {
+    pub(super) fn get(&self, all: bool) -> &rayon::ThreadPool {
+        if all { &self.all } else { &self.one }
+    }
+}
+
+/// Builds, writes and traces every scene; `progress` gets one line per
+/// step.
+pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Report, ReportError> {
+    if options.reps == 0 {
+        return Err(ReportError::Options("reps must be at least 1".into()));
+    }
+    if options.all_threads == 0 {
+        return Err(ReportError::Options("threads must be at least 1".into()));
+    }
+    if options.size.0 == 0 || options.size.1 == 0 {
+        return Err(ReportError::Options(
+            "the image size must not be zero".into(),
+        ));
+    }
+    let pool = |n: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .map_err(ReportError::ThreadPool)
+    };
+    let pools = Pools {
+        one: pool(1)?,
+        all: pool(options.all_threads)?,
+    };
+    let (grid_occu, grid_freq) = match &options.sweep_grid {
+        Some((o, f)) => (o.clone(), f.clone()),
+        None => (SWEEP_TAU_OCCU.to_vec(), SWEEP_TAU_FREQ.to_vec()),
+    };
+    let config = BuildConfig::default();
+    let mut scenes = Vec::new();
+    for (name, scene, load_s) in &options.scenes {
+        progress(&format!("{name}: building std tree"));
+        let start = Instant::now();
+        // The level builder is the fastest (the same tree as every other
+        // builder), so the slim ratios of Table 4 are against the best std
+        // build; the slim passes run on the same pool.
+        let std_tree = pools
+            .all
+            .install(|| build::build(scene, &config, Builder::Level, None))
+            .map_err(|source| ReportError::Build {
+                scene: name.clone(),
+                source,
+            })?;
+        let std_build_s = start.elapsed().as_secs_f64();
+        let table1 = duplication(&std_tree, scene);
+        let mut times = BuildTimes {
+            load_s: *load_s,
+            std_build_s,
+            ..BuildTimes::default()
+        };
+        let mut written = Vec::new();
+        let mut hoisted = [0usize; 3];
+        for (k, kind) in TreeKind::ALL.into_iter().enumerate() {
+            let slimmed = match kind.params(options.rule) {
+                None => None,
+                Some(p) => {
+                    progress(&format!("{name}: slim pass ({})", kind.name()));
+                    let start = Instant::now();
+                    let (t, r) = pools
+                        .all
+                        .install(|| slim::slim(&std_tree, scene, &config, &p));
+                    times.slim_s[k - 1] = start.elapsed().as_secs_f64();
+                    hoisted[k] = r.hoisted;
+                    Some(t)
+                }
+            };
+            progress(&format!("{name}: writing {} file", kind.name()));
+            let tree = slimmed.as_ref().unwrap_or(&std_tree);
+            let cfg = file_config(
+                &config,
+                scene.len(),
+                kind.preset(),
+                kind.params(options.rule).as_ref(),
+            );
+            let w = write_tree(name, kind.name(), tree, scene, cfg)?;
+            times.write_s[k] = w.seconds;
+            written.push(w);
+        }
+        let files: [&KdFile<AlignedBytes>; 3] =
+            [&written[0].file, &written[1].file, &written[2].file];
+        let table3a: [SizeRow; 3] = std::array::from_fn(|k| SizeRow {
+            tree: TreeKind::ALL[k],
+            figures: files[k].figures(),
+            hoisted: hoisted[k],
+            file_bytes: files[k].as_bytes().len() as u64,
+            max_depth: files[k].max_depth(),
+        });
+        let leaf_depths = files.map(|f| f.leaf_depth_histogram());
+        let cams = cameras(options, name, &std_tree.bounds);
+        let table3b = measure_views(name, &cams, &files, &pools, options.reps, progress)?;
+        let mut sweep = Vec::new();
+        if options.sweep {
+            for &tau_occu in &grid_occu {
+                for &tau_freq in &grid_freq {
+                    progress(&format!(
+                        "{name}: sweep τ_occu {tau_occu} τ_freq {tau_freq}"
+                    ));
+                    let params = SlimParams {
+                        tau_occu,
+                        tau_freq,
+                        max_t2rn: SWEEP_MAX_T2RN,
+                        rule: options.rule,
+                    };
+                    sweep.push(sweep_point(
+                        name,
+                        scene,
+                        &std_tree,
+                        files[0],
+                        &config,
+                        params,
+                        &cams,
+                        &pools,
+                        options.reps,
+                    )?);
+                }
+            }
+        }
+        scenes.push(SceneReport {
+            name: name.clone(),
+            triangles: scene.len() as u64,
+            vertices: scene.positions().len() as u64,
+            table1,
+            table3a,
+            table3b,
+            table4: times,
+            sweep,
+            leaf_depths,
+        });
+    }
+    Ok(Report {
+        all_threads: pools.all.current_num_threads(),
+        size: options.size,
+        reps: options.reps,
+        simd: SimdLevel::detect().name(),
+        sweep: options.sweep,
+        build: config,
+        rule: options.rule,
+        scenes,
+    })
+}
