@@ -1,180 +1,216 @@
-//! Ray-tracing throughput benchmark of the scalar kd-tree traverser.
+//! Ray-tracing throughput: primary, shadow and ambient-occlusion rays,
+//! single rays and 16-ray packets, the tree in memory (`TreeIr`) and mapped
+//! from a `.kd` file, on one thread and on all.
 //!
-//! It builds the `sweep` tree of the default scene
-//! `scenes/nexuiz_dieselpower.obj` and renders its three views from
-//! `scenes/views.txt` at 512x512 with `slimkd::render::trace_frame` and
-//! `slimkd::trace::TreeTracer`, once on a one-thread rayon pool and once
-//! on the default pool (all threads). It reports millions of primary rays
-//! per second (the median of 5 frames after one untimed warm-up frame), the
-//! speed-up of all threads over one, and each view's hit count and
-//! checksum of hit distances (which must not depend on the thread count).
+//! For each scene it builds the std tree, writes it to a temporary `.kd`
+//! file and maps it back, and makes three ray sets from view 1 at 512×512:
+//! primary rays (row-major, as a ray file holds them), one shadow ray per
+//! hit pixel toward a point light near the eye (`--occluded`), and four
+//! cosine-distributed ambient-occlusion rays per hit pixel with a radius of
+//! 5 % of the scene's diagonal (`--occluded`), like the peer program's
+//! `--make-rays`. Each set is traced in chunks of 256 rays
+//! ([`slimkd::trace::rays::trace_batch`]); the figure is the median
+//! Mrays/s of 5 runs after one warm-up. Every configuration must return
+//! the same results as single rays on the file, and the bench asserts it.
 //!
-//! When the environment variable `SLIMKD_SCENES` names a directory holding
-//! `stk_black_forest.obj` and `../shared/scenes/views.txt` (relative to the
-//! crate root) exists, that scene's three views are traced as well.
-//!
-//! Run it with `cargo bench --bench trace`, or with the large scene as
-//! `SLIMKD_SCENES=~/.cache/slimkd-scenes cargo bench --bench trace`.
-//! Passing `-- --quick` times one frame per view and pool.
+//! The default scene is `scenes/nexuiz_dieselpower.obj`; with
+//! `SLIMKD_SCENES` naming a directory holding `stk_black_forest.obj` (and
+//! `../shared/scenes/views.txt` present), that scene runs too. Run it with
+//! `cargo bench --bench trace` (`-- --quick`: one timed run each);
+//! `SLIMKD_SIMD=avx2` caps the packets' instruction set.
 
 mod common;
 
+use glam::Vec3;
 use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::format::{self, KdFile, WriteOptions};
+use slimkd::geom::Ray;
 use slimkd::render::{self, Camera, View};
 use slimkd::scene::TriangleColumns;
-use slimkd::trace::TreeTracer;
-use std::path::Path;
-use std::time::Instant;
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::rays::{self, Query};
+use slimkd::trace::{ClosestHit, Scalar, TreeTracer};
 
-/// The image size.
 const SIZE: u32 = 512;
-/// Timed frames per view and pool (1 with `--quick`).
 const REPS: usize = 5;
 
-/// Throughput and result of one view on one pool.
-struct PoolRun {
-    mrays: f64,
-    hits: u64,
-    checksum: f64,
+/// The primary rays of a camera in row-major order, and shadow and
+/// ambient-occlusion rays from their hits.
+fn ray_sets(
+    scene: &TriangleColumns,
+    tracer: &dyn ClosestHit,
+    camera: &Camera,
+) -> [(&'static str, Query, Vec<Ray>); 3] {
+    let primary: Vec<Ray> = (0..SIZE * SIZE)
+        .map(|i| camera.ray(i % SIZE, i / SIZE))
+        .collect();
+    let b = scene.bounds();
+    let diag = (b.max - b.min).length();
+    let eye = primary[0].origin;
+    let light = eye + Vec3::new(0.05, 0.05, 0.0) * diag;
+    let mut shadow = Vec::new();
+    let mut ao = Vec::new();
+    // A fixed-seed splitmix64, so that every run traces the same rays.
+    let mut seed = 0x5eed_u64;
+    let mut uniform = move || {
+        seed = seed.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = seed;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    };
+    for r in &primary {
+        let hit = tracer.closest_hit(r);
+        if !hit.is_hit() {
+            continue;
+        }
+        let mut n = scene.normal(hit.tri.0).normalize();
+        if n.dot(r.dir) > 0.0 {
+            n = -n;
+        }
+        let p = r.origin + r.dir * hit.t + n * (1e-4 * diag);
+        let to_light = light - p;
+        shadow.push(Ray {
+            origin: p,
+            dir: to_light.normalize(),
+            tmin: 0.0,
+            tmax: to_light.length() * (1.0 - 1e-5),
+        });
+        let (t1, t2) = n.any_orthonormal_pair();
+        for _ in 0..4 {
+            let (u1, u2) = (uniform(), uniform());
+            let (rad, phi) = (u1.sqrt(), std::f32::consts::TAU * u2);
+            let d =
+                t1 * (rad * phi.cos()) + t2 * (rad * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt();
+            ao.push(Ray {
+                origin: p,
+                dir: d.normalize(),
+                tmin: 0.0,
+                tmax: 0.05 * diag,
+            });
+        }
+    }
+    [
+        ("primary", Query::Closest, primary),
+        ("shadow", Query::Occluded, shadow),
+        ("ao", Query::Occluded, ao),
+    ]
 }
 
-/// Traces `reps` timed frames (after one warm-up frame) on `pool`.
-fn run_on(pool: &rayon::ThreadPool, tracer: &TreeTracer, camera: &Camera, reps: usize) -> PoolRun {
-    pool.install(|| {
-        let warm = render::trace_frame(tracer, camera);
-        let mut rates = Vec::with_capacity(reps);
-        let mut last = warm;
-        for _ in 0..reps {
-            last = render::trace_frame(tracer, camera);
-            rates.push(last.mrays_per_s());
-        }
-        PoolRun {
-            mrays: common::median(&rates),
-            hits: last.n_hits(),
-            checksum: last.checksum(),
-        }
-    })
-}
-
-/// Builds the tree of a scene and traces its views on both pools; returns
-/// one table line per view.
 fn bench_scene(
     name: &str,
     scene: &TriangleColumns,
-    views: &[&View],
-    pools: &Pools,
+    view: &View,
     reps: usize,
-) -> Vec<String> {
-    let start = Instant::now();
+    pools: &[rayon::ThreadPool],
+) {
     let tree =
-        build::build(scene, &BuildConfig::default(), Builder::Sweep, None).expect("the std build");
+        build::build(scene, &BuildConfig::default(), Builder::Level, None).expect("the std build");
+    let bytes = format::write_to_vec(
+        &tree,
+        scene,
+        &WriteOptions {
+            reorder: true,
+            ..Default::default()
+        },
+    )
+    .expect("the tree is written");
+    let path = std::env::temp_dir().join(format!(
+        "slimkd-bench-trace-{}-{name}.kd",
+        std::process::id()
+    ));
+    std::fs::write(&path, &bytes).expect("the temporary file is written");
+    let file = KdFile::open(&path, false).expect("the file maps");
+    std::fs::remove_file(&path).expect("the temporary file is removed");
+    let memory = TreeTracer { tree: &tree, scene };
+    let camera = Camera::from_view(view, SIZE, SIZE);
+    let sets = ray_sets(scene, &Scalar::new(&file), &camera);
+    let file_single = Scalar::new(&file);
+    let file_packet = PacketTracer::new(&file);
+    let mem_single = Scalar::new(&memory);
+    let mem_packet = PacketTracer::new(&memory);
+    let tracers: [(&str, &str, &dyn ClosestHit, bool); 4] = [
+        ("file", "single", &file_single, false),
+        ("file", "packet", &file_packet, true),
+        ("memory", "single", &mem_single, false),
+        ("memory", "packet", &mem_packet, true),
+    ];
     println!(
-        "{name}: {} triangles, sweep tree built in {:.2} s ({} nodes)",
+        "{name}: {} triangles, {} nodes; view {}; packets on {}",
         scene.len(),
-        start.elapsed().as_secs_f64(),
-        tree.nodes.len()
+        tree.nodes.len(),
+        view.id,
+        SimdLevel::detect().name()
     );
-    let tracer = TreeTracer { tree: &tree, scene };
-    let mut rows = Vec::with_capacity(views.len());
-    for view in views {
-        let camera = Camera::from_view(view, SIZE, SIZE);
-        let one = run_on(&pools.one, &tracer, &camera, reps);
-        let all = run_on(&pools.all, &tracer, &camera, reps);
-        assert_eq!(
-            one.hits, all.hits,
-            "the hit count depends on the thread count"
-        );
-        assert_eq!(
-            one.checksum.to_bits(),
-            all.checksum.to_bits(),
-            "the checksum depends on the thread count"
-        );
-        rows.push(format!(
-            "{:<20} {:>4} {:>12.3} {:>12.3} {:>8.2}x {:>8} {:>6.2}% {:>18.6}",
-            name,
-            view.id,
-            one.mrays,
-            all.mrays,
-            all.mrays / one.mrays,
-            one.hits,
-            100.0 * one.hits as f64 / f64::from(SIZE * SIZE),
-            one.checksum
-        ));
+    println!(
+        "{:<10} {:>8} {:<7} {:<7} {:>8} {:>12} {:>12}",
+        "rays", "count", "source", "mode", "threads", "Mrays/s", "hits"
+    );
+    for (kind, query, set) in &sets {
+        let reference = pools[0].install(|| rays::trace_batch(&file_single, set, *query, false));
+        for (source, mode, tracer, packets) in tracers {
+            for pool in pools {
+                let (rate, results) = pool.install(|| {
+                    let mut last = rays::trace_batch(tracer, set, *query, packets);
+                    let mut rates = Vec::new();
+                    for _ in 0..reps {
+                        last = rays::trace_batch(tracer, set, *query, packets);
+                        rates.push(last.mrays_per_s());
+                    }
+                    (common::median(&rates), last)
+                });
+                assert_eq!(
+                    results.results, reference.results,
+                    "{kind} {source} {mode}: results differ"
+                );
+                println!(
+                    "{kind:<10} {:>8} {source:<7} {mode:<7} {:>8} {rate:>12.3} {:>12}",
+                    set.len(),
+                    pool.current_num_threads(),
+                    results.hits(*query)
+                );
+            }
+        }
     }
-    rows
-}
-
-/// A one-thread pool and the default pool (all threads).
-struct Pools {
-    one: rayon::ThreadPool,
-    all: rayon::ThreadPool,
-}
-
-/// The views of the scene `stem` in a views file.
-fn views_of<'a>(views: &'a [View], stem: &str) -> Vec<&'a View> {
-    views.iter().filter(|v| v.scene == stem).collect()
-}
-
-fn read_views(path: &Path) -> Vec<View> {
-    let text = std::fs::read_to_string(path)
-        .unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
-    render::parse_views(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    println!();
 }
 
 fn main() {
-    let quick = common::quick();
-    let reps = if quick { 1 } else { REPS };
-    let pools = Pools {
-        one: rayon::ThreadPoolBuilder::new()
+    let reps = if common::quick() { 1 } else { REPS };
+    let pools = [
+        rayon::ThreadPoolBuilder::new()
             .num_threads(1)
             .build()
             .expect("a one-thread pool"),
-        all: rayon::ThreadPoolBuilder::new()
+        rayon::ThreadPoolBuilder::new()
             .build()
             .expect("the default pool"),
+    ];
+    let views_of = |path: &std::path::Path| {
+        let text = std::fs::read_to_string(path)
+            .unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()));
+        render::parse_views(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
     };
-
-    // The default scene with its views from the crate's views file.
     let loaded = common::load(&common::crate_path("scenes/nexuiz_dieselpower.obj"));
-    let views = read_views(&common::crate_path("scenes/views.txt"));
-    println!(
-        "{}: {}, loaded in {:.2} s",
-        loaded.name, loaded.summary, loaded.seconds
-    );
-    let default_views = views_of(&views, &loaded.name);
-    assert_eq!(
-        default_views.len(),
-        3,
-        "scenes/views.txt has three views of the default scene"
-    );
-    let mut rows = bench_scene(&loaded.name, &loaded.scene, &default_views, &pools, reps);
+    let views = views_of(&common::crate_path("scenes/views.txt"));
+    let view = views
+        .iter()
+        .find(|v| v.scene == loaded.name && v.id == "1")
+        .expect("view 1 of the default scene");
+    bench_scene(&loaded.name, &loaded.scene, view, reps, &pools);
     drop(loaded);
-
-    // The large scene, when both it and the shared views file are there.
     if let Some(path) = common::big_scene() {
         let views_path = common::crate_path("../shared/scenes/views.txt");
         if views_path.is_file() {
-            let views = read_views(&views_path);
+            let views = views_of(&views_path);
             let loaded = common::load(&path);
-            println!(
-                "{}: {}, loaded in {:.2} s",
-                loaded.name, loaded.summary, loaded.seconds
-            );
-            let big_views = views_of(&views, &loaded.name);
-            if big_views.is_empty() {
-                println!(
-                    "note: {} has no views of {}; skipping it",
+            match views.iter().find(|v| v.scene == loaded.name && v.id == "1") {
+                Some(view) => bench_scene(&loaded.name, &loaded.scene, view, reps, &pools),
+                None => println!(
+                    "note: {} has no view 1 of {}; skipping it",
                     views_path.display(),
                     loaded.name
-                );
-            } else {
-                rows.extend(bench_scene(
-                    &loaded.name,
-                    &loaded.scene,
-                    &big_views,
-                    &pools,
-                    reps,
-                ));
+                ),
             }
         } else {
             println!(
@@ -183,18 +219,5 @@ fn main() {
                 common::BIG_SCENE
             );
         }
-    }
-
-    println!();
-    println!(
-        "primary rays, {SIZE}x{SIZE}, scalar TreeTracer, median of {reps} frame(s); 1 thread vs {} threads",
-        pools.all.current_num_threads()
-    );
-    println!(
-        "{:<20} {:>4} {:>12} {:>12} {:>9} {:>8} {:>7} {:>18}",
-        "scene", "view", "1T Mrays/s", "NT Mrays/s", "speed-up", "hits", "hit %", "checksum"
-    );
-    for row in &rows {
-        println!("{row}");
     }
 }

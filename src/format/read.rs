@@ -91,6 +91,48 @@ impl LeafIndices<'_> {
     }
 }
 
+/// Which positions of an index array leaves have claimed: one bit each,
+/// claimed a 64-bit word at a time.
+struct Coverage {
+    bits: Vec<u64>,
+    len: u64,
+    claimed: u64,
+}
+
+impl Coverage {
+    fn new(len: u64) -> Coverage {
+        Coverage {
+            bits: vec![0; len.div_ceil(64) as usize],
+            len,
+            claimed: 0,
+        }
+    }
+
+    /// Claims `start..start + count` (inside the array); `false` if a
+    /// position in it was claimed before.
+    fn claim(&mut self, start: u64, count: u64) -> bool {
+        let end = start + count;
+        let mut at = start;
+        while at < end {
+            let word = (at / 64) as usize;
+            let lo = at % 64;
+            let hi = (end - word as u64 * 64).min(64);
+            let mask = (u64::MAX >> (64 - (hi - lo))) << lo;
+            if self.bits[word] & mask != 0 {
+                return false;
+            }
+            self.bits[word] |= mask;
+            at = word as u64 * 64 + hi;
+        }
+        self.claimed += count;
+        true
+    }
+
+    fn is_full(&self) -> bool {
+        self.claimed == self.len
+    }
+}
+
 fn u32_at(b: &[u8], at: usize) -> u32 {
     u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
 }
@@ -315,6 +357,17 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         let mut referenced = vec![false; words.len()];
         referenced[0] = true;
         let (mut inner, mut t_inner, mut leaves, mut trefs) = (0u64, 0u64, 0u64, 0u64);
+        // The leaves' index ranges cover each index array exactly once, as
+        // the writer lays them out: so the work of any traversal (and of
+        // `info`) is bounded by the file's size, whatever its splits.
+        let mut cover32 = Coverage::new(self.counts.idx32);
+        let mut cover16 = Coverage::new(self.counts.idx16);
+        let overlap = |i: usize, array: &str| {
+            node_err(
+                i as u64,
+                format!("leaf range overlaps another leaf's range in {array}"),
+            )
+        };
         for (i, &w) in words.iter().enumerate() {
             let decoded = node::decode(w).map_err(|m| node_err(i as u64, m.to_string()))?;
             if !referenced[i] {
@@ -394,6 +447,9 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                             format!("leaf range {start}+{count} outside idx32"),
                         ));
                     }
+                    if !cover32.claim(u64::from(start), u64::from(count)) {
+                        return Err(overlap(i, "idx32"));
+                    }
                 }
                 NodeWord::Leaf16 {
                     count,
@@ -408,6 +464,9 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                             format!("leaf range {start}+{count} outside idx16"),
                         ));
                     }
+                    if !cover16.claim(u64::from(start), u64::from(count)) {
+                        return Err(overlap(i, "idx16"));
+                    }
                     // Every index of the leaf is `upper << 16 | low`.
                     let idx16 = self.idx16();
                     let base = u64::from(upper) << 16;
@@ -421,6 +480,15 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                         ));
                     }
                 }
+            }
+        }
+        for (cover, array) in [(&cover32, "idx32"), (&cover16, "idx16")] {
+            if !cover.is_full() {
+                return Err(FormatError::Index {
+                    section: array,
+                    position: cover.claimed,
+                    message: "indices that no leaf lists".into(),
+                });
             }
         }
         if (inner, t_inner, leaves, trefs)

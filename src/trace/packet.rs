@@ -139,7 +139,7 @@ struct LaneHits {
 /// The watertight test of one triangle in all lanes, each lane with its
 /// own axis permutation.
 #[inline(always)]
-fn kernel_any_perm(p: &Packet, tri: &[Vec3; 3], best: &Best) -> LaneHits {
+fn kernel_any_perm<const M: bool>(p: &Packet, tri: &[Vec3; 3], best: &Best) -> LaneHits {
     let mut t_out = [0f32; LANES];
     let mut ok = [false; LANES];
     let mut fallback = [false; LANES];
@@ -165,13 +165,18 @@ fn kernel_any_perm(p: &Packet, tri: &[Vec3; 3], best: &Best) -> LaneHits {
         (t_out[i], ok[i], fallback[i]) =
             lane_test(p, i, best, [ax, ay, akz], [bx, by, bkz], [cx, cy, ckz]);
     }
-    pack(t_out, ok, fallback)
+    pack::<M>(t_out, ok, fallback)
 }
 
 /// The watertight test of one triangle in all lanes, which share the axis
 /// permutation `k`: each vertex component is picked once.
 #[inline(always)]
-fn kernel_shared_perm(p: &Packet, tri: &[Vec3; 3], k: [usize; 3], best: &Best) -> LaneHits {
+fn kernel_shared_perm<const M: bool>(
+    p: &Packet,
+    tri: &[Vec3; 3],
+    k: [usize; 3],
+    best: &Best,
+) -> LaneHits {
     let mut t_out = [0f32; LANES];
     let mut ok = [false; LANES];
     let mut fallback = [false; LANES];
@@ -187,7 +192,7 @@ fn kernel_shared_perm(p: &Packet, tri: &[Vec3; 3], k: [usize; 3], best: &Best) -
         let c = [tc[0] - ox[i], tc[1] - oy[i], tc[2] - oz[i]];
         (t_out[i], ok[i], fallback[i]) = lane_test(p, i, best, a, b, c);
     }
-    pack(t_out, ok, fallback)
+    pack::<M>(t_out, ok, fallback)
 }
 
 /// The rest of the watertight test in lane `i`, given the vertices
@@ -229,24 +234,33 @@ fn lane_test(
 }
 
 #[inline(always)]
-fn pack(t: Lanes, ok: [bool; LANES], fallback: [bool; LANES]) -> LaneHits {
+fn pack<const M: bool>(t: Lanes, ok: [bool; LANES], fallback: [bool; LANES]) -> LaneHits {
     LaneHits {
         t,
-        ok: bits(ok),
-        fallback: bits(fallback),
+        ok: bits::<M>(ok),
+        fallback: bits::<M>(fallback),
     }
 }
 
-/// The lane mask of 16 flags: bit `i` is `b[i]`. Each 8 flags (bytes of 0
-/// or 1) are gathered into one byte by one multiplication, which every
-/// instruction set does in a few instructions (a shift-and-or loop over
-/// the lanes is 48 instructions without AVX-512's mask registers).
+/// The lane mask of 16 flags: bit `i` is `b[i]`. With AVX-512 (`MASKS`)
+/// the shift-and-or loop compiles to one mask-register move; elsewhere it
+/// is 48 instructions, and each 8 flags (bytes of 0 or 1) are gathered
+/// into one byte by one multiplication instead (which AVX-512 code would
+/// vectorise into slow 64-bit lane multiplies).
 #[inline(always)]
-fn bits(b: [bool; LANES]) -> u16 {
-    const GATHER: u64 = 0x0102_0408_1020_4080;
-    let x = u128::from_le_bytes(b.map(u8::from));
-    let (lo, hi) = (x as u64, (x >> 64) as u64);
-    ((lo.wrapping_mul(GATHER) >> 56) | ((hi.wrapping_mul(GATHER) >> 56) << 8)) as u16
+fn bits<const MASKS: bool>(b: [bool; LANES]) -> u16 {
+    if MASKS {
+        let mut m = 0u16;
+        for i in 0..LANES {
+            m |= u16::from(b[i]) << i;
+        }
+        m
+    } else {
+        const GATHER: u64 = 0x0102_0408_1020_4080;
+        let x = u128::from_le_bytes(b.map(u8::from));
+        let (lo, hi) = (x as u64, (x >> 64) as u64);
+        ((lo.wrapping_mul(GATHER) >> 56) | ((hi.wrapping_mul(GATHER) >> 56) << 8)) as u16
+    }
 }
 
 pub use crate::simd::SimdLevel;
@@ -311,7 +325,7 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
                 // SAFETY: as above, the CPU reported avx2.
                 unsafe { trace_avx2::<_, ANY, COUNT>(w, rays, out, stats) }
             }
-            _ => trace_rays::<_, ANY, COUNT>(w, rays, out, stats),
+            _ => trace_rays::<_, ANY, COUNT, false>(w, rays, out, stats),
         }
     }
 
@@ -371,7 +385,7 @@ struct LaneSplit {
 /// (ray starts in the plane, near only, far only, both) and intervals are
 /// the same expressions.
 #[inline(always)]
-fn split_lanes(p: &Packet, k: usize, pos: f32, cur: &Entry) -> LaneSplit {
+fn split_lanes<const M: bool>(p: &Packet, k: usize, pos: f32, cur: &Entry) -> LaneSplit {
     let mut out = LaneSplit {
         left: 0,
         right: 0,
@@ -402,8 +416,8 @@ fn split_lanes(p: &Packet, k: usize, pos: f32, cur: &Entry) -> LaneSplit {
         out.r_tmin[i] = if below_first { far_lo } else { tmin };
         out.r_tmax[i] = if below_first { tmax } else { near_hi };
     }
-    out.left = bits(l_vis);
-    out.right = bits(r_vis);
+    out.left = bits::<M>(l_vis);
+    out.right = bits::<M>(r_vis);
     out
 }
 
@@ -415,7 +429,7 @@ fn trace_avx512<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     out: &mut [Hit],
     stats: &mut TraceStats,
 ) {
-    trace_rays::<_, ANY, COUNT>(src, rays, out, stats)
+    trace_rays::<_, ANY, COUNT, true>(src, rays, out, stats)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -426,14 +440,14 @@ fn trace_avx2<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     out: &mut [Hit],
     stats: &mut TraceStats,
 ) {
-    trace_rays::<_, ANY, COUNT>(src, rays, out, stats)
+    trace_rays::<_, ANY, COUNT, false>(src, rays, out, stats)
 }
 
 /// Splits the rays by octant, walks each octant of at least [`MIN_LANES`]
 /// rays as one packet and the others ray by ray; inlined into one copy per
 /// instruction set, so that its lane loops are vectorised for that set.
 #[inline(always)]
-fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
     src: W,
     rays: &[Ray],
     out: &mut [Hit],
@@ -457,7 +471,7 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
         }
         left &= !mask;
         if mask.count_ones() >= MIN_LANES {
-            walk_packet::<_, ANY, COUNT>(src, &p, mask, &mut best, stats);
+            walk_packet::<_, ANY, COUNT, M>(src, &p, mask, &mut best, stats);
         } else {
             let mut m = mask;
             while m != 0 {
@@ -484,7 +498,7 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
 /// [`super::clip_ray`] in 16 lanes: the lanes that enter the box, and
 /// their intervals (the same expressions, so the same bits).
 #[inline(always)]
-fn clip_lanes(p: &Packet, bounds: &crate::geom::Aabb) -> (u16, Lanes, Lanes) {
+fn clip_lanes<const M: bool>(p: &Packet, bounds: &crate::geom::Aabb) -> (u16, Lanes, Lanes) {
     let mut t0 = p.tmin;
     let mut t1 = p.tmax;
     let mut miss = [false; LANES];
@@ -505,12 +519,12 @@ fn clip_lanes(p: &Packet, bounds: &crate::geom::Aabb) -> (u16, Lanes, Lanes) {
     for i in 0..LANES {
         enter[i] = !(miss[i] | (t1[i] < p.tmin[i]) | (t0[i] > t1[i] + t1[i] * MARGIN));
     }
-    (bits(enter), t0, t1)
+    (bits::<M>(enter), t0, t1)
 }
 
 /// Walks the lanes of `mask`, which share one octant, as one packet.
 #[inline(always)]
-fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
     src: W,
     p: &Packet,
     mask: u16,
@@ -523,7 +537,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
         tmin: [0.0; LANES],
         tmax: [0.0; LANES],
     };
-    let (entered, t0, t1) = clip_lanes(p, &src.bounds());
+    let (entered, t0, t1) = clip_lanes::<M>(p, &src.bounds());
     cur.mask = mask & entered;
     cur.tmin = t0;
     cur.tmax = t1;
@@ -540,8 +554,8 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
         let tri = src.triangle(t_src);
         let id = src.input_id(t_src).0;
         let lanes = match perm {
-            Some(k) => kernel_shared_perm(p, &tri, k, best),
-            None => kernel_any_perm(p, &tri, best),
+            Some(k) => kernel_shared_perm::<M>(p, &tri, k, best),
+            None => kernel_any_perm::<M>(p, &tri, best),
         };
         // Keep each lane's hit if it is closer (or, for any-hit queries,
         // before tmax), all lanes at once.
@@ -558,7 +572,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
             best.t[i] = if take[i] { t } else { best.t[i] };
             best.id[i] = if take[i] { id } else { best.id[i] };
         }
-        let mut hit = bits(take);
+        let mut hit = bits::<M>(take);
         let mut fallback = lanes.fallback & mask;
         while fallback != 0 {
             let i = fallback.trailing_zeros() as usize;
@@ -616,7 +630,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                         }
                     }
                     let k = axis as usize;
-                    let split = split_lanes(p, k, pos, &cur);
+                    let split = split_lanes::<M>(p, k, pos, &cur);
                     let (l_mask, r_mask) = (split.left & cur.mask, split.right & cur.mask);
                     // Rays going up the axis meet the left child first.
                     let (first, second) = if up[k] {
@@ -684,7 +698,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
             for i in 0..LANES {
                 keep[i] = !(e.tmin[i] - e.tmin[i] * MARGIN > best.t[i]);
             }
-            e.mask &= !done & bits(keep);
+            e.mask &= !done & bits::<M>(keep);
             if e.mask != 0 {
                 cur = e;
                 continue 'outer;
