@@ -192,6 +192,10 @@ fn main() {
         render::parse_views(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
     };
     let loaded = common::load(&common::crate_path("scenes/nexuiz_dieselpower.obj"));
+    println!(
+        "{}: {}, loaded in {:.2} s",
+        loaded.name, loaded.summary, loaded.seconds
+    );
     let views = views_of(&common::crate_path("scenes/views.txt"));
     let view = views
         .iter()
@@ -204,6 +208,10 @@ fn main() {
         if views_path.is_file() {
             let views = views_of(&views_path);
             let loaded = common::load(&path);
+            println!(
+                "{}: {}, loaded in {:.2} s",
+                loaded.name, loaded.summary, loaded.seconds
+            );
             match views.iter().find(|v| v.scene == loaded.name && v.id == "1") {
                 Some(view) => bench_scene(&loaded.name, &loaded.scene, view, reps, &pools),
                 None => println!(
