@@ -358,3 +358,48 @@ fn build_flags_with_a_kd_input_are_refused() {
     assert!(err.contains("--tau-occu"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The main job compares std, small and fast trees traced from their
+/// `.kd` files (the same hits), writes slimkd.png into the current
+/// directory and leaves nothing in the temporary directory; `-v` adds the
+/// phase times and memory.
+#[test]
+fn main_job_compares_the_three_trees() {
+    let dir = fresh_temp_dir("main-job");
+    let tmp = dir.join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    for verbose in [false, true] {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_slimkd"));
+        if verbose {
+            c.arg("-v");
+        }
+        let out = c
+            .current_dir(&dir)
+            .env("TMPDIR", &tmp)
+            .output()
+            .expect("the binary runs");
+        assert!(out.status.success(), "{}", stderr(&out));
+        let text = stdout(&out);
+        let rows: Vec<&str> = text
+            .lines()
+            .filter(|l| {
+                let first = l.split_whitespace().next();
+                matches!(first, Some("std" | "small" | "fast"))
+            })
+            .collect();
+        assert_eq!(rows.len(), 3, "{text}");
+        for (row, name) in rows.iter().zip(["std", "small", "fast"]) {
+            assert!(row.trim_start().starts_with(name), "{text}");
+            assert!(row.trim_end().ends_with("yes"), "{text}");
+        }
+        assert!(text.contains("same hits as std"), "{text}");
+        assert_eq!(text.contains("RssAnon"), verbose, "{text}");
+        assert!(dir.join("slimkd.png").exists());
+        assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0, "left behind");
+        std::fs::remove_file(dir.join("slimkd.png")).unwrap();
+    }
+    // -v belongs to the main job.
+    let out = slimkd_in(Some(&dir), &["-v", "info", "x.kd"]);
+    exits(&out, 2, "-v with a command");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -7,6 +7,7 @@
 mod args;
 mod build;
 mod info;
+mod main_job;
 mod progress_bar;
 mod render;
 mod report;
@@ -14,8 +15,6 @@ mod trace;
 
 use clap::parser::ValueSource;
 use clap::{Args, CommandFactory, FromArgMatches};
-use slimkd::build::level;
-use std::path::PathBuf;
 use std::process::ExitCode;
 
 use args::*;
@@ -45,7 +44,10 @@ fn main() -> ExitCode {
         }
     }
     let result = match cli.command {
-        None => main_job(),
+        None => main_job::main_job(cli.verbose),
+        Some(_) if cli.verbose => {
+            Err(Usage("-v is a flag of the main job (slimkd without a command)".into()).into())
+        }
         Some(Command::Build {
             scene,
             build,
@@ -114,40 +116,4 @@ pub(crate) fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
         b = b.num_threads(n);
     }
     Ok(b.build()?)
-}
-
-/// `slimkd` without arguments: the embedded scene, its first view, an image.
-fn main_job() -> Res<()> {
-    let args = RenderArgs {
-        scene: PathBuf::from(DEFAULT_ARG),
-        build: BuildArgs {
-            builder: BuilderArg::Level,
-            mem_budget: None,
-            scratch: None,
-            new_events: NewEventsArg::Merge,
-            tiny: level::DEFAULT_TINY_THRESHOLD as u8,
-            threads: None,
-            max_depth: None,
-            preset: PresetArg::Std,
-            tau_occu: None,
-            tau_freq: None,
-            max_t2rn: None,
-            hoist_rule: HoistRuleArg::Bytes,
-            given: Vec::new(),
-        },
-        eye: None,
-        at: None,
-        up: None,
-        fov: None,
-        size: (1024, 1024),
-        views: None,
-        view: Some("1".into()),
-        mode: ModeArg::Packet,
-        reps: 3,
-        output: Some(PathBuf::from("slimkd.png")),
-        dump_t: None,
-        shading: ShadingArg::EyeLight,
-        json: false,
-    };
-    cmd_render(&args)
 }
