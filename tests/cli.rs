@@ -212,7 +212,7 @@ fn scene_cache_builds_the_same_tree() {
 
     let wrong = dir.join("bunny.bin");
     let out = slimkd(&["convert", &scene, "-o", wrong.to_str().unwrap()]);
-    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains(".kds"));
     assert!(!wrong.exists());
 

@@ -323,8 +323,9 @@ fn markdown_and_json_hold_the_numbers() {
         "## Table 4",
         "## Figure 5",
         "## Figure 6",
-        "figure5.svg",
-        "figure6.svg",
+        "](report.figure5.svg)",
+        "](report.figure6.svg)",
+        "level builder",
         "32×32",
         "2 threads",
         "median of 1 frame",
@@ -365,6 +366,7 @@ fn markdown_and_json_hold_the_numbers() {
     assert_eq!(js["figure6"]["small"], serde_json::json!(s.leaf_depths[2]));
     assert_eq!(j["machine"]["all_threads"], 2);
     assert_eq!(j["machine"]["reps"], 1);
+    assert_eq!(j["build"]["builder"], "level");
 }
 
 /// JSON equality up to the last bits of floats (serde_json's default float
@@ -394,10 +396,15 @@ fn write_puts_every_file_in_place_atomically() {
     let dir = fresh_temp_dir("write");
     let md_path = dir.join("report.md");
     let paths = r.write(&md_path).unwrap();
-    let expected: Vec<PathBuf> = ["report.md", "report.json", "figure5.svg", "figure6.svg"]
-        .iter()
-        .map(|n| dir.join(n))
-        .collect();
+    let expected: Vec<PathBuf> = [
+        "report.md",
+        "report.json",
+        "report.figure5.svg",
+        "report.figure6.svg",
+    ]
+    .iter()
+    .map(|n| dir.join(n))
+    .collect();
     assert_eq!(paths, expected);
     // Nothing else: no temporary file left.
     let mut names: Vec<String> = std::fs::read_dir(&dir)
@@ -407,7 +414,12 @@ fn write_puts_every_file_in_place_atomically() {
     names.sort();
     assert_eq!(
         names,
-        ["figure5.svg", "figure6.svg", "report.json", "report.md"]
+        [
+            "report.figure5.svg",
+            "report.figure6.svg",
+            "report.json",
+            "report.md"
+        ]
     );
     assert_eq!(std::fs::read_to_string(&md_path).unwrap(), r.markdown());
     let j: serde_json::Value =
@@ -416,15 +428,15 @@ fn write_puts_every_file_in_place_atomically() {
         same_json(&j, &r.json()),
         "the file's JSON differs from Report::json"
     );
-    for fig in ["figure5.svg", "figure6.svg"] {
+    for fig in ["report.figure5.svg", "report.figure6.svg"] {
         let svg = std::fs::read_to_string(dir.join(fig)).unwrap();
         assert!(svg.starts_with("<svg"), "{fig}");
         assert!(svg.trim_end().ends_with("</svg>"), "{fig}");
         assert!(svg.contains("bunny_npm"), "{fig}");
     }
-    let fig5 = std::fs::read_to_string(dir.join("figure5.svg")).unwrap();
+    let fig5 = std::fs::read_to_string(dir.join("report.figure5.svg")).unwrap();
     assert!(fig5.contains("0.5/0.4") && fig5.contains("size reduction"));
-    let fig6 = std::fs::read_to_string(dir.join("figure6.svg")).unwrap();
+    let fig6 = std::fs::read_to_string(dir.join("report.figure6.svg")).unwrap();
     assert!(fig6.contains("small") && fig6.contains("depth"));
     // Writing again replaces the files.
     r.write(&md_path).unwrap();
@@ -478,9 +490,13 @@ fn scene_without_views_uses_the_default_camera_and_no_sweep_writes_no_figure5() 
         [
             dir.join("out.md"),
             dir.join("out.json"),
-            dir.join("figure6.svg")
+            dir.join("out.figure6.svg")
         ]
     );
+    // The Markdown links the figure by that name.
+    let written = std::fs::read_to_string(dir.join("out.md")).unwrap();
+    assert!(written.contains("](out.figure6.svg)"), "{written}");
+    assert_eq!(written, r.markdown_for(&dir.join("out.md")));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -5,7 +5,9 @@ use slimkd::build::level;
 use slimkd::format::Preset;
 use slimkd::render::{self};
 use slimkd::slim::{HoistRule, SlimParams};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use crate::Res;
 
 #[derive(Parser)]
 #[command(
@@ -13,14 +15,22 @@ use std::path::PathBuf;
     version,
     about = "Build, store and trace SAH kd-trees for large triangle scenes.",
     long_about = "Build, store and trace SAH kd-trees for large triangle scenes.\n\n\
-        Without a command, builds the tree of the embedded default scene, prints a summary, \
-        renders slimkd.png into the current directory and prints Mrays/s.\n\n\
+        Without a command (the main job), builds the std tree and the small and fast slim trees \
+        of the embedded default scene, writes each as a .kd file into a temporary directory, \
+        maps them back, traces the same view from each with packets and prints one table \
+        (tree bytes, bytes and references per triangle, nodes, Mrays/s, and whether the hits \
+        are the std tree's); then writes slimkd.png into the current directory. -v adds phase \
+        times and memory.\n\n\
         SCENE is an OBJ file, a scene cache (.kds, made by `slimkd convert`), or `default` \
         for the embedded scene."
 )]
 pub(crate) struct Cli {
     #[command(subcommand)]
     pub(crate) command: Option<Command>,
+    /// The main job only: also print the build's phase times, memory and
+    /// the slim passes' phases.
+    #[arg(short, long)]
+    pub(crate) verbose: bool,
 }
 
 #[derive(Subcommand)]
@@ -86,11 +96,12 @@ pub(crate) struct ReportArgs {
     /// Image size WxH of the timed frames.
     #[arg(long, value_parser = parse_size, default_value = "512x512")]
     pub(crate) size: (u32, u32),
-    /// Frames per measurement (median).
-    #[arg(long, default_value_t = 3)]
+    /// Frames per measurement (median; at least 1).
+    #[arg(long, default_value_t = 3, value_parser = parse_positive)]
     pub(crate) reps: usize,
-    /// Threads for the "all threads" columns (default: all cores).
-    #[arg(long)]
+    /// Threads for the "all threads" columns (at least 1; default: all
+    /// cores).
+    #[arg(long, value_parser = parse_positive)]
     pub(crate) threads: Option<usize>,
     /// Also run the τ_occu × τ_freq threshold sweep (Figure 5).
     #[arg(long)]
@@ -127,15 +138,20 @@ pub(crate) struct BuildArgs {
     #[arg(long, default_value_t = level::DEFAULT_TINY_THRESHOLD as u8,
           value_parser = clap::value_parser!(u8).range(0..=64))]
     pub(crate) tiny: u8,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads (default, or 0: all cores).
+    #[arg(short = 'j', long)]
     pub(crate) threads: Option<usize>,
     /// Depth limit (default: 8 + 1.3·log2 N).
     #[arg(long)]
     pub(crate) max_depth: Option<u32>,
     /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
-    /// `small` (0.5, 0.4); max_t2rn 4 (Choi et al. 2013), with the hoist
-    /// rule of --hoist-rule.
+    /// `small` (τ_occu 0.5, τ_freq 0.4); both with max_t2rn 4 (Choi et al.
+    /// 2013) and the hoist rule of --hoist-rule (default `bytes`). The
+    /// hoisting flags (--tau-occu, --tau-freq, --max-t2rn, --hoist-rule)
+    /// override what a slim preset sets; with `std` (the default) they
+    /// need both --tau-occu and --tau-freq (then max_t2rn is 4 and the
+    /// rule `bytes` unless given, and the file records the preset as
+    /// custom).
     #[arg(long, value_enum, default_value_t = PresetArg::Std)]
     pub(crate) preset: PresetArg,
     /// When a picked triangle is hoisted. `bytes` (the presets' rule, a
@@ -144,18 +160,26 @@ pub(crate) struct BuildArgs {
     /// as the file stores it (2-byte leaves with the file's triangle
     /// numbering, so --reorder matters); otherwise the node keeps its
     /// subtree. `paper`: always (Algorithm 1 as published). With `paper`,
-    /// the file records the preset as custom.
+    /// the file records the preset as custom. With `--preset std` it needs
+    /// --tau-occu and --tau-freq.
     #[arg(long, value_enum, default_value_t = HoistRuleArg::Bytes)]
     pub(crate) hoist_rule: HoistRuleArg,
-    /// Occupancy threshold (overrides the preset's; implies hoisting).
-    #[arg(long)]
+    /// Occupancy threshold in [0, 1] (overrides the preset's: fast 0.9,
+    /// small 0.5; with `--preset std` it needs --tau-freq too).
+    #[arg(long, value_parser = parse_tau, allow_hyphen_values = true)]
     pub(crate) tau_occu: Option<f64>,
-    /// Frequency threshold (overrides the preset's; implies hoisting).
-    #[arg(long)]
+    /// Frequency threshold in [0, 1] (overrides the preset's: fast 0.7,
+    /// small 0.4; with `--preset std` it needs --tau-occu too).
+    #[arg(long, value_parser = parse_tau, allow_hyphen_values = true)]
     pub(crate) tau_freq: Option<f64>,
-    /// Most hoisted triangles on a root path (overrides the preset's).
+    /// Most hoisted triangles on a root path (overrides the preset's: 4;
+    /// with `--preset std` it needs --tau-occu and --tau-freq).
     #[arg(long)]
     pub(crate) max_t2rn: Option<u32>,
+    /// The build flags given on the command line (their long names, e.g.
+    /// `--preset`), filled in after parsing; `--threads` is not one.
+    #[arg(skip)]
+    pub(crate) given: Vec<String>,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -185,6 +209,35 @@ pub(crate) enum PresetArg {
 }
 
 impl BuildArgs {
+    /// The hoisting flags.
+    pub(crate) const HOISTING: [&str; 4] =
+        ["--tau-occu", "--tau-freq", "--max-t2rn", "--hoist-rule"];
+
+    /// Whether the flag (its long name, `--preset`) was given.
+    pub(crate) fn was_given(&self, flag: &str) -> bool {
+        self.given.iter().any(|g| g == flag)
+    }
+
+    /// The usage rules of the build flags: a hoisting flag with the std
+    /// preset needs both thresholds.
+    pub(crate) fn check(&self) -> Result<(), Usage> {
+        if self.preset == PresetArg::Std {
+            let hoisting: Vec<&str> = Self::HOISTING
+                .into_iter()
+                .filter(|f| self.was_given(f))
+                .collect();
+            let both = self.tau_occu.is_some() && self.tau_freq.is_some();
+            if !hoisting.is_empty() && !both {
+                return Err(Usage(format!(
+                    "{} with --preset std (the default) needs both --tau-occu and --tau-freq \
+                     (or --preset fast|small, whose thresholds they override)",
+                    hoisting.join(", ")
+                )));
+            }
+        }
+        Ok(())
+    }
+
     /// The slim parameters, if any hoisting is asked for, and the preset
     /// recorded in the file; `reordered`: whether the tree will be written
     /// with reordering (for the byte rule).
@@ -194,6 +247,8 @@ impl BuildArgs {
             PresetArg::Fast => Some(SlimParams::FAST),
             PresetArg::Small => Some(SlimParams::SMALL),
         };
+        // `check` has made sure that std comes with both thresholds (which
+        // replace SMALL's below); only max_t2rn and the rule are taken.
         let custom = self.tau_occu.is_some()
             || self.tau_freq.is_some()
             || self.max_t2rn.is_some()
@@ -305,15 +360,15 @@ pub(crate) struct RenderArgs {
     /// Up vector x,y,z.
     #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
     pub(crate) up: Option<glam::DVec3>,
-    /// Vertical field of view in degrees.
-    #[arg(long)]
+    /// Vertical field of view in degrees, in (0, 180).
+    #[arg(long, value_parser = parse_fov)]
     pub(crate) fov: Option<f64>,
     /// Image size WxH.
     #[arg(long, value_parser = parse_size, default_value = "1024x1024")]
     pub(crate) size: (u32, u32),
-    /// Views file (`SCENE VIEW_ID eye=… at=… up=… fov=…`); the embedded
-    /// scene's views are used when omitted.
-    #[arg(long)]
+    /// Views file (`SCENE VIEW_ID eye=… at=… up=… fov=…`), with --view;
+    /// the embedded scene's views are used when omitted.
+    #[arg(long, requires = "view")]
     pub(crate) views: Option<PathBuf>,
     /// View id in the views file, matched with the scene file's stem.
     #[arg(long)]
@@ -321,8 +376,8 @@ pub(crate) struct RenderArgs {
     /// Traversal mode.
     #[arg(long, value_enum, default_value_t = ModeArg::Single)]
     pub(crate) mode: ModeArg,
-    /// Frames to trace; Mrays/s is the median.
-    #[arg(long, default_value_t = 1)]
+    /// Frames to trace (at least 1); Mrays/s is the median.
+    #[arg(long, default_value_t = 1, value_parser = parse_positive)]
     pub(crate) reps: usize,
     /// Output image (.png, or .exr with a depth channel).
     #[arg(short = 'o', long)]
@@ -335,6 +390,87 @@ pub(crate) struct RenderArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub(crate) json: bool,
+}
+
+/// A usage error: the command line asks for something impossible or
+/// contradictory; `main` exits with 2 for it.
+#[derive(Debug)]
+pub(crate) struct Usage(pub(crate) String);
+
+impl std::fmt::Display for Usage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Usage {}
+
+/// Checks, before any work, that an output file can go where it is asked
+/// to: its directory exists (an error naming the path, exit 1).
+pub(crate) fn check_output_dir(path: &Path) -> Res<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    match std::fs::metadata(dir) {
+        Ok(m) if m.is_dir() => Ok(()),
+        Ok(_) => Err(format!(
+            "cannot write {}: {} is not a directory",
+            path.display(),
+            dir.display()
+        )
+        .into()),
+        Err(e) => Err(format!("cannot write {}: its directory: {e}", path.display()).into()),
+    }
+}
+
+/// Checks an image output's name (a usage error unless `.png` or `.exr`)
+/// and its directory.
+pub(crate) fn check_image_output(path: &Path) -> Res<()> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    if !matches!(ext.as_deref(), Some("png" | "exr")) {
+        return Err(Usage(format!(
+            "cannot write {}: unknown image extension (expected .png or .exr)",
+            path.display()
+        ))
+        .into());
+    }
+    check_output_dir(path)
+}
+
+/// Parses a hoisting threshold: a number in [0, 1].
+pub(crate) fn parse_tau(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a number in [0, 1], got `{s}`"))?;
+    if !(0.0..=1.0).contains(&v) {
+        return Err(format!("`{s}` is not in [0, 1]"));
+    }
+    Ok(v)
+}
+
+/// Parses a field of view in degrees, in (0, 180).
+pub(crate) fn parse_fov(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected degrees in (0, 180), got `{s}`"))?;
+    if !(v > 0.0 && v < 180.0) {
+        return Err(format!("`{s}` is not in (0, 180)"));
+    }
+    Ok(v)
+}
+
+/// Parses a count of at least 1.
+pub(crate) fn parse_positive(s: &str) -> Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("expected a whole number of at least 1, got `{s}`")),
+    }
 }
 
 pub(crate) fn parse_dvec3(s: &str) -> Result<glam::DVec3, String> {

@@ -5,7 +5,7 @@
 use crate::*;
 use serde_json::json;
 use slimkd::build::{self, BuildConfig, Builder, level};
-use slimkd::format::{self, KdFile, Preset, WriteOptions};
+use slimkd::format::{self, Preset, WriteOptions};
 use slimkd::pipeline::{self, figures_json, merge_json};
 use slimkd::progress::Progress;
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
@@ -366,6 +366,10 @@ pub(crate) fn cmd_build(
     reorder: bool,
     json: bool,
 ) -> Res<()> {
+    args.check()?;
+    if let Some(out) = output {
+        check_output_dir(out)?;
+    }
     let pool = pool(args.threads)?;
     let watch = PeakRss::start();
     pool.install(|| {
@@ -390,7 +394,7 @@ pub(crate) fn cmd_build(
             // is mapped and checked, so that the two never add up.
             built.tree.nodes = Vec::new();
             built.tree.leaf_tris = Vec::new();
-            let file = KdFile::open(out, false)?;
+            let file = open_kd(out, false)?;
             written = Some((out.to_path_buf(), file.figures(), secs));
         }
         // The whole command: loading, building, writing.

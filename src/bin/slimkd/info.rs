@@ -2,7 +2,7 @@
 
 use crate::*;
 use serde_json::json;
-use slimkd::format::{self, KdFile};
+use slimkd::format;
 use slimkd::pipeline::{figures_json, merge_json};
 use slimkd::scene::{self};
 use slimkd::stats::bytes::ByteSplit;
@@ -11,12 +11,13 @@ use std::time::Instant;
 
 pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
     if !scene::is_scene_cache(output) {
-        return Err(format!(
+        return Err(Usage(format!(
             "{}: a scene cache's name must end in .kds (that is how commands recognise it)",
             output.display()
-        )
+        ))
         .into());
     }
+    check_output_dir(output)?;
     let loaded = load(scene, false)?;
     let start = Instant::now();
     scene::write_scene_cache(output, &loaded.scene, &loaded.summary)?;
@@ -34,7 +35,7 @@ pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
 
 pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
     let start = Instant::now();
-    let file = KdFile::open(path, false)?;
+    let file = open_kd(path, false)?;
     let open_ms = start.elapsed().as_secs_f64() * 1e3;
     let f = file.figures();
     let c = file.config();
@@ -160,7 +161,7 @@ pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
 }
 
 pub(crate) fn cmd_verify(path: &Path) -> Res<()> {
-    let file = KdFile::open(path, true).map_err(|e| format!("{}: invalid: {e}", path.display()))?;
+    let file = open_kd(path, true)?;
     let f = file.figures();
     println!(
         "{}: ok ({} nodes, {} triangles, all checksums match)",

@@ -7,14 +7,14 @@
 mod args;
 mod build;
 mod info;
+mod main_job;
 mod progress_bar;
 mod render;
 mod report;
 mod trace;
 
-use clap::Parser;
-use slimkd::build::level;
-use std::path::PathBuf;
+use clap::parser::ValueSource;
+use clap::{Args, CommandFactory, FromArgMatches};
 use std::process::ExitCode;
 
 use args::*;
@@ -34,9 +34,20 @@ pub(crate) const DEFAULT_ARG: &str = "default";
 pub(crate) type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let matches = Cli::command().get_matches();
+    let mut cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    if let Some((_, sub)) = matches.subcommand() {
+        match &mut cli.command {
+            Some(Command::Build { build, .. }) => build.given = given_build_flags(sub),
+            Some(Command::Render(args)) => args.build.given = given_build_flags(sub),
+            _ => {}
+        }
+    }
     let result = match cli.command {
-        None => main_job(),
+        None => main_job::main_job(cli.verbose),
+        Some(_) if cli.verbose => {
+            Err(Usage("-v is a flag of the main job (slimkd without a command)".into()).into())
+        }
         Some(Command::Build {
             scene,
             build,
@@ -49,59 +60,60 @@ fn main() -> ExitCode {
         Some(Command::Verify { file }) => cmd_verify(&file),
         Some(Command::Convert { scene, output }) => cmd_convert(&scene, &output),
         Some(Command::Report(args)) => cmd_report(&args),
-        Some(Command::Trace(args)) => pool(args.threads).and_then(|p| trace::cmd_trace(&args, p)),
+        Some(Command::Trace(args)) => cmd_trace(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("slimkd: error: {e}");
-            ExitCode::FAILURE
+            if e.downcast_ref::<Usage>().is_some() {
+                ExitCode::from(2)
+            } else {
+                ExitCode::FAILURE
+            }
         }
     }
 }
 
+/// The long names of the build flags (all of [`BuildArgs`] but
+/// `--threads`) given on the command line of a subcommand.
+fn given_build_flags(sub: &clap::ArgMatches) -> Vec<String> {
+    BuildArgs::augment_args(clap::Command::new("build"))
+        .get_arguments()
+        .filter(|a| a.get_id() != "threads")
+        .filter(|a| sub.value_source(a.get_id().as_str()) == Some(ValueSource::CommandLine))
+        .filter_map(|a| a.get_long().map(|l| format!("--{l}")))
+        .collect()
+}
+
+/// `slimkd trace`, its usage checked first.
+fn cmd_trace(args: &trace::TraceArgs) -> Res<()> {
+    if args.reps == 0 {
+        return Err(Usage("--reps must be at least 1".into()).into());
+    }
+    if args.threads == Some(0) {
+        return Err(Usage("--threads must be at least 1 (omit it for all cores)".into()).into());
+    }
+    if let Some(d) = &args.dump {
+        check_output_dir(d)?;
+    }
+    let pool = pool(args.threads)?;
+    trace::cmd_trace(args, pool).map_err(|e| match e.downcast::<slimkd::format::FormatError>() {
+        // Opening the .kd file is the only source of a format error; all
+        // but an I/O error leave the file to the caller to name.
+        Ok(fe) => match *fe {
+            slimkd::format::FormatError::Io { .. } => fe.to_string().into(),
+            _ => format!("{}: {fe}", args.file.display()).into(),
+        },
+        Err(e) => e,
+    })
+}
+
+/// A thread pool of `threads` workers; `None` or 0: one per core.
 pub(crate) fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(n) = threads {
-        if n == 0 {
-            return Err("--threads must be at least 1".into());
-        }
         b = b.num_threads(n);
     }
     Ok(b.build()?)
-}
-
-/// `slimkd` without arguments: the embedded scene, its first view, an image.
-fn main_job() -> Res<()> {
-    let args = RenderArgs {
-        scene: PathBuf::from(DEFAULT_ARG),
-        build: BuildArgs {
-            builder: BuilderArg::Level,
-            mem_budget: None,
-            scratch: None,
-            new_events: NewEventsArg::Merge,
-            tiny: level::DEFAULT_TINY_THRESHOLD as u8,
-            threads: None,
-            max_depth: None,
-            preset: PresetArg::Std,
-            tau_occu: None,
-            tau_freq: None,
-            max_t2rn: None,
-            hoist_rule: HoistRuleArg::Bytes,
-        },
-        eye: None,
-        at: None,
-        up: None,
-        fov: None,
-        size: (1024, 1024),
-        views: None,
-        view: Some("1".into()),
-        mode: ModeArg::Packet,
-        reps: 3,
-        output: Some(PathBuf::from("slimkd.png")),
-        dump_t: None,
-        shading: ShadingArg::EyeLight,
-        json: false,
-    };
-    cmd_render(&args)
 }

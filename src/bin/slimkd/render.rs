@@ -23,6 +23,16 @@ pub(crate) fn is_kd_file(path: &Path) -> bool {
             .is_ok_and(|()| magic == format::MAGIC)
 }
 
+/// Maps and validates a `.kd` file (`verify`: its checksums too); every
+/// error names the file once.
+pub(crate) fn open_kd(path: &Path, verify: bool) -> Res<KdFile<Mapped>> {
+    KdFile::open(path, verify).map_err(|e| match e {
+        // It names the file already.
+        format::FormatError::Io { .. } => e.to_string().into(),
+        _ => format!("{}: {e}", path.display()).into(),
+    })
+}
+
 /// The camera: explicit flags override a view, a view overrides the
 /// default camera of the scene box.
 pub(crate) fn camera_for(
@@ -49,7 +59,7 @@ pub(crate) fn camera_for(
         })?;
         cam = Camera::from_view(view, w, h);
     } else if args.views.is_some() {
-        return Err("--views needs --view ID".into());
+        return Err(Usage("--views needs --view ID".into()).into());
     }
     if let Some(v) = args.eye {
         cam.eye = v;
@@ -62,7 +72,7 @@ pub(crate) fn camera_for(
     }
     if let Some(v) = args.fov {
         if !(v > 0.0 && v < 180.0) {
-            return Err(format!("--fov {v} is not in (0, 180)").into());
+            return Err(Usage(format!("--fov {v} is not in (0, 180)")).into());
         }
         cam.fov_deg = v;
     }
@@ -86,13 +96,36 @@ pub(crate) enum Source {
 
 pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
     if args.reps == 0 {
-        return Err("--reps must be at least 1".into());
+        return Err(Usage("--reps must be at least 1".into()).into());
+    }
+    if let Some(out) = &args.output {
+        check_image_output(out)?;
+    }
+    if let Some(out) = &args.dump_t {
+        check_output_dir(out)?;
+    }
+    let kd_input = args.scene.as_os_str() != DEFAULT_ARG && is_kd_file(&args.scene);
+    if kd_input && !args.build.given.is_empty() {
+        return Err(Usage(format!(
+            "{} {} build flags, but {} is a .kd file, built already",
+            args.build.given.join(", "),
+            if args.build.given.len() == 1 {
+                "is a"
+            } else {
+                "are"
+            },
+            args.scene.display()
+        ))
+        .into());
+    }
+    if !kd_input {
+        args.build.check()?;
     }
     let pool = pool(args.build.threads)?;
     pool.install(|| {
-        let source = if args.scene.as_os_str() != DEFAULT_ARG && is_kd_file(&args.scene) {
+        let source = if kd_input {
             let start = Instant::now();
-            let file = KdFile::open(&args.scene, false)?;
+            let file = open_kd(&args.scene, false)?;
             let open_ms = start.elapsed().as_secs_f64() * 1e3;
             let columns = file.to_columns();
             Source::File { file, columns, open_ms }

@@ -6,6 +6,9 @@ use slimkd::stats::report;
 use std::time::Instant;
 
 pub(crate) fn cmd_report(args: &ReportArgs) -> Res<()> {
+    // The output's name and directory, before any work.
+    report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
+    check_output_dir(&args.output)?;
     let views = match &args.views {
         Some(file) => {
             let text =
@@ -25,7 +28,7 @@ pub(crate) fn cmd_report(args: &ReportArgs) -> Res<()> {
         ));
     }
     let all_threads = match args.threads {
-        Some(0) => return Err("--threads must be at least 1".into()),
+        Some(0) => return Err(Usage("--threads must be at least 1".into()).into()),
         Some(n) => n,
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };

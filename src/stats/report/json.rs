@@ -24,7 +24,7 @@ impl Report {
                 "available_parallelism": std::thread::available_parallelism().map_or(1, |n| n.get()),
             },
             "build": {
-                "builder": "sweep",
+                "builder": "level",
                 "k_t": self.build.sah.k_t,
                 "k_i": self.build.sah.k_i,
                 "lambda_empty": self.build.sah.lambda_empty,

@@ -52,9 +52,22 @@ fn md_table(header: &[&str], right: &[bool], rows: &[Vec<String>]) -> String {
 }
 
 impl Report {
-    /// The report as Markdown: the title, then one section per table and
-    /// figure.
+    /// The report as Markdown, as written to `report.md` (its figures
+    /// linked as `report.figure5.svg`, `report.figure6.svg`): see
+    /// [`Report::markdown_for`].
     pub fn markdown(&self) -> String {
+        self.markdown_for(Path::new("report.md"))
+    }
+
+    /// The report as Markdown to be written to `md_path`: the title, then
+    /// one section per table and figure, the figures linked by the names
+    /// of [`ReportPaths::for_markdown`] (`report.*` if `md_path` has no
+    /// file name).
+    pub fn markdown_for(&self, md_path: &Path) -> String {
+        let (figure5, figure6) = ReportPaths::for_markdown(md_path)
+            .or_else(|_| ReportPaths::for_markdown(Path::new("report.md")))
+            .map(|p| p.figure_names())
+            .unwrap_or_default();
         let mut md = String::new();
         md += &self.md_intro();
         md += &self.md_table1();
@@ -63,9 +76,9 @@ impl Report {
         md += &self.md_table3b();
         md += &self.md_table4();
         if self.sweep {
-            md += &self.md_figure5();
+            md += &self.md_figure5(&figure5);
         }
-        md += &self.md_figure6();
+        md += &self.md_figure6(&figure6);
         md
     }
 
@@ -84,7 +97,7 @@ impl Report {
             "**Machine figures.** Frame rates are the median of {} frame{} (after one warm-up frame) of \
              {}×{} primary rays, one per pixel, on 1 thread and on {} threads; the packet mode traces \
              4×4 rays with the `{}` kernel. Host: {} with {} hardware threads. Trees are built by the \
-             sweep builder (K_T {}, K_I {}, λ {}), written with Morton reordering (2-byte leaves where \
+             level builder (K_T {}, K_I {}, λ {}), written with Morton reordering (2-byte leaves where \
              they fit) and traced from the `.kd` bytes in memory. Presets: fast τ_occu {} τ_freq {}, \
              small τ_occu {} τ_freq {}, max_t2rn {}, hoist rule `{}`. Percentages are 100·(1 − x/std): a positive \
              reduction is a smaller tree, a positive loss a slower frame.\n\n",
@@ -340,13 +353,13 @@ impl Report {
     }
 
     /// Figure 5 (with the sweep): the threshold sweep.
-    fn md_figure5(&self) -> String {
+    fn md_figure5(&self, file: &str) -> String {
         let mut md = String::new();
         md += "## Figure 5. Threshold sweep\n\n";
         md += &format!(
             "Size reduction against std (same format) and frame-rate loss (packets, {} threads, \
              median over the views) for a τ_occu × τ_freq grid, max_t2rn {SWEEP_MAX_T2RN}.\n\n\
-             ![Figure 5]({FIGURE5_FILE})\n\n",
+             ![Figure 5]({file})\n\n",
             self.all_threads
         );
         let mut rows = Vec::new();
@@ -383,10 +396,10 @@ impl Report {
     }
 
     /// Figure 6: leaf-depth histograms, one table per scene.
-    fn md_figure6(&self) -> String {
+    fn md_figure6(&self, file: &str) -> String {
         let mut md = String::new();
         md += "## Figure 6. Leaf-depth histograms\n\n";
-        md += &format!("Leaves per depth (root = 0).\n\n![Figure 6]({FIGURE6_FILE})\n\n");
+        md += &format!("Leaves per depth (root = 0).\n\n![Figure 6]({file})\n\n");
         for s in &self.scenes {
             md += &format!("### {}\n\n", s.name);
             let depth = s.leaf_depths.iter().map(Vec::len).max().unwrap_or(0);

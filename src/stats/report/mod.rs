@@ -1,7 +1,7 @@
 //! The paper's tables and figures for a set of scenes (Choi, Chang & Ihm
 //! 2013): what `slimkd report` writes.
 //!
-//! [`run`] builds, for every scene, the standard SAH tree (sweep builder),
+//! [`run`] builds, for every scene, the standard SAH tree (level builder),
 //! the `fast` and `small` slim trees ([`SlimParams::FAST`],
 //! [`SlimParams::SMALL`]), writes each as `.kd` bytes in memory (Morton
 //! reordering on, so 2-byte leaves are used wherever they fit), opens the
@@ -441,9 +441,69 @@ pub use crate::pipeline::median;
 
 const MIB: f64 = (1u64 << 20) as f64;
 
-/// The file names of the figures, next to the Markdown file.
+/// The figures' file names end in these, after the Markdown file's stem
+/// (`r.md`: `r.figure5.svg`, `r.figure6.svg`), so that reports in one
+/// directory keep their own.
 pub const FIGURE5_FILE: &str = "figure5.svg";
 pub const FIGURE6_FILE: &str = "figure6.svg";
+
+/// The files a report written to a Markdown path consists of.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ReportPaths {
+    pub markdown: PathBuf,
+    /// Same stem, `.json`.
+    pub json: PathBuf,
+    /// `STEM.figure5.svg` beside the Markdown (written with the sweep).
+    pub figure5: PathBuf,
+    /// `STEM.figure6.svg` beside the Markdown.
+    pub figure6: PathBuf,
+}
+
+impl ReportPaths {
+    /// The paths for the Markdown file `md_path`.
+    ///
+    /// # Errors
+    ///
+    /// [`std::io::ErrorKind::InvalidInput`], naming the path, if it has no
+    /// file name or ends in `.json` (the JSON would overwrite it). Whether
+    /// the directory exists is not checked.
+    pub fn for_markdown(md_path: &Path) -> std::io::Result<ReportPaths> {
+        let invalid = |m: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, m);
+        let Some(stem) = md_path.file_stem() else {
+            return Err(invalid(format!("{}: not a file name", md_path.display())));
+        };
+        let json = md_path.with_extension("json");
+        if json == md_path {
+            return Err(invalid(format!(
+                "{}: the Markdown file must not end in .json (the JSON goes next to it)",
+                md_path.display()
+            )));
+        }
+        let figure = |suffix: &str| {
+            let mut name = stem.to_os_string();
+            name.push(".");
+            name.push(suffix);
+            md_path.with_file_name(name)
+        };
+        Ok(ReportPaths {
+            markdown: md_path.to_path_buf(),
+            json,
+            figure5: figure(FIGURE5_FILE),
+            figure6: figure(FIGURE6_FILE),
+        })
+    }
+
+    /// The file names of the two figures, as the Markdown links them.
+    pub fn figure_names(&self) -> (String, String) {
+        let name = |p: &Path| {
+            p.file_name()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned()
+        };
+        (name(&self.figure5), name(&self.figure6))
+    }
+}
 
 impl Report {
     /// Figure 5 as SVG: one series per scene.
@@ -501,40 +561,27 @@ impl Report {
     }
 
     /// Writes the Markdown to `md_path`, the JSON next to it (same stem,
-    /// `.json`), and the figures (`figure5.svg` with the sweep,
-    /// `figure6.svg`) into the same directory; returns the paths written.
-    /// Each file is written to a temporary file and renamed into place, and
-    /// every temporary file is written before the first rename, so a
-    /// failure (e.g. a missing directory) leaves no file behind.
+    /// `.json`), and the figures (`STEM.figure5.svg` with the sweep,
+    /// `STEM.figure6.svg`, see [`ReportPaths`]) into the same directory;
+    /// returns the paths written. Each file is written to a temporary file
+    /// and renamed into place, and every temporary file is written before
+    /// the first rename, so a failure (e.g. a missing directory) leaves no
+    /// file behind.
     pub fn write(&self, md_path: &Path) -> std::io::Result<Vec<PathBuf>> {
-        let invalid = |m: String| std::io::Error::new(std::io::ErrorKind::InvalidInput, m);
-        if md_path.file_name().is_none() {
-            return Err(invalid(format!("{}: not a file name", md_path.display())));
-        }
-        let json_path = md_path.with_extension("json");
-        if json_path == md_path {
-            return Err(invalid(format!(
-                "{}: the Markdown file must not end in .json (the JSON goes next to it)",
-                md_path.display()
-            )));
-        }
-        let dir = match md_path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
+        let paths = ReportPaths::for_markdown(md_path)?;
         let mut json_text =
             serde_json::to_string_pretty(&self.json()).map_err(std::io::Error::other)?;
         json_text.push('\n');
         let mut files = vec![
-            (md_path.to_path_buf(), self.markdown()),
-            (json_path, json_text),
+            (paths.markdown.clone(), self.markdown_for(md_path)),
+            (paths.json.clone(), json_text),
         ];
         if self.sweep {
             let svg = self.figure5_svg().map_err(std::io::Error::other)?;
-            files.push((dir.join(FIGURE5_FILE), svg));
+            files.push((paths.figure5.clone(), svg));
         }
         let svg = self.figure6_svg().map_err(std::io::Error::other)?;
-        files.push((dir.join(FIGURE6_FILE), svg));
+        files.push((paths.figure6.clone(), svg));
         write_all_atomically(&files)?;
         Ok(files.into_iter().map(|(p, _)| p).collect())
     }

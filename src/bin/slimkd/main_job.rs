@@ -1,0 +1,246 @@
+//! `slimkd` without arguments: the std tree and the `small` and `fast` slim
+//! trees of the embedded scene, each written as a reordered `.kd` file into
+//! a temporary directory, mapped back and traced with packets from the same
+//! view; one table compares them, and the std frame goes to `slimkd.png`.
+
+use crate::*;
+use slimkd::build::BuildConfig;
+use slimkd::format::{self, Preset, WriteOptions};
+use slimkd::pipeline;
+use slimkd::render::{self, Camera, HitBuffer, Shading};
+use slimkd::slim::{self, SlimParams};
+use slimkd::stats::TreeStats;
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::tree::TreeIr;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The image the main job writes into the current directory.
+const IMAGE: &str = "slimkd.png";
+/// Frames traced per tree (the median is reported).
+const REPS: usize = 3;
+const SIZE: (u32, u32) = (1024, 1024);
+
+/// A directory of its own under the system temporary directory, removed
+/// when dropped (on success and on error).
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new() -> Res<TempDir> {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        let dir =
+            std::env::temp_dir().join(format!("slimkd-main-job-{}-{nanos}", std::process::id()));
+        std::fs::create_dir(&dir).map_err(|e| format!("cannot make {}: {e}", dir.display()))?;
+        Ok(TempDir(dir))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// One row of the table.
+struct Row {
+    name: &'static str,
+    figures: format::TreeFigures,
+    mrays: f64,
+    frame: HitBuffer,
+    write_s: f64,
+}
+
+/// Whether two frames hit the same triangles at the same distances, bit
+/// for bit.
+fn same_hits(a: &HitBuffer, b: &HitBuffer) -> bool {
+    a.hits.len() == b.hits.len()
+        && a.hits
+            .iter()
+            .zip(&b.hits)
+            .all(|(x, y)| x.t.to_bits() == y.t.to_bits() && x.tri == y.tri)
+}
+
+/// The embedded scene's view 1 (the default camera if it had none).
+fn camera(bounds: &slimkd::geom::Aabb) -> Res<Camera> {
+    let views = render::parse_views(DEFAULT_VIEWS)?;
+    let cam = match render::find_view(&views, Path::new(DEFAULT_SCENE_NAME), "1") {
+        Some(v) => Camera::from_view(v, SIZE.0, SIZE.1),
+        None => Camera::default_for(bounds, SIZE.0, SIZE.1),
+    };
+    cam.check()?;
+    Ok(cam)
+}
+
+/// Writes `tree` as a reordered `.kd` file, maps it back and traces
+/// [`REPS`] frames with packets, after one untimed frame.
+#[allow(clippy::too_many_arguments)]
+fn write_and_trace(
+    dir: &Path,
+    name: &'static str,
+    tree: &TreeIr,
+    loaded: &Loaded,
+    config: &BuildConfig,
+    preset: Preset,
+    params: Option<&SlimParams>,
+    camera: &Camera,
+) -> Res<Row> {
+    let path = dir.join(format!("{name}.kd"));
+    let start = Instant::now();
+    let options = WriteOptions {
+        reorder: true,
+        config: pipeline::file_config(config, loaded.scene.len(), preset, params),
+    };
+    format::write_file(&path, tree, &loaded.scene, &options)?;
+    let write_s = start.elapsed().as_secs_f64();
+    let file = open_kd(&path, false)?;
+    let tracer = PacketTracer::new(&file);
+    // One untimed frame first: it faults the file's pages in.
+    let mut last = Some(render::trace_frame(&tracer, camera));
+    let mut rates = Vec::with_capacity(REPS);
+    for _ in 0..REPS {
+        let buf = render::trace_frame(&tracer, camera);
+        rates.push(buf.mrays_per_s());
+        last = Some(buf);
+    }
+    Ok(Row {
+        name,
+        figures: file.figures(),
+        mrays: pipeline::median(&rates),
+        frame: last.expect("REPS >= 1"),
+        write_s,
+    })
+}
+
+/// The main job; `verbose` adds the build's phase times and memory.
+pub(crate) fn main_job(verbose: bool) -> Res<()> {
+    let args = BuildArgs {
+        builder: BuilderArg::Level,
+        mem_budget: None,
+        scratch: None,
+        new_events: NewEventsArg::Merge,
+        tiny: slimkd::build::level::DEFAULT_TINY_THRESHOLD as u8,
+        threads: None,
+        max_depth: None,
+        preset: PresetArg::Std,
+        tau_occu: None,
+        tau_freq: None,
+        max_t2rn: None,
+        hoist_rule: HoistRuleArg::Bytes,
+        given: Vec::new(),
+    };
+    let dir = TempDir::new()?;
+    let loaded = load(Path::new(DEFAULT_ARG), false)?;
+    let built = build_tree(&loaded.scene, &args, false, true)?;
+    let stats = TreeStats::of(&built.tree, &built.config.sah);
+    if verbose {
+        print_summary(&loaded, &built, &stats);
+    } else {
+        println!(
+            "scene      {} ({}; loaded in {:.3} s)",
+            loaded.path.display(),
+            loaded.summary,
+            loaded.seconds
+        );
+        println!(
+            "build      std tree in {:.3} s with the {} builder on {} threads",
+            built.std_seconds,
+            built.builder,
+            rayon::current_num_threads()
+        );
+    }
+    let camera = camera(&built.tree.bounds)?;
+    let mut rows = vec![write_and_trace(
+        &dir.0,
+        "std",
+        &built.tree,
+        &loaded,
+        &built.config,
+        Preset::Std,
+        None,
+        &camera,
+    )?];
+    for (name, preset, params) in [
+        ("small", Preset::Small, SlimParams::SMALL),
+        ("fast", Preset::Fast, SlimParams::FAST),
+    ] {
+        let start = Instant::now();
+        let (tree, report, phases) =
+            slim::slim_with_phases(&built.tree, &loaded.scene, &built.config, &params);
+        let slim_s = start.elapsed().as_secs_f64();
+        println!(
+            "slim       {name} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted in {slim_s:.3} s",
+            params.tau_occu, params.tau_freq, params.max_t2rn, report.hoisted
+        );
+        if verbose {
+            println!(
+                "           phases: {} passes; analysis {:.3} s, rebuilds {:.3} s, apply {:.3} s, assembly {:.3} s",
+                phases.passes,
+                phases.analysis_s,
+                phases.rebuild_s,
+                phases.apply_s,
+                phases.assemble_s
+            );
+        }
+        rows.push(write_and_trace(
+            &dir.0,
+            name,
+            &tree,
+            &loaded,
+            &built.config,
+            preset,
+            Some(&params),
+            &camera,
+        )?);
+    }
+    let n = loaded.scene.len().max(1) as f64;
+    println!(
+        "render     {}x{} packets ({}), {} threads, median of {REPS} frames after a warm-up, from each tree's .kd file (reordered):",
+        camera.width,
+        camera.height,
+        SimdLevel::detect().name(),
+        rayon::current_num_threads()
+    );
+    println!(
+        "           {:<6} {:>11} {:>9} {:>8} {:>9} {:>8}  same hits as std",
+        "tree", "tree bytes", "bytes/tri", "nodes", "refs/tri", "Mrays/s"
+    );
+    for row in &rows {
+        let f = &row.figures;
+        // Leaf indices plus the T-references of hoisted triangles.
+        let refs = f.idx32 + f.idx16 + f.t_inner;
+        println!(
+            "           {:<6} {:>11} {:>9.2} {:>8} {:>9.2} {:>8.2}  {}",
+            row.name,
+            f.tree_bytes(),
+            f.tree_bytes() as f64 / n,
+            f.nodes(),
+            refs as f64 / n,
+            row.mrays,
+            if same_hits(&row.frame, &rows[0].frame) {
+                "yes"
+            } else {
+                "no"
+            }
+        );
+    }
+    if verbose {
+        for row in &rows {
+            println!(
+                "           wrote {}.kd in {:.3} s ({} hits, checksum {:.6})",
+                row.name,
+                row.write_s,
+                row.frame.n_hits(),
+                row.frame.checksum()
+            );
+        }
+    }
+    let frame = render::shade(&rows[0].frame, &camera, &loaded.scene, Shading::EyeLight);
+    render::write_image(Path::new(IMAGE), &frame)?;
+    println!("wrote      {IMAGE}");
+    if rows.iter().any(|r| !same_hits(&r.frame, &rows[0].frame)) {
+        return Err("a slim tree's hits differ from the std tree's (a bug)".into());
+    }
+    Ok(())
+}
