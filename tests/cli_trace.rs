@@ -145,3 +145,52 @@ fn trace_matches_brute_force_in_every_mode() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("multiple of 32"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn sah_constants_are_flags_recorded_in_the_file() {
+    let dir = tmp_dir("sah");
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+    let scene = scene.to_str().unwrap();
+    let default = dir.join("default.kd");
+    let cheap = dir.join("kt30.kd");
+    let d = json(&slimkd(&[
+        "build",
+        scene,
+        "-o",
+        default.to_str().unwrap(),
+        "--json",
+    ]));
+    let c = json(&slimkd(&[
+        "build",
+        scene,
+        "-o",
+        cheap.to_str().unwrap(),
+        "--kt",
+        "30",
+        "--ki",
+        "20",
+        "--lambda",
+        "1",
+        "--json",
+    ]));
+    // Dearer traversal steps make fewer nodes.
+    assert!(
+        c["nodes"].as_u64().unwrap() < d["nodes"].as_u64().unwrap(),
+        "{c} {d}"
+    );
+    let info = json(&slimkd(&["info", cheap.to_str().unwrap(), "--json"]));
+    assert_eq!(info["k_t"], 30.0);
+    assert_eq!(info["k_i"], 20.0);
+    assert_eq!(info["lambda_empty"], 1.0);
+    for bad in [
+        ["--kt", "0"],
+        ["--kt", "nan"],
+        ["--ki", "-1"],
+        ["--lambda", "0"],
+        ["--lambda", "1.5"],
+    ] {
+        let out = slimkd(&["build", scene, bad[0], bad[1]]);
+        assert_eq!(out.status.code(), Some(2), "{bad:?}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

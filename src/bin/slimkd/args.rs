@@ -144,6 +144,16 @@ pub(crate) struct BuildArgs {
     /// Depth limit (default: 8 + 1.3·log2 N).
     #[arg(long)]
     pub(crate) max_depth: Option<u32>,
+    /// SAH cost of a traversal step (the file records it).
+    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_t)]
+    pub(crate) kt: f64,
+    /// SAH cost of a ray–triangle test (the file records it).
+    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
+    pub(crate) ki: f64,
+    /// SAH factor in (0, 1] on the intersection cost of a split that cuts
+    /// off empty space (the file records it).
+    #[arg(long, value_parser = parse_lambda, default_value_t = slimkd::build::sah::SahParams::default().lambda_empty)]
+    pub(crate) lambda: f64,
     /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
     /// `small` (τ_occu 0.5, τ_freq 0.4); both with max_t2rn 4 (Choi et al.
     /// 2013) and the hoist rule of --hoist-rule (default `bytes`). The
@@ -449,6 +459,30 @@ pub(crate) fn parse_tau(s: &str) -> Result<f64, String> {
         .map_err(|_| format!("expected a number in [0, 1], got `{s}`"))?;
     if !(0.0..=1.0).contains(&v) {
         return Err(format!("`{s}` is not in [0, 1]"));
+    }
+    Ok(v)
+}
+
+/// Parses an SAH cost constant: a finite number above 0.
+pub(crate) fn parse_cost(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a positive number, got `{s}`"))?;
+    if !(v.is_finite() && v > 0.0) {
+        return Err(format!("`{s}` is not a finite number above 0"));
+    }
+    Ok(v)
+}
+
+/// Parses the empty-space factor λ, in (0, 1].
+pub(crate) fn parse_lambda(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a number in (0, 1], got `{s}`"))?;
+    if !(v > 0.0 && v <= 1.0) {
+        return Err(format!("`{s}` is not in (0, 1]"));
     }
     Ok(v)
 }

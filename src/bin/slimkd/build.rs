@@ -72,6 +72,9 @@ pub(crate) fn build_tree(
 ) -> Res<Built> {
     let mut config = BuildConfig::default();
     config.sah.max_depth = args.max_depth;
+    config.sah.k_t = args.kt;
+    config.sah.k_i = args.ki;
+    config.sah.lambda_empty = args.lambda;
     let progress = Progress::default();
     let status = Arc::new(level::LevelStatus::default());
     let mut options = level::LevelOptions {
