@@ -70,3 +70,73 @@ impl SimdLevel {
             .collect()
     }
 }
+
+impl SimdLevel {
+    /// `level` if this CPU has it, else the best level it has: what a
+    /// dispatch may run without undefined behaviour.
+    pub fn usable(level: SimdLevel) -> SimdLevel {
+        let best = SimdLevel::detect();
+        if level as u8 >= best as u8 {
+            level
+        } else {
+            best
+        }
+    }
+}
+
+/// Evaluates `$body` compiled for the instruction set `$level` (or, if this
+/// CPU lacks it, the best one it has; [`SimdLevel::usable`]): the one place
+/// where a kernel's per-level copies and their `unsafe` calls are written.
+/// `$body` is inlined into one `#[target_feature]` function per level, so
+/// that its lane loops (in `#[inline(always)]` functions) are vectorised
+/// for that level; in it, the constant `$wide` is `true` on AVX-512 (whose
+/// mask registers make some formulations cheaper).
+#[macro_export]
+macro_rules! simd_dispatch {
+    ($level:expr, |$wide:ident| $body:expr) => {{
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx512f")]
+        fn on_avx512<R>(f: impl FnOnce() -> R) -> R {
+            f()
+        }
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        fn on_avx2<R>(f: impl FnOnce() -> R) -> R {
+            f()
+        }
+        match $crate::simd::SimdLevel::usable($level) {
+            #[cfg(target_arch = "x86_64")]
+            $crate::simd::SimdLevel::Avx512 => {
+                // SAFETY: `usable` returns AVX-512 only if this CPU reported
+                // avx512f.
+                unsafe {
+                    on_avx512(
+                        #[inline(always)]
+                        || {
+                            const $wide: bool = true;
+                            $body
+                        },
+                    )
+                }
+            }
+            #[cfg(target_arch = "x86_64")]
+            $crate::simd::SimdLevel::Avx2 => {
+                // SAFETY: `usable` returns AVX2 only if this CPU reported
+                // avx2.
+                unsafe {
+                    on_avx2(
+                        #[inline(always)]
+                        || {
+                            const $wide: bool = false;
+                            $body
+                        },
+                    )
+                }
+            }
+            _ => {
+                const $wide: bool = false;
+                $body
+            }
+        }
+    }};
+}

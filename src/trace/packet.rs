@@ -268,8 +268,7 @@ pub use crate::simd::SimdLevel;
 /// Packet traversal of any source; also answers single rays (scalar).
 pub struct PacketTracer<'a, S: KdSource + 'a> {
     walk: S::Walk<'a>,
-    /// Only [`PacketTracer::with_level`] sets it, to a level this CPU has:
-    /// the dispatch's `unsafe` calls rely on it.
+    /// A level this CPU has ([`PacketTracer::with_level`]).
     level: SimdLevel,
 }
 
@@ -312,21 +311,9 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
             return;
         }
         let w = self.walk;
-        match self.level {
-            #[cfg(target_arch = "x86_64")]
-            SimdLevel::Avx512 => {
-                // SAFETY: `level` is set only by `with_level`, which keeps a
-                // level only if it is in `SimdLevel::available()`, i.e. the
-                // CPU reported avx512f.
-                unsafe { trace_avx512::<_, ANY, COUNT>(w, rays, out, stats) }
-            }
-            #[cfg(target_arch = "x86_64")]
-            SimdLevel::Avx2 => {
-                // SAFETY: as above, the CPU reported avx2.
-                unsafe { trace_avx2::<_, ANY, COUNT>(w, rays, out, stats) }
-            }
-            _ => trace_rays::<_, ANY, COUNT, false>(w, rays, out, stats),
-        }
+        crate::simd_dispatch!(self.level, |WIDE| trace_rays::<_, ANY, COUNT, WIDE>(
+            w, rays, out, stats
+        ))
     }
 
     /// [`ClosestHit::closest_hit_n`] or [`ClosestHit::occluded_n`] (a hit
@@ -419,28 +406,6 @@ fn split_lanes<const M: bool>(p: &Packet, k: usize, pos: f32, cur: &Entry) -> La
     out.left = bits::<M>(l_vis);
     out.right = bits::<M>(r_vis);
     out
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn trace_avx512<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
-    src: W,
-    rays: &[Ray],
-    out: &mut [Hit],
-    stats: &mut TraceStats,
-) {
-    trace_rays::<_, ANY, COUNT, true>(src, rays, out, stats)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn trace_avx2<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
-    src: W,
-    rays: &[Ray],
-    out: &mut [Hit],
-    stats: &mut TraceStats,
-) {
-    trace_rays::<_, ANY, COUNT, false>(src, rays, out, stats)
 }
 
 /// Splits the rays by octant, walks each octant of at least [`MIN_LANES`]
