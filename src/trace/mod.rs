@@ -507,23 +507,30 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                     continue;
                 }
                 let ts = (pos - o) * inv[k];
-                let (near, far) = if o < pos {
-                    (left, right)
+                // The side the ray starts on is a branch, not a select: each
+                // arm names its near and far child itself, so that the next
+                // node's load waits only on the prediction of this branch,
+                // not on this node's split position (with the child picked
+                // by a conditional move, single rays traced 1.4x slower).
+                macro_rules! descend {
+                    ($near:expr, $far:expr) => {{
+                        if ts <= 0.0 || ts - ts * MARGIN > tmax {
+                            node = $near;
+                        } else if ts + ts * MARGIN < tmin {
+                            node = $far;
+                        } else {
+                            stack[sp].write(($far, ts.max(tmin), tmax));
+                            sp += 1;
+                            node = $near;
+                            tmax = ts.min(tmax);
+                        }
+                    }};
+                }
+                if o < pos {
+                    descend!(left, right);
                 } else {
-                    (right, left)
-                };
-                if ts <= 0.0 || ts - ts * MARGIN > tmax {
-                    node = near;
-                    continue;
+                    descend!(right, left);
                 }
-                if ts + ts * MARGIN < tmin {
-                    node = far;
-                    continue;
-                }
-                stack[sp].write((far, ts.max(tmin), tmax));
-                sp += 1;
-                node = near;
-                tmax = ts.min(tmax);
                 continue;
             }
             SourceNode::Leaf(tris) => {
