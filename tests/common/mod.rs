@@ -4,11 +4,13 @@
 
 #![allow(dead_code)]
 
+pub mod kd;
+
 use glam::Vec3;
 use proptest::prelude::*;
 use slimkd::build::level::LevelOptions;
 use slimkd::build::{self, BuildConfig, Builder};
-use slimkd::format::{self, KdFile, WriteOptions};
+use slimkd::format::{self, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, SlimParams};
@@ -78,21 +80,13 @@ pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
 }
 
 /// Writes `tree` to `.kd` bytes and reads them back: the file is valid,
-/// its checksums hold and it has the tree's nodes.
+/// its checksums hold, and it holds the tree (the same nodes, split planes
+/// bit for bit, leaves as sets of input ids) and its figures.
 pub fn assert_round_trip(tree: &TreeIr, scene: &TriangleColumns) {
     let bytes = format::write_to_vec(tree, scene, &WriteOptions::default()).unwrap();
-    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).expect("the file reads back");
-    file.verify().expect("the file's checksums hold");
-    let f = file.figures();
-    assert_eq!(
-        (f.inner + f.t_inner, f.t_inner, f.leaves),
-        (
-            tree.n_inner() as u64,
-            tree.n_t_inner() as u64,
-            tree.n_leaves() as u64
-        ),
-        "the file's nodes are not the tree's"
-    );
+    let file = kd::read(&bytes);
+    assert_eq!(kd::file_shape(&file), kd::ir_shape(tree), "the file's tree");
+    kd::assert_figures(&file, tree, scene);
 }
 
 /// Asserts that traversal returns exactly brute force's hit for each ray.
