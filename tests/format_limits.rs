@@ -309,47 +309,36 @@ fn writer_refuses_malformed_trees() {
         f(&mut t);
         t
     };
+    // The tree with fields of its root (an inner node) edited.
+    type RootEdit = dyn Fn(&mut u8, &mut f32, &mut NodeId, &mut Option<TriId>);
+    let root = |f: &RootEdit| {
+        edit(&|t| {
+            if let Node::Inner {
+                axis,
+                pos,
+                right,
+                t_ref,
+            } = &mut t.nodes[0]
+            {
+                f(axis, pos, right, t_ref);
+            }
+        })
+    };
     let cases: Vec<(&str, TreeIr)> = vec![
         ("no nodes", edit(&|t| t.nodes.clear())),
-        (
-            "axis 3",
-            edit(&|t| {
-                if let Node::Inner { axis, .. } = &mut t.nodes[0] {
-                    *axis = 3;
-                }
-            }),
-        ),
-        (
-            "NaN split",
-            edit(&|t| {
-                if let Node::Inner { pos, .. } = &mut t.nodes[0] {
-                    *pos = f32::NAN;
-                }
-            }),
-        ),
+        ("axis 3", root(&|axis, _, _, _| *axis = 3)),
+        ("NaN split", root(&|_, pos, _, _| *pos = f32::NAN)),
         (
             "right child out of range",
-            edit(&|t| {
-                if let Node::Inner { right, .. } = &mut t.nodes[0] {
-                    *right = NodeId(9);
-                }
-            }),
+            root(&|_, _, right, _| *right = NodeId(9)),
         ),
         (
             "right child is the node itself",
-            edit(&|t| {
-                if let Node::Inner { right, .. } = &mut t.nodes[0] {
-                    *right = NodeId(0);
-                }
-            }),
+            root(&|_, _, right, _| *right = NodeId(0)),
         ),
         (
             "hoisted triangle out of range",
-            edit(&|t| {
-                if let Node::Inner { t_ref, .. } = &mut t.nodes[0] {
-                    *t_ref = Some(TriId(4));
-                }
-            }),
+            root(&|_, _, _, t_ref| *t_ref = Some(TriId(4))),
         ),
         (
             "leaf triangle out of range",
