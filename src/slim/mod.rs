@@ -84,6 +84,7 @@ use crate::format::node::leaf_index_bytes;
 use crate::geom::{Aabb, clip_triangle};
 use crate::progress::Progress;
 use crate::scene::TriangleColumns;
+use crate::sys::lap;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use rayon::prelude::*;
 use std::borrow::Borrow;
@@ -1120,13 +1121,6 @@ pub fn slim_with_progress(
     let out = work.to_ir(root, tree.bounds);
     phases.assemble_s = lap(&mut clock);
     (out, report, phases)
-}
-
-fn lap(clock: &mut Instant) -> f64 {
-    let now = Instant::now();
-    let s = now.duration_since(*clock).as_secs_f64();
-    *clock = now;
-    s
 }
 
 /// A test scene: triangle 0 is big and spans an 8×8 grid of small
