@@ -249,12 +249,7 @@ mod tests {
 
     /// Lists the entries of `dir` by name.
     fn entries(dir: &Path) -> Vec<String> {
-        let mut names: Vec<String> = std::fs::read_dir(dir)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .collect();
-        names.sort();
-        names
+        crate::fsio::entry_names(dir).unwrap()
     }
 
     #[test]

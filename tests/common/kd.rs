@@ -143,15 +143,6 @@ pub fn std_tree(scene: &TriangleColumns) -> TreeIr {
     build::build(scene, &BuildConfig::default(), Builder::Sweep, None).unwrap()
 }
 
-pub fn dir_entries(dir: &Path) -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
-    names
-}
-
 // ---------------------------------------------------------------------
 // Scenes, rays and trees made for these tests.
 // ---------------------------------------------------------------------

@@ -279,3 +279,8 @@ pub fn fresh_temp_dir(name: &str) -> std::path::PathBuf {
     std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
     dir
 }
+
+/// The names of the entries of `dir`, sorted.
+pub fn dir_entries(dir: &std::path::Path) -> Vec<String> {
+    slimkd::fsio::entry_names(dir).unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display()))
+}
