@@ -1133,16 +1133,7 @@ pub(crate) fn huge_over_grid() -> TriangleColumns {
         Vec3::new(30.0, -1.0, 0.5),
         Vec3::new(-1.0, 30.0, 0.5),
     ]];
-    for i in 0..8 {
-        for j in 0..8 {
-            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
-            tris.push([
-                Vec3::new(x, y, 0.0),
-                Vec3::new(x + 1.0, y, 1.0),
-                Vec3::new(x, y + 1.0, 1.0),
-            ]);
-        }
-    }
+    tris.extend(crate::scene::slanted_grid(8));
     TriangleColumns::from_triangles(&tris).unwrap()
 }
 
