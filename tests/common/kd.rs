@@ -259,60 +259,62 @@ pub fn ir_shape(tree: &TreeIr) -> Vec<Shape> {
         .collect()
 }
 
+/// Visits the file's node words in pre-order (left child first), with
+/// their indices; T-references are not visited (their inner node is).
+pub fn walk_file<D: AsRef<[u8]>>(file: &KdFile<D>, mut visit: impl FnMut(usize, NodeWord)) {
+    let words = file.nodes();
+    let mut stack = vec![0usize];
+    while let Some(i) = stack.pop() {
+        let w = node::decode(words[i]).unwrap();
+        visit(i, w);
+        if let NodeWord::Inner { t_ref, block, .. } = w {
+            let first = block as usize + usize::from(t_ref);
+            stack.push(first + 1);
+            stack.push(first);
+        }
+    }
+}
+
 /// The file's tree in pre-order (left child first), in input numbering.
 pub fn file_shape<D: AsRef<[u8]>>(file: &KdFile<D>) -> Vec<Shape> {
     let words = file.nodes();
     let mut out = Vec::new();
-    let mut stack = vec![0usize];
-    while let Some(i) = stack.pop() {
-        match node::decode(words[i]).unwrap() {
-            NodeWord::Inner {
+    walk_file(file, |i, w| match w {
+        NodeWord::Inner {
+            axis,
+            t_ref,
+            block,
+            pos,
+        } => {
+            let tri = t_ref.then(|| match node::decode(words[block as usize]) {
+                Ok(NodeWord::TRef { tri }) => file.input_id(tri),
+                other => panic!("node {i}: expected a T-reference, got {other:?}"),
+            });
+            out.push(Shape::Inner {
                 axis,
-                t_ref,
-                block,
-                pos,
-            } => {
-                let block = block as usize;
-                let tri = t_ref.then(|| match node::decode(words[block]) {
-                    Ok(NodeWord::TRef { tri }) => file.input_id(tri),
-                    other => panic!("node {i}: expected a T-reference, got {other:?}"),
-                });
-                out.push(Shape::Inner {
-                    axis,
-                    pos: pos.to_bits(),
-                    t_ref: tri,
-                });
-                let first = block + usize::from(t_ref);
-                stack.push(first + 1);
-                stack.push(first);
-            }
-            w @ (NodeWord::Leaf32 { .. } | NodeWord::Leaf16 { .. }) => {
-                let mut ids = Vec::new();
-                file.leaf(w).for_each(|t| ids.push(file.input_id(t)));
-                ids.sort_unstable();
-                out.push(Shape::Leaf(ids));
-            }
-            NodeWord::TRef { .. } => panic!("node {i}: a T-reference where a child belongs"),
+                pos: pos.to_bits(),
+                t_ref: tri,
+            });
         }
-    }
+        NodeWord::Leaf32 { .. } | NodeWord::Leaf16 { .. } => {
+            let mut ids = Vec::new();
+            file.leaf(w).for_each(|t| ids.push(file.input_id(t)));
+            ids.sort_unstable();
+            out.push(Shape::Leaf(ids));
+        }
+        NodeWord::TRef { .. } => panic!("node {i}: a T-reference where a child belongs"),
+    });
     out
 }
 
 /// The leaf words of a file in pre-order.
 pub fn file_leaf_words<D: AsRef<[u8]>>(file: &KdFile<D>) -> Vec<NodeWord> {
-    let words = file.nodes();
     let mut out = Vec::new();
-    let mut stack = vec![0usize];
-    while let Some(i) = stack.pop() {
-        match node::decode(words[i]).unwrap() {
-            NodeWord::Inner { t_ref, block, .. } => {
-                let first = block as usize + usize::from(t_ref);
-                stack.push(first + 1);
-                stack.push(first);
-            }
-            w => out.push(w),
+    walk_file(file, |_, w| {
+        if !matches!(w, NodeWord::Inner { .. }) {
+            out.push(w);
         }
-    }
+    });
     out
 }
 
