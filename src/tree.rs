@@ -448,3 +448,83 @@ impl std::fmt::Display for TreeError {
 }
 
 impl std::error::Error for TreeError {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn leaf() -> Node {
+        Node::Leaf { start: 0, count: 0 }
+    }
+
+    fn inner(right: u32) -> Node {
+        Node::Inner {
+            axis: 0,
+            pos: 0.5,
+            right: NodeId(right),
+            t_ref: None,
+        }
+    }
+
+    fn tree(nodes: Vec<Node>) -> TreeIr {
+        TreeIr {
+            bounds: Aabb::new(Vec3::ZERO, Vec3::ONE),
+            nodes,
+            leaf_tris: Vec::new(),
+        }
+    }
+
+    /// The nodes `walk_checked` visits, with their depths and states (the
+    /// state counts the path: left adds 1, right adds 10), or its fault.
+    fn visits(t: &TreeIr) -> Result<Vec<(usize, u32, u32)>, WalkFault> {
+        let mut seen = Vec::new();
+        t.walk_checked(
+            0u32,
+            |f| f,
+            |i, node, depth, s| {
+                seen.push((i, depth, s));
+                Ok(matches!(node, Node::Inner { .. }).then_some((s + 1, s + 10)))
+            },
+        )?;
+        Ok(seen)
+    }
+
+    #[test]
+    fn walk_checked_visits_in_pre_order_with_states() {
+        let t = tree(vec![inner(4), inner(3), leaf(), leaf(), leaf()]);
+        assert_eq!(
+            visits(&t),
+            Ok(vec![
+                (0, 0, 0),
+                (1, 1, 1),
+                (2, 2, 2),
+                (3, 2, 11),
+                (4, 1, 10)
+            ])
+        );
+    }
+
+    #[test]
+    fn walk_checked_refuses_missing_shared_and_deep_nodes() {
+        assert_eq!(visits(&tree(vec![])), Err(WalkFault::Missing { node: 0 }));
+        assert_eq!(
+            visits(&tree(vec![inner(9), leaf()])),
+            Err(WalkFault::Missing { node: 9 })
+        );
+        // The right child is the left one: reached twice.
+        assert_eq!(
+            visits(&tree(vec![inner(1), leaf()])),
+            Err(WalkFault::ReachedTwice { node: 1 })
+        );
+        // A cycle back to the root (after its left child).
+        assert_eq!(
+            visits(&tree(vec![inner(0), leaf()])),
+            Err(WalkFault::ReachedTwice { node: 0 })
+        );
+        // A caterpillar one level deeper than MAX_DEPTH.
+        let d = MAX_DEPTH as usize + 1;
+        let mut nodes: Vec<Node> = (0..d).map(|i| inner((2 * d - i) as u32)).collect();
+        nodes.extend((0..=d).map(|_| leaf()));
+        assert_eq!(visits(&tree(nodes)), Err(WalkFault::TooDeep { node: d }));
+    }
+}
