@@ -236,18 +236,24 @@ mod unnamed {
     }
 }
 
+/// The names of the entries of `dir`, sorted (lossily made UTF-8): what a
+/// directory holds after writes, which the tests check for temporary files
+/// left behind.
+pub fn entry_names(dir: &Path) -> std::io::Result<Vec<String>> {
+    let mut names = std::fs::read_dir(dir)?
+        .map(|e| Ok(e?.file_name().to_string_lossy().into_owned()))
+        .collect::<std::io::Result<Vec<String>>>()?;
+    names.sort();
+    Ok(names)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::io::Write;
 
     fn entries(dir: &Path) -> Vec<String> {
-        let mut v: Vec<String> = std::fs::read_dir(dir)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .collect();
-        v.sort();
-        v
+        entry_names(dir).unwrap()
     }
 
     fn scratch(name: &str) -> PathBuf {

@@ -1,6 +1,19 @@
-//! What the process can read about itself from `/proc`: its processor
-//! time and resident memory. The level builder's report samples them; the
-//! CLI prints them. Off Linux (no `/proc`) they read as unknown or zero.
+//! What the process can read about itself: its processor time and
+//! resident memory from `/proc` (the level builder's report samples them;
+//! the CLI prints them; off Linux they read as unknown or zero), and the
+//! wall-clock time of a phase ([`lap`], for the builder's and the slim
+//! pass's phase times).
+
+use std::time::Instant;
+
+/// The seconds since `clock`, which is moved on to now: the time of the
+/// phase that just ended.
+pub fn lap(clock: &mut Instant) -> f64 {
+    let now = Instant::now();
+    let s = now.duration_since(*clock).as_secs_f64();
+    *clock = now;
+    s
+}
 
 /// This process's processor time so far (user and system, every thread),
 /// in seconds, from `/proc/self/stat`; `None` where it cannot be read.

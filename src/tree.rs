@@ -135,6 +135,46 @@ impl TreeIr {
         }
     }
 
+    /// The walk every check of a tree's structure makes: each node from
+    /// the root, left subtree first, with its depth and a state `S` the
+    /// caller derives for the children (`visit` returns the left and the
+    /// right child's for an inner node, `None` for a leaf). Before `visit`
+    /// sees a node, the walk refuses (through `fault`) a child outside the
+    /// nodes, a node reached twice (a cycle or a shared child: so a
+    /// malformed tree cannot make it run away) and a node deeper than
+    /// [`MAX_DEPTH`]; the first error ends the walk.
+    pub fn walk_checked<S, E>(
+        &self,
+        root: S,
+        fault: impl Fn(WalkFault) -> E,
+        mut visit: impl FnMut(usize, &Node, u32, S) -> Result<Option<(S, S)>, E>,
+    ) -> Result<(), E> {
+        // One bit per node.
+        let mut visited = vec![0u64; self.nodes.len().div_ceil(64)];
+        let mut stack = vec![(0usize, root, 0u32)];
+        while let Some((i, state, depth)) = stack.pop() {
+            let Some(node) = self.nodes.get(i) else {
+                return Err(fault(WalkFault::Missing { node: i }));
+            };
+            let (word, bit) = (i / 64, 1u64 << (i % 64));
+            if visited[word] & bit != 0 {
+                return Err(fault(WalkFault::ReachedTwice { node: i }));
+            }
+            visited[word] |= bit;
+            if depth > MAX_DEPTH {
+                return Err(fault(WalkFault::TooDeep { node: i }));
+            }
+            if let Some((left, right)) = visit(i, node, depth, state)? {
+                let Node::Inner { right: r, .. } = *node else {
+                    unreachable!("only inner nodes have children")
+                };
+                stack.push((r.0 as usize, right, depth + 1));
+                stack.push((i + 1, left, depth + 1));
+            }
+        }
+        Ok(())
+    }
+
     /// Checks the invariants; returns the first violation.
     ///
     /// - the nodes form one tree in pre-order (left child next, right child
@@ -166,15 +206,20 @@ impl TreeIr {
             .max_element();
         let margin = Vec3::splat(scale * (1.0 / (1u32 << 20) as f32) + f32::MIN_POSITIVE);
         let grown = |c: &Aabb| Aabb::new(c.min - margin, c.max + margin);
-        // Structure: recurse over (node, end of its pre-order range).
+        // Structure: walk over (node, end of its pre-order range, cell).
         let mut expected_next = 0usize;
         let mut next_leaf_start = 0u32;
         let mut seen = vec![false; scene.len()];
-        let mut stack = vec![(0usize, n, self.bounds, 0u32)];
-        while let Some((i, end, cell, depth)) = stack.pop() {
-            if depth > MAX_DEPTH {
-                return Err(TreeError::TooDeep { node: i });
+        // Of the walk's own faults only the depth can occur here: every
+        // child is checked to lie inside its parent's range before it is
+        // pushed, and the ranges on the stack are disjoint.
+        let walk_fault = |fault: WalkFault| match fault {
+            WalkFault::TooDeep { node } => TreeError::TooDeep { node },
+            WalkFault::Missing { .. } | WalkFault::ReachedTwice { .. } => {
+                unreachable!("children are checked against their ranges")
             }
+        };
+        self.walk_checked((n, self.bounds), walk_fault, |i, node, _, (end, cell)| {
             if i != expected_next {
                 return Err(TreeError::NotInPreOrder {
                     node: i,
@@ -182,7 +227,7 @@ impl TreeIr {
                 });
             }
             expected_next += 1;
-            match self.nodes[i] {
+            match *node {
                 Node::Inner {
                     axis,
                     pos,
@@ -218,8 +263,7 @@ impl TreeIr {
                         });
                     }
                     let (lc, rc) = cell.split(k, pos);
-                    stack.push((r, end, rc, depth + 1));
-                    stack.push((i + 1, r, lc, depth + 1));
+                    Ok(Some(((r, lc), (end, rc))))
                 }
                 Node::Leaf { start, count } => {
                     if i + 1 != end {
@@ -252,9 +296,10 @@ impl TreeIr {
                             return Err(TreeError::LeafTriOutsideCell { node: i, tri: t.0 });
                         }
                     }
+                    Ok(None)
                 }
             }
-        }
+        })?;
         if expected_next != n {
             return Err(TreeError::Unreachable {
                 count: n - expected_next,
@@ -268,6 +313,17 @@ impl TreeIr {
         }
         Ok(())
     }
+}
+
+/// What [`TreeIr::walk_checked`] refuses before visiting a node.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WalkFault {
+    /// A child index at or past the end of the nodes.
+    Missing { node: usize },
+    /// A node reached a second time (not a tree).
+    ReachedTwice { node: usize },
+    /// A node deeper than [`MAX_DEPTH`].
+    TooDeep { node: usize },
 }
 
 /// Why [`TreeIr::validate`] refused a tree; the message names the node.
@@ -392,3 +448,83 @@ impl std::fmt::Display for TreeError {
 }
 
 impl std::error::Error for TreeError {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn leaf() -> Node {
+        Node::Leaf { start: 0, count: 0 }
+    }
+
+    fn inner(right: u32) -> Node {
+        Node::Inner {
+            axis: 0,
+            pos: 0.5,
+            right: NodeId(right),
+            t_ref: None,
+        }
+    }
+
+    fn tree(nodes: Vec<Node>) -> TreeIr {
+        TreeIr {
+            bounds: Aabb::new(Vec3::ZERO, Vec3::ONE),
+            nodes,
+            leaf_tris: Vec::new(),
+        }
+    }
+
+    /// The nodes `walk_checked` visits, with their depths and states (the
+    /// state counts the path: left adds 1, right adds 10), or its fault.
+    fn visits(t: &TreeIr) -> Result<Vec<(usize, u32, u32)>, WalkFault> {
+        let mut seen = Vec::new();
+        t.walk_checked(
+            0u32,
+            |f| f,
+            |i, node, depth, s| {
+                seen.push((i, depth, s));
+                Ok(matches!(node, Node::Inner { .. }).then_some((s + 1, s + 10)))
+            },
+        )?;
+        Ok(seen)
+    }
+
+    #[test]
+    fn walk_checked_visits_in_pre_order_with_states() {
+        let t = tree(vec![inner(4), inner(3), leaf(), leaf(), leaf()]);
+        assert_eq!(
+            visits(&t),
+            Ok(vec![
+                (0, 0, 0),
+                (1, 1, 1),
+                (2, 2, 2),
+                (3, 2, 11),
+                (4, 1, 10)
+            ])
+        );
+    }
+
+    #[test]
+    fn walk_checked_refuses_missing_shared_and_deep_nodes() {
+        assert_eq!(visits(&tree(vec![])), Err(WalkFault::Missing { node: 0 }));
+        assert_eq!(
+            visits(&tree(vec![inner(9), leaf()])),
+            Err(WalkFault::Missing { node: 9 })
+        );
+        // The right child is the left one: reached twice.
+        assert_eq!(
+            visits(&tree(vec![inner(1), leaf()])),
+            Err(WalkFault::ReachedTwice { node: 1 })
+        );
+        // A cycle back to the root (after its left child).
+        assert_eq!(
+            visits(&tree(vec![inner(0), leaf()])),
+            Err(WalkFault::ReachedTwice { node: 0 })
+        );
+        // A caterpillar one level deeper than MAX_DEPTH.
+        let d = MAX_DEPTH as usize + 1;
+        let mut nodes: Vec<Node> = (0..d).map(|i| inner((2 * d - i) as u32)).collect();
+        nodes.extend((0..=d).map(|_| leaf()));
+        assert_eq!(visits(&tree(nodes)), Err(WalkFault::TooDeep { node: d }));
+    }
+}

@@ -73,27 +73,34 @@ fn cli_dump_t_and_json_match_brute_force() {
     let dump = dir.join("t.f32");
     let img = dir.join("img.png");
     let exr = dir.join("img.exr");
-    let out = slimkd(&[
-        "render",
-        scene_path.to_str().unwrap(),
-        "--views",
-        views.to_str().unwrap(),
-        "--view",
-        "3",
-        "--size",
-        "37x23",
+    // `slimkd render` of view 3 at 37×23 with `options`: its JSON report.
+    let render_view_3 = |options: &[&str]| {
+        let mut args = vec![
+            "render",
+            scene_path.to_str().unwrap(),
+            "--views",
+            views.to_str().unwrap(),
+            "--view",
+            "3",
+            "--size",
+            "37x23",
+        ];
+        args.extend_from_slice(options);
+        args.push("--json");
+        let out = slimkd(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    let j = render_view_3(&[
         "--dump-t",
         dump.to_str().unwrap(),
         "-o",
         img.to_str().unwrap(),
-        "--json",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for key in [
         "mode",
         "threads",
@@ -135,29 +142,14 @@ fn cli_dump_t_and_json_match_brute_force() {
     assert_eq!((reader.info().width, reader.info().height), (37, 23));
 
     // The brute-force mode of the CLI reports the same figures, and EXR works.
-    let out = slimkd(&[
-        "render",
-        scene_path.to_str().unwrap(),
-        "--views",
-        views.to_str().unwrap(),
-        "--view",
-        "3",
-        "--size",
-        "37x23",
+    let b = render_view_3(&[
         "--mode",
         "brute",
         "--threads",
         "1",
         "-o",
         exr.to_str().unwrap(),
-        "--json",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let b: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(b["hits"], j["hits"]);
     assert_eq!(b["checksum"], j["checksum"]);
     assert_eq!(b["threads"], 1);

@@ -548,17 +548,7 @@ fn load_bunny() -> TriangleColumns {
 /// triangles that each span most of the grid, at different heights and
 /// tilts.
 fn big_over_small() -> Vec<[Vec3; 3]> {
-    let mut tris = Vec::new();
-    for i in 0..16 {
-        for j in 0..16 {
-            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
-            tris.push([
-                Vec3::new(x, y, 0.0),
-                Vec3::new(x + 1.0, y, 1.0),
-                Vec3::new(x, y + 1.0, 1.0),
-            ]);
-        }
-    }
+    let mut tris = slimkd::scene::slanted_grid(16);
     tris.insert(
         37,
         [
@@ -900,16 +890,7 @@ fn grid_under_huge(n: i32, big: Option<f32>) -> Vec<[Vec3; 3]> {
             Vec3::new(-1.0, b, 0.5),
         ]);
     }
-    for i in 0..n {
-        for j in 0..n {
-            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
-            tris.push([
-                Vec3::new(x, y, 0.0),
-                Vec3::new(x + 1.0, y, 1.0),
-                Vec3::new(x, y + 1.0, 1.0),
-            ]);
-        }
-    }
+    tris.extend(slimkd::scene::slanted_grid(n as usize));
     tris
 }
 

@@ -159,19 +159,31 @@ pub fn root_cell(union: Aabb) -> Aabb {
     }
 }
 
-/// Appends nodes in pre-order.
-struct TreeWriter {
+/// Appends nodes in pre-order, deciding with the SAH rules of the build
+/// which nodes are leaves (the naive and sweep builders).
+struct TreeWriter<'a> {
     tree: TreeIr,
+    sah: &'a SahParams,
+    depth_limit: u32,
+    progress: Option<&'a Progress>,
 }
 
-impl TreeWriter {
-    fn new(bounds: Aabb) -> TreeWriter {
+impl<'a> TreeWriter<'a> {
+    fn new(
+        bounds: Aabb,
+        scene: &TriangleColumns,
+        config: &'a BuildConfig,
+        progress: Option<&'a Progress>,
+    ) -> TreeWriter<'a> {
         TreeWriter {
             tree: TreeIr {
                 bounds,
                 nodes: Vec::new(),
                 leaf_tris: Vec::new(),
             },
+            sah: &config.sah,
+            depth_limit: config.sah.depth_limit(scene.len()),
+            progress,
         }
     }
 
@@ -180,6 +192,29 @@ impl TreeWriter {
         self.tree.leaf_tris.extend(tris);
         let count = self.tree.leaf_tris.len() as u32 - start;
         self.tree.nodes.push(Node::Leaf { start, count });
+    }
+
+    /// The decision for a node at `depth` (`weight` of the build's
+    /// progress): when [`sah::is_leaf`] says `best` does not pay, writes
+    /// the leaf of `refs`, counts `weight` as done and returns `None`;
+    /// otherwise returns the split and the cells of its two children.
+    fn split_or_leaf(
+        &mut self,
+        best: Option<Split>,
+        refs: &[TriRef],
+        cell: &Aabb,
+        depth: u32,
+        weight: u64,
+    ) -> Option<(Split, Aabb, Aabb)> {
+        let n = refs.len();
+        if sah::is_leaf(self.sah, best.as_ref(), n, depth, self.depth_limit) {
+            self.leaf(refs.iter().map(|r| r.tri));
+            Progress::add(self.progress, weight);
+            return None;
+        }
+        let split = best.expect("a split exists when the node is not a leaf");
+        let (left_cell, right_cell) = cell.split(split.axis as usize, split.pos);
+        Some((split, left_cell, right_cell))
     }
 
     /// Pushes an inner node whose right child is not known yet.

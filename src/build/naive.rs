@@ -13,9 +13,7 @@ pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Pr
     let mut ctx = Ctx {
         scene,
         config,
-        depth_limit: config.sah.depth_limit(scene.len()),
-        out: TreeWriter::new(bounds),
-        progress,
+        out: TreeWriter::new(bounds, scene, config, progress),
     };
     ctx.node(refs, bounds, 0, Progress::TOTAL);
     ctx.out.tree
@@ -24,9 +22,7 @@ pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Pr
 struct Ctx<'a> {
     scene: &'a TriangleColumns,
     config: &'a BuildConfig,
-    depth_limit: u32,
-    out: TreeWriter,
-    progress: Option<&'a Progress>,
+    out: TreeWriter<'a>,
 }
 
 impl Ctx<'_> {
@@ -63,21 +59,12 @@ impl Ctx<'_> {
 
     fn node(&mut self, refs: Vec<TriRef>, cell: Aabb, depth: u32, weight: u64) {
         let best = self.best_split(&refs, &cell);
-        if sah::is_leaf(
-            &self.config.sah,
-            best.as_ref(),
-            refs.len(),
-            depth,
-            self.depth_limit,
-        ) {
-            self.out.leaf(refs.iter().map(|r| r.tri));
-            Progress::add(self.progress, weight);
+        let Some((split, left_cell, right_cell)) =
+            self.out.split_or_leaf(best, &refs, &cell, depth, weight)
+        else {
             return;
-        }
-        let split = best.expect("a split exists when the node is not a leaf");
-        let (left_cell, right_cell) = cell.split(split.axis as usize, split.pos);
-        let mut left = Vec::new();
-        let mut right = Vec::new();
+        };
+        let (mut left, mut right) = (Vec::new(), Vec::new());
         for r in &refs {
             match classify(&r.bounds, &split) {
                 Placement::Left => left.push(*r),

@@ -164,10 +164,8 @@ pub fn build_subtree(
     let mut ctx = Ctx {
         scene,
         config,
-        depth_limit: config.sah.depth_limit(scene.len()),
-        out: TreeWriter::new(cell),
+        out: TreeWriter::new(cell, scene, config, progress),
         place,
-        progress,
     };
     ctx.node(refs, events, cell, depth, Progress::TOTAL);
     PLACE.with(|p| *p.borrow_mut() = std::mem::take(&mut ctx.place));
@@ -181,12 +179,10 @@ thread_local! {
 struct Ctx<'a> {
     scene: &'a TriangleColumns,
     config: &'a BuildConfig,
-    depth_limit: u32,
-    out: TreeWriter,
+    out: TreeWriter<'a>,
     /// Scratch, indexed by triangle id: where each triangle of the node
     /// being split goes. Only entries of that node's triangles are valid.
     place: Vec<Placement>,
-    progress: Option<&'a Progress>,
 }
 
 impl Ctx<'_> {
@@ -205,19 +201,11 @@ impl Ctx<'_> {
                 sweep_axis(&self.config.sah, &cell, sa, axis, ev, refs.len(), &mut best);
             }
         }
-        if sah::is_leaf(
-            &self.config.sah,
-            best.as_ref(),
-            refs.len(),
-            depth,
-            self.depth_limit,
-        ) {
-            self.out.leaf(refs.iter().map(|r| r.tri));
-            Progress::add(self.progress, weight);
+        let Some((split, left_cell, right_cell)) =
+            self.out.split_or_leaf(best, &refs, &cell, depth, weight)
+        else {
             return;
-        }
-        let split = best.expect("a split exists when the node is not a leaf");
-        let (left_cell, right_cell) = cell.split(split.axis as usize, split.pos);
+        };
 
         // Classify; clip the straddlers.
         let mut left = Vec::new();

@@ -73,6 +73,22 @@ pub use write::{FileConfig, Preset, WriteOptions, write_file, write_to_vec};
 use std::fmt;
 use std::path::PathBuf;
 
+/// Refuses a triangle with a vertex index of `n_vertices` or more: the
+/// writer's check of its scene and the reader's of its file.
+fn check_vertex_indices(triangles: &[[u32; 3]], n_vertices: u64) -> Result<(), FormatError> {
+    match triangles
+        .iter()
+        .position(|t| t.iter().any(|&v| u64::from(v) >= n_vertices))
+    {
+        Some(p) => Err(FormatError::Index {
+            section: "triangles",
+            position: p as u64,
+            message: format!("vertex index out of {n_vertices}"),
+        }),
+        None => Ok(()),
+    }
+}
+
 pub const MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
 pub const VERSION: u32 = 1;
 pub const ENDIAN_CHECK: u32 = 0x0A0B_0C0D;

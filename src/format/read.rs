@@ -510,18 +510,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 message: format!("triangle {} of {n_tris}", self.idx32()[p]),
             });
         }
-        let n_vertices = self.counts.vertices;
-        if let Some(p) = self
-            .triangles()
-            .iter()
-            .position(|t| t.iter().any(|&v| u64::from(v) >= n_vertices))
-        {
-            return Err(FormatError::Index {
-                section: "triangles",
-                position: p as u64,
-                message: format!("vertex index out of {n_vertices}"),
-            });
-        }
+        super::check_vertex_indices(self.triangles(), self.counts.vertices)?;
         if let Some(p) = self
             .vertices()
             .iter()

@@ -6,7 +6,7 @@ use super::{
     SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::scene::TriangleColumns;
-use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId};
+use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId, WalkFault};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
 
@@ -159,34 +159,23 @@ fn layout(
         position: i as u64,
         message: format!("node {i} lists triangle {} of {n_tris}", t.0),
     };
-    // Each IR node is laid out at most once, so a malformed tree (a cycle,
-    // shared children) cannot make the loop run away. One bit per node.
-    let mut visited = vec![0u64; tree.nodes.len().div_ceil(64)];
-    // (IR node, slot in `words`, depth), processed left subtree first.
-    let mut stack = vec![(0usize, 0usize, 0u32)];
+    // Each IR node is laid out at most once (the walk refuses a node
+    // reached twice), so a malformed tree (a cycle, shared children) cannot
+    // make the loop run away. The state is the node's slot in `words`.
+    let n_nodes = tree.nodes.len();
+    let walk_fault = |fault: WalkFault| match fault {
+        WalkFault::Missing { node } => {
+            bad_node(node, format!("a child outside the {n_nodes} nodes"))
+        }
+        WalkFault::ReachedTwice { node } => bad_node(node, "reached twice (not a tree)".into()),
+        WalkFault::TooDeep { .. } => too_large(&format!("a node deeper than {MAX_DEPTH}")),
+    };
     let mut ids = Vec::new();
-    while let Some((i, slot, depth)) = stack.pop() {
-        let Some(&node) = tree.nodes.get(i) else {
-            return Err(bad_node(
-                i,
-                format!("a child outside the {} nodes", tree.nodes.len()),
-            ));
-        };
-        let (word, bit) = (i / 64, 1u64 << (i % 64));
-        if visited[word] & bit != 0 {
-            return Err(bad_node(i, "reached twice (not a tree)".into()));
-        }
-        visited[word] |= bit;
-        if depth > MAX_DEPTH {
-            return Err(too_large(&format!("a node deeper than {MAX_DEPTH}")));
-        }
+    tree.walk_checked(0usize, walk_fault, |i, &node, depth, slot| {
         out.max_depth = out.max_depth.max(depth);
         match node {
             Node::Inner {
-                axis,
-                pos,
-                right,
-                t_ref,
+                axis, pos, t_ref, ..
             } => {
                 if axis > 2 {
                     return Err(bad_node(i, format!("axis {axis}")));
@@ -220,8 +209,7 @@ fn layout(
                     slot,
                     node::encode_inner(axis, t_ref.is_some(), block as u32, pos),
                 );
-                stack.push((right.0 as usize, first_child + 1, depth + 1));
-                stack.push((i + 1, first_child, depth + 1));
+                Ok(Some((first_child, first_child + 1)))
             }
             Node::Leaf { start, count } => {
                 // Checked before the list is read: a leaf this large is
@@ -263,9 +251,10 @@ fn layout(
                     node::encode_leaf32(ids.len() as u32, first)
                 };
                 words.set(slot, word);
+                Ok(None)
             }
         }
-    }
+    })?;
     out.n_words = words.len() as u64;
     Ok(out)
 }
@@ -298,19 +287,7 @@ fn check_scene(tree: &TreeIr, scene: &TriangleColumns) -> Result<(), FormatError
             message: "non-finite coordinate".into(),
         });
     }
-    let n_vertices = scene.positions().len() as u64;
-    if let Some(p) = scene
-        .indices()
-        .iter()
-        .position(|t| t.iter().any(|&v| u64::from(v) >= n_vertices))
-    {
-        return Err(FormatError::Index {
-            section: "triangles",
-            position: p as u64,
-            message: format!("vertex index out of {n_vertices}"),
-        });
-    }
-    Ok(())
+    super::check_vertex_indices(scene.indices(), scene.positions().len() as u64)
 }
 
 /// Bytes encoded per write by [`SectionSink`].

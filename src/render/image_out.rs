@@ -249,21 +249,28 @@ mod tests {
 
     /// Lists the entries of `dir` by name.
     fn entries(dir: &Path) -> Vec<String> {
-        let mut names: Vec<String> = std::fs::read_dir(dir)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .collect();
-        names.sort();
-        names
+        crate::fsio::entry_names(dir).unwrap()
+    }
+
+    /// Writes the sample frame with `write` to `file` in a fresh test
+    /// directory `dir`, which then holds that file alone; returns the
+    /// directory, the file's path and the frame.
+    fn write_sample(
+        dir: &str,
+        file: &str,
+        write: fn(&Path, &Frame) -> Result<(), ImageError>,
+    ) -> (PathBuf, PathBuf, Frame) {
+        let dir = test_dir(dir);
+        let path = dir.join(file);
+        let frame = sample_frame();
+        write(&path, &frame).unwrap();
+        assert_eq!(entries(&dir), vec![file.to_string()]);
+        (dir, path, frame)
     }
 
     #[test]
     fn png_round_trip() {
-        let dir = test_dir("png");
-        let path = dir.join("out.PNG");
-        let frame = sample_frame();
-        write_image(&path, &frame).unwrap();
-        assert_eq!(entries(&dir), vec!["out.PNG".to_string()]);
+        let (dir, path, frame) = write_sample("png", "out.PNG", write_image);
 
         let file = std::io::BufReader::new(File::open(&path).unwrap());
         let mut reader = png::Decoder::new(file).read_info().unwrap();
@@ -286,11 +293,7 @@ mod tests {
     fn exr_round_trip() {
         use exr::prelude::*;
 
-        let dir = test_dir("exr");
-        let path = dir.join("out.exr");
-        let frame = sample_frame();
-        write_image(&path, &frame).unwrap();
-        assert_eq!(entries(&dir), vec!["out.exr".to_string()]);
+        let (dir, path, frame) = write_sample("exr", "out.exr", write_image);
 
         let image = read_all_flat_layers_from_file(&path).unwrap();
         let layer = &image.layer_data[0];
@@ -320,10 +323,7 @@ mod tests {
 
     #[test]
     fn depth_f32_layout() {
-        let dir = test_dir("depth");
-        let path = dir.join("depth.bin");
-        let frame = sample_frame();
-        write_depth_f32(&path, &frame).unwrap();
+        let (dir, path, frame) = write_sample("depth", "depth.bin", write_depth_f32);
         let bytes = std::fs::read(&path).unwrap();
         assert_eq!(bytes.len(), 5 * 3 * 4);
         let values: Vec<f32> = bytes
@@ -331,7 +331,6 @@ mod tests {
             .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
             .collect();
         assert_eq!(values, frame.depth);
-        assert_eq!(entries(&dir), vec!["depth.bin".to_string()]);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -317,3 +317,21 @@ impl std::error::Error for SceneError {
         }
     }
 }
+
+/// A synthetic scene for tests: an `n`×`n` grid of small slanted triangles
+/// 2 apart (corner `(2i, 2j, 0)`, the others one unit along x and y and
+/// one up), row by row (`i` outer).
+pub fn slanted_grid(n: usize) -> Vec<[Vec3; 3]> {
+    let mut tris = Vec::with_capacity(n * n);
+    for i in 0..n {
+        for j in 0..n {
+            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
+            tris.push([
+                Vec3::new(x, y, 0.0),
+                Vec3::new(x + 1.0, y, 1.0),
+                Vec3::new(x, y + 1.0, 1.0),
+            ]);
+        }
+    }
+    tris
+}

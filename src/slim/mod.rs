@@ -84,6 +84,7 @@ use crate::format::node::leaf_index_bytes;
 use crate::geom::{Aabb, clip_triangle};
 use crate::progress::Progress;
 use crate::scene::TriangleColumns;
+use crate::sys::lap;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use rayon::prelude::*;
 use std::borrow::Borrow;
@@ -1122,13 +1123,6 @@ pub fn slim_with_progress(
     (out, report, phases)
 }
 
-fn lap(clock: &mut Instant) -> f64 {
-    let now = Instant::now();
-    let s = now.duration_since(*clock).as_secs_f64();
-    *clock = now;
-    s
-}
-
 /// A test scene: triangle 0 is big and spans an 8×8 grid of small
 /// slanted triangles 2 apart, so the standard tree lists it in many leaves.
 #[cfg(test)]
@@ -1139,16 +1133,7 @@ pub(crate) fn huge_over_grid() -> TriangleColumns {
         Vec3::new(30.0, -1.0, 0.5),
         Vec3::new(-1.0, 30.0, 0.5),
     ]];
-    for i in 0..8 {
-        for j in 0..8 {
-            let (x, y) = (i as f32 * 2.0, j as f32 * 2.0);
-            tris.push([
-                Vec3::new(x, y, 0.0),
-                Vec3::new(x + 1.0, y, 1.0),
-                Vec3::new(x, y + 1.0, 1.0),
-            ]);
-        }
-    }
+    tris.extend(crate::scene::slanted_grid(8));
     TriangleColumns::from_triangles(&tris).unwrap()
 }
 

@@ -8,6 +8,7 @@
 //! are left out of every chart.
 
 use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use std::fmt;
 
@@ -25,6 +26,41 @@ impl std::error::Error for PlotError {}
 
 fn plot_err(e: impl fmt::Display) -> PlotError {
     PlotError(e.to_string())
+}
+
+/// A chart of `f64` against `f64` drawn into an SVG string.
+type Chart<'a, 'b> = ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// Draws the axes: their descriptions, tick labels with `xd` and `yd`
+/// decimals, and no light grid lines.
+fn draw_mesh(
+    chart: &mut Chart<'_, '_>,
+    (x_desc, y_desc): (&str, &str),
+    (xd, yd): (usize, usize),
+) -> Result<(), PlotError> {
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_label_formatter(&|x| format!("{x:.xd$}"))
+        .y_label_formatter(&|y| format!("{y:.yd$}"))
+        .light_line_style(WHITE.mix(0.0))
+        .draw()
+        .map_err(plot_err)
+}
+
+/// Draws the legend of the chart's series at `position`.
+fn draw_legend<'a, 'b: 'a>(
+    chart: &mut Chart<'a, 'b>,
+    position: SeriesLabelPosition,
+) -> Result<(), PlotError> {
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(position)
+        .draw()
+        .map_err(plot_err)
 }
 
 /// One point of a scatter plot with the text written next to it.
@@ -110,20 +146,12 @@ pub fn scatter_svg(
     size: (u32, u32),
 ) -> Result<String, PlotError> {
     let finite = |p: &&LabelledPoint| p.x.is_finite() && p.y.is_finite();
-    let xs = padded_range(
-        series
-            .iter()
-            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.x))
-            .chain([0.0]),
-        0.12,
-    );
-    let ys = padded_range(
-        series
-            .iter()
-            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.y))
-            .chain([0.0]),
-        0.12,
-    );
+    // The range of one coordinate over every series, zero included.
+    let range = |coord: fn(&LabelledPoint) -> f64| {
+        let values = series.iter().flat_map(|s| s.points.iter().filter(finite));
+        padded_range(values.map(coord).chain([0.0]), 0.12)
+    };
+    let (xs, ys) = (range(|p| p.x), range(|p| p.y));
     let (xd, yd) = (tick_decimals(&xs), tick_decimals(&ys));
     let (x0, x1, y0, y1) = (xs.start, xs.end, ys.start, ys.end);
     let mut svg = String::new();
@@ -137,15 +165,7 @@ pub fn scatter_svg(
             .y_label_area_size(56)
             .build_cartesian_2d(xs, ys)
             .map_err(plot_err)?;
-        chart
-            .configure_mesh()
-            .x_desc(x_desc)
-            .y_desc(y_desc)
-            .x_label_formatter(&|x| format!("{x:.xd$}"))
-            .y_label_formatter(&|y| format!("{y:.yd$}"))
-            .light_line_style(WHITE.mix(0.0))
-            .draw()
-            .map_err(plot_err)?;
+        draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
         let zero = BLACK.mix(0.5).stroke_width(1);
         chart
             .draw_series([
@@ -166,13 +186,7 @@ pub fn scatter_svg(
                 .legend(move |(x, y)| Circle::new((x + 10, y), 4, c.filled()));
         }
         if !series.is_empty() {
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .position(SeriesLabelPosition::UpperLeft)
-                .draw()
-                .map_err(plot_err)?;
+            draw_legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
         }
         root.present().map_err(plot_err)?;
     }
@@ -187,23 +201,17 @@ fn line_panel(
     y_desc: &str,
 ) -> Result<(), PlotError> {
     let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
-    let xs = padded_range(
-        panel
+    // The range of one coordinate over every series.
+    let range = |coord: fn(&(f64, f64)) -> f64, pad: f64| {
+        let values = panel
             .series
             .iter()
-            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.0)),
-        0.02,
-    );
+            .flat_map(|s| s.points.iter().filter(finite));
+        padded_range(values.map(coord), pad)
+    };
+    let xs = range(|p| p.0, 0.02);
     // Counts start at zero.
-    let y_hi = padded_range(
-        panel
-            .series
-            .iter()
-            .flat_map(|s| s.points.iter().filter(finite).map(|p| p.1)),
-        0.05,
-    )
-    .end
-    .max(1.0);
+    let y_hi = range(|p| p.1, 0.05).end.max(1.0);
     let xd = tick_decimals(&xs);
     let yd = tick_decimals(&(0.0..y_hi));
     let mut chart = ChartBuilder::on(area)
@@ -213,15 +221,7 @@ fn line_panel(
         .y_label_area_size(64)
         .build_cartesian_2d(xs, 0.0..y_hi)
         .map_err(plot_err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_desc)
-        .y_desc(y_desc)
-        .x_label_formatter(&|x| format!("{x:.xd$}"))
-        .y_label_formatter(&|y| format!("{y:.yd$}"))
-        .light_line_style(WHITE.mix(0.0))
-        .draw()
-        .map_err(plot_err)?;
+    draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
     for (i, s) in panel.series.iter().enumerate() {
         let c = colour(i);
         let pts: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
@@ -238,13 +238,7 @@ fn line_panel(
             .map_err(plot_err)?;
     }
     if !panel.series.is_empty() {
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(plot_err)?;
+        draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
     }
     Ok(())
 }

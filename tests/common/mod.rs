@@ -4,11 +4,16 @@
 
 #![allow(dead_code)]
 
+pub mod kd;
+
 use glam::Vec3;
 use proptest::prelude::*;
+use slimkd::build::level::LevelOptions;
 use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::format::{self, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
+use slimkd::slim::{self, SlimParams};
 use slimkd::trace;
 use slimkd::tree::TreeIr;
 
@@ -50,8 +55,10 @@ pub fn columns(tris: &[[Vec3; 3]]) -> TriangleColumns {
     TriangleColumns::from_triangles(tris).expect("finite test triangles")
 }
 
-/// Builds with both builders, asserts they produce the same tree and that
-/// it is valid; returns it.
+/// Builds with every builder (naive, sweep and level), asserts they
+/// produce the same tree and that it is valid; slims it with the `fast`
+/// preset (a valid tree too) and writes both trees to `.kd` bytes that
+/// read back, verify and hold the tree's nodes. Returns the standard tree.
 pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
     let sweep = build::build(scene, config, Builder::Sweep, None).unwrap();
     let naive = build::build(scene, config, Builder::Naive, None).unwrap();
@@ -59,7 +66,27 @@ pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
     if let Err(e) = sweep.validate(scene) {
         panic!("invalid tree: {e}\n{sweep:?}");
     }
+    let (level, _) = build::level::build(scene, config, None, &LevelOptions::default())
+        .expect("the level build succeeds");
+    assert_eq!(level, sweep, "level and sweep trees differ");
+    let (slim, _) = slim::slim(&sweep, scene, config, &SlimParams::FAST);
+    if let Err(e) = slim.validate(scene) {
+        panic!("invalid slim tree: {e}\n{slim:?}");
+    }
+    for tree in [&sweep, &slim] {
+        assert_round_trip(tree, scene);
+    }
     sweep
+}
+
+/// Writes `tree` to `.kd` bytes and reads them back: the file is valid,
+/// its checksums hold, and it holds the tree (the same nodes, split planes
+/// bit for bit, leaves as sets of input ids) and its figures.
+pub fn assert_round_trip(tree: &TreeIr, scene: &TriangleColumns) {
+    let bytes = format::write_to_vec(tree, scene, &WriteOptions::default()).unwrap();
+    let file = kd::read(&bytes);
+    assert_eq!(kd::file_shape(&file), kd::ir_shape(tree), "the file's tree");
+    kd::assert_figures(&file, tree, scene);
 }
 
 /// Asserts that traversal returns exactly brute force's hit for each ray.
@@ -148,6 +175,90 @@ pub fn packet(g: i32) -> impl Strategy<Value = [Ray; 16]> {
     prop_oneof![3 => coherent, 1 => loose]
 }
 
+/// The named degenerate shapes: the scenes of `tests/degenerate.rs`, which
+/// `tests/level.rs` also builds with every threshold.
+pub fn degenerate_scenes() -> Vec<(&'static str, Vec<[Vec3; 3]>)> {
+    let mut out = vec![("empty", vec![])];
+    out.push((
+        "one triangle",
+        vec![[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]],
+    ));
+    let mut sheet = Vec::new();
+    for i in 0..8 {
+        for j in 0..8 {
+            let (x, y) = (i as f32, j as f32);
+            sheet.push([v(x, y, 2.0), v(x + 1.0, y, 2.0), v(x, y + 1.0, 2.0)]);
+            sheet.push([
+                v(x + 1.0, y, 2.0),
+                v(x + 1.0, y + 1.0, 2.0),
+                v(x, y + 1.0, 2.0),
+            ]);
+        }
+    }
+    out.push(("all coplanar", sheet));
+    let mut lattice = Vec::new();
+    for i in 0..3 {
+        for j in 0..3 {
+            for k in 0..3 {
+                let lo = v(i as f32 * 2.0, j as f32 * 2.0, k as f32 * 2.0);
+                lattice.extend(box_mesh(lo, lo + Vec3::ONE));
+            }
+        }
+    }
+    out.push(("axis-aligned in split planes", lattice));
+    out.push((
+        "zero-area and point",
+        vec![
+            [v(0.0, 0.0, 0.0), v(1.0, 1.0, 1.0), v(2.0, 2.0, 2.0)],
+            [v(1.0, 1.0, 1.0); 3],
+            [v(3.0, 0.0, 0.0), v(3.0, 0.0, 0.0), v(3.0, 2.0, 0.0)],
+            [v(0.0, 0.0, 1.0), v(3.0, 0.0, 1.0), v(0.0, 3.0, 1.0)],
+        ],
+    ));
+    let t = [v(0.0, 0.0, 1.0), v(2.0, 0.0, 1.0), v(0.0, 2.0, 1.0)];
+    let mut dups = vec![[v(5.0, 5.0, 5.0), v(6.0, 5.0, 5.0), v(5.0, 6.0, 5.0)]];
+    dups.extend(std::iter::repeat_n(t, 10));
+    out.push(("coincident duplicates", dups));
+    let mut needle = vec![[v(0.0, 0.0, 0.0), v(100.0, 0.001, 0.0), v(100.0, 0.0, 0.002)]];
+    for i in 0..20 {
+        let x = i as f32 * 5.0;
+        needle.push([v(x, -1.0, -1.0), v(x, 1.0, -1.0), v(x, 0.0, 1.0)]);
+    }
+    out.push(("needle", needle));
+    let mut huge = vec![[
+        v(-100.0, -100.0, 0.5),
+        v(300.0, -100.0, 0.5),
+        v(-100.0, 300.0, 0.5),
+    ]];
+    for i in 0..6 {
+        for j in 0..6 {
+            let (x, y) = (i as f32 * 10.0, j as f32 * 10.0);
+            huge.push([v(x, y, 0.0), v(x + 1.0, y, 1.0), v(x, y + 1.0, 1.0)]);
+        }
+    }
+    out.push(("huge triangle spanning the scene", huge));
+    let mut boxes = box_mesh(v(0.0, 0.0, 0.0), v(10.0, 10.0, 10.0));
+    boxes.extend(box_mesh(v(4.0, 4.0, 4.0), v(6.0, 6.0, 6.0)));
+    out.push(("box inside a box", boxes));
+    let mut deep = Vec::new();
+    let mut s = 1.0f32;
+    for _ in 0..60 {
+        deep.push([v(0.0, 0.0, 0.0), v(s, 0.0, 0.0), v(0.0, s, s)]);
+        s *= 0.5;
+    }
+    out.push(("deep corner cluster", deep));
+    out
+}
+
+/// The degenerate scene called `name` in [`degenerate_scenes`].
+pub fn degenerate_scene(name: &str) -> Vec<[Vec3; 3]> {
+    degenerate_scenes()
+        .into_iter()
+        .find(|(n, _)| *n == name)
+        .unwrap_or_else(|| panic!("no degenerate scene {name:?}"))
+        .1
+}
+
 /// A directory of this test process (named after the test file, the
 /// process and `name`) under the system temporary directory, made if
 /// missing; what is in it stays.
@@ -167,4 +278,9 @@ pub fn fresh_temp_dir(name: &str) -> std::path::PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
     dir
+}
+
+/// The names of the entries of `dir`, sorted.
+pub fn dir_entries(dir: &std::path::Path) -> Vec<String> {
+    slimkd::fsio::entry_names(dir).unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display()))
 }

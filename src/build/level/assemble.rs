@@ -136,15 +136,12 @@ impl SubStream {
         head.copy_from_slice(&[rec, nodes.len() as u32, leaf_tris.len() as u32]);
         for (p, n) in packed.chunks_exact_mut(NODE_WORDS).zip(nodes) {
             p.copy_from_slice(&match *n {
-                Node::Inner {
-                    axis,
-                    pos,
-                    right,
-                    t_ref,
-                } => {
-                    assert!(t_ref.is_none(), "standard trees hoist no triangles");
-                    [u32::from(axis), pos.to_bits(), right.0]
+                Node::Inner { t_ref: Some(_), .. } => {
+                    panic!("standard trees hoist no triangles")
                 }
+                Node::Inner {
+                    axis, pos, right, ..
+                } => [u32::from(axis), pos.to_bits(), right.0],
                 Node::Leaf { start, count } => [LEAF, start, count],
             });
         }

@@ -110,6 +110,7 @@ use super::{BuildConfig, Progress, root_cell};
 use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
+use crate::sys::lap;
 use crate::tree::{TreeIr, TriId};
 use rayon::prelude::*;
 use std::sync::atomic::Ordering;
@@ -168,13 +169,6 @@ pub fn build(
         .zip(cpu_seconds())
         .map_or(0.0, |(start, end)| end - start);
     Ok((tree, report))
-}
-
-fn lap(clock: &mut Instant) -> f64 {
-    let now = Instant::now();
-    let s = now.duration_since(*clock).as_secs_f64();
-    *clock = now;
-    s
 }
 
 /// One node of a level.

@@ -144,61 +144,63 @@ pub fn best_split(
         which == Boxes::Count || scratch.counted,
         "no counted node to price again"
     );
+    let node = TinyNode {
+        params,
+        cell,
+        sa,
+        boxes,
+        which,
+    };
     match simd {
         #[cfg(target_arch = "x86_64")]
         SimdLevel::Avx512 => {
             // SAFETY: `SimdLevel::Avx512` is only made by `SimdLevel::detect`
             // (or chosen from `SimdLevel::available`) when the CPU reports
             // avx512f.
-            unsafe { best_split_avx512(params, cell, sa, boxes, which, scratch, best) }
+            unsafe { best_split_avx512(&node, scratch, best) }
         }
         #[cfg(target_arch = "x86_64")]
         SimdLevel::Avx2 => {
             // SAFETY: as above, the CPU reported avx2.
-            unsafe { best_split_avx2(params, cell, sa, boxes, which, scratch, best) }
+            unsafe { best_split_avx2(&node, scratch, best) }
         }
-        _ => best_split_lanes(params, cell, sa, boxes, which, scratch, best),
+        _ => best_split_lanes(&node, scratch, best),
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn best_split_avx512(
-    params: &SahParams,
-    cell: &Aabb,
+/// The arguments of [`best_split`] that describe the node.
+struct TinyNode<'a> {
+    params: &'a SahParams,
+    cell: &'a Aabb,
     sa: f64,
-    boxes: &[Box6],
+    boxes: &'a [Box6],
     which: Boxes,
-    scratch: &mut Scratch,
-    best: &mut Option<Split>,
-) {
-    best_split_lanes(params, cell, sa, boxes, which, scratch, best)
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn best_split_avx2(
-    params: &SahParams,
-    cell: &Aabb,
-    sa: f64,
-    boxes: &[Box6],
-    which: Boxes,
-    scratch: &mut Scratch,
-    best: &mut Option<Split>,
-) {
-    best_split_lanes(params, cell, sa, boxes, which, scratch, best)
+/// `$name`: [`best_split_lanes`] compiled with the instruction set
+/// `$feature` enabled.
+macro_rules! best_split_with {
+    ($name:ident, $feature:literal) => {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $feature)]
+        fn $name(node: &TinyNode<'_>, scratch: &mut Scratch, best: &mut Option<Split>) {
+            best_split_lanes(node, scratch, best)
+        }
+    };
 }
+
+best_split_with!(best_split_avx512, "avx512f");
+best_split_with!(best_split_avx2, "avx2");
 
 #[inline(always)]
-fn best_split_lanes(
-    params: &SahParams,
-    cell: &Aabb,
-    sa: f64,
-    boxes: &[Box6],
-    which: Boxes,
-    scratch: &mut Scratch,
-    best: &mut Option<Split>,
-) {
+fn best_split_lanes(node: &TinyNode<'_>, scratch: &mut Scratch, best: &mut Option<Split>) {
+    let TinyNode {
+        params,
+        cell,
+        sa,
+        boxes,
+        which,
+    } = *node;
     if which == Boxes::Count {
         scratch.off[0] = 0;
         for axis in 0..3 {

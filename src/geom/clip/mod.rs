@@ -212,6 +212,27 @@ impl Bounds64 {
 /// When the triangle lies inside the box its own bounds are returned
 /// unchanged (exactly, no rounding).
 pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
+    clip_triangle_by(tri, bx, |tb| {
+        let mut poly = Polygon::triangle(tri);
+        let mut scratch = Polygon::EMPTY;
+        let poly = poly.clip_to_box(tb, bx, &mut scratch);
+        let mut b = Bounds64::EMPTY;
+        for p in &poly.v[..poly.n] {
+            b.add(p);
+        }
+        b.finish(bx, tb)
+    })
+}
+
+/// [`clip_triangle`] with the clip itself `clip(tb)` (`tb`: the
+/// triangle's bounds), called only when the triangle's bounds neither lie
+/// inside the box (they are the answer) nor miss it (`None`).
+#[inline(always)]
+fn clip_triangle_by(
+    tri: &[Vec3; 3],
+    bx: &Aabb,
+    clip: impl FnOnce(&Aabb) -> Option<Aabb>,
+) -> Option<Aabb> {
     let tb = Aabb::of_triangle(tri);
     if bx.contains(&tb) {
         return Some(tb);
@@ -219,14 +240,7 @@ pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
     if !bx.overlaps(&tb) {
         return None;
     }
-    let mut poly = Polygon::triangle(tri);
-    let mut scratch = Polygon::EMPTY;
-    let poly = poly.clip_to_box(&tb, bx, &mut scratch);
-    let mut b = Bounds64::EMPTY;
-    for p in &poly.v[..poly.n] {
-        b.add(p);
-    }
-    b.finish(bx, &tb)
+    clip(&tb)
 }
 
 /// The conservative bounds of the triangle in the two halves of `cell`

@@ -1,7 +1,7 @@
 //! The textbook form of the clip, kept as the reference the branch-free
 //! code must match bit for bit (see the declaration in the parent module).
 
-use super::{Aabb, MAX_POLY, crossing};
+use super::{Aabb, MAX_POLY, clip_triangle_by, crossing};
 use crate::geom::{f32_round_down, f32_round_up};
 use glam::Vec3;
 
@@ -84,15 +84,12 @@ fn finish(pts: &[[f64; 3]], bx: &Aabb, tb: &Aabb) -> Option<Aabb> {
 }
 
 pub fn clip_triangle(tri: &[Vec3; 3], bx: &Aabb) -> Option<Aabb> {
-    let tb = Aabb::of_triangle(tri);
-    if bx.contains(&tb) {
-        return Some(tb);
-    }
-    if !bx.overlaps(&tb) {
-        return None;
-    }
-    let p = to_cell(tri, &tb, bx, bx);
-    finish(&p.v[..p.n], bx, &tb)
+    // The same trivial cases as the real clip; the clip itself is this
+    // module's.
+    clip_triangle_by(tri, bx, |tb| {
+        let p = to_cell(tri, tb, bx, bx);
+        finish(&p.v[..p.n], bx, tb)
+    })
 }
 
 pub fn clip_split(

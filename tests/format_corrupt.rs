@@ -1,0 +1,1077 @@
+//! Corrupt `.kd` files are rejected without panics, with specific errors:
+//! every single-bit flip, truncation, overwrites, random byte strings and
+//! targeted edits.
+
+mod common;
+
+use common::kd::*;
+use glam::Vec3;
+use slimkd::format::node::{self, LEAF16_LIMIT, NodeWord};
+use slimkd::format::{FormatError, HEADER_SIZE, KdFile, Section, aligned_copy};
+use slimkd::geom::{Aabb, Ray};
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::{self, ClosestHit, Hit};
+use std::panic::{AssertUnwindSafe, catch_unwind};
+
+// ---------------------------------------------------------------------
+// Corrupt files.
+// ---------------------------------------------------------------------
+
+/// What reading a byte string gave.
+#[derive(Debug)]
+enum Outcome {
+    /// `from_bytes` refused it.
+    Rejected(FormatError),
+    /// `from_bytes` accepted it and `verify` refused it.
+    BadChecksum(FormatError),
+    /// Both accepted it.
+    Accepted,
+}
+
+/// Rays and packets traced over every file `from_bytes` accepts.
+struct Probes {
+    rays: Vec<Ray>,
+    packets: Vec<[Ray; 16]>,
+    levels: Vec<SimdLevel>,
+}
+
+impl Probes {
+    fn around(bounds: &Aabb, seed: u64) -> Probes {
+        let mut rng = Rng(seed);
+        Probes {
+            rays: rays_at(bounds, &mut rng, 16),
+            packets: packets_at(bounds, &mut rng, 1),
+            levels: SimdLevel::available(),
+        }
+    }
+}
+
+/// Reads `bytes` as a file; when `from_bytes` accepts it, traces every
+/// probe over it with every traverser. `Err` says what panicked.
+fn probe(bytes: &[u8], probes: &Probes) -> Result<Outcome, String> {
+    let data = aligned_copy(bytes);
+    let file = match catch_unwind(AssertUnwindSafe(|| KdFile::from_bytes(data))) {
+        Ok(Ok(file)) => file,
+        Ok(Err(e)) => return Ok(Outcome::Rejected(e)),
+        Err(_) => return Err("from_bytes panicked".into()),
+    };
+    let verified =
+        catch_unwind(AssertUnwindSafe(|| file.verify())).map_err(|_| "verify panicked")?;
+    catch_unwind(AssertUnwindSafe(|| {
+        for ray in &probes.rays {
+            std::hint::black_box(trace::traverse(&file, ray));
+        }
+        for rays in &probes.packets {
+            for &level in &probes.levels {
+                let mut out = [Hit::MISS; 16];
+                PacketTracer::with_level(&file, level).closest_hit_4x4(rays, &mut out);
+                std::hint::black_box(out);
+            }
+        }
+        std::hint::black_box(file.leaf_depth_histogram());
+        std::hint::black_box(file.figures().tree_bytes());
+    }))
+    .map_err(|_| "traversal panicked")?;
+    Ok(match verified {
+        Ok(()) => Outcome::Accepted,
+        Err(e) => Outcome::BadChecksum(e),
+    })
+}
+
+/// Runs cases and collects failures, so that one run reports many.
+struct Suite {
+    probes: Probes,
+    cases: usize,
+    accepted: usize,
+    failures: Vec<String>,
+}
+
+impl Suite {
+    fn new(probes: Probes) -> Suite {
+        Suite {
+            probes,
+            cases: 0,
+            accepted: 0,
+            failures: Vec::new(),
+        }
+    }
+
+    /// Probes one case; `check` judges the outcome (`Err` = failure).
+    fn case(
+        &mut self,
+        what: &dyn Fn() -> String,
+        bytes: &[u8],
+        check: impl FnOnce(&Outcome) -> Result<(), String>,
+    ) {
+        self.cases += 1;
+        match probe(bytes, &self.probes) {
+            Ok(outcome) => {
+                if matches!(outcome, Outcome::Accepted) {
+                    self.accepted += 1;
+                }
+                if let Err(msg) = check(&outcome) {
+                    self.fail(format!("{}: {msg} (got {outcome:?})", what()));
+                }
+            }
+            Err(msg) => self.fail(format!("{}: {msg}", what())),
+        }
+    }
+
+    fn fail(&mut self, msg: String) {
+        if self.failures.len() < 20 {
+            self.failures.push(msg);
+        } else if self.failures.len() == 20 {
+            self.failures.push("...".into());
+        }
+    }
+
+    fn finish(self, name: &str, min_cases: usize) -> usize {
+        assert!(
+            self.failures.is_empty(),
+            "{name}: {} failures in {} cases:\n{}",
+            self.failures.len(),
+            self.cases,
+            self.failures.join("\n")
+        );
+        assert!(self.cases >= min_cases, "{name}: only {} cases", self.cases);
+        eprintln!(
+            "{name}: {} cases, {} accepted by from_bytes and verify",
+            self.cases, self.accepted
+        );
+        self.cases
+    }
+}
+
+fn no_check(_: &Outcome) -> Result<(), String> {
+    Ok(())
+}
+
+fn must_fail(o: &Outcome) -> Result<(), String> {
+    match o {
+        Outcome::Accepted => Err("accepted".into()),
+        _ => Ok(()),
+    }
+}
+
+/// A valid file to corrupt, with what it was made from.
+struct Base {
+    name: &'static str,
+    bytes: Vec<u8>,
+    bounds: Aabb,
+}
+
+/// Small valid files: plain, reordered, with type II nodes (reordered), and
+/// one with a 4-byte leaf (2048 ids, repeating triangles).
+fn small_bases() -> Vec<Base> {
+    let mut rng = Rng(11);
+    let scene = random_small_scene(&mut rng, 24, 6);
+    let tree = std_tree(&scene);
+    let scene2 = random_small_scene(&mut rng, 40, 8);
+    let (tree2, hoisted) = hoist(&std_tree(&scene2), &scene2, 12, true);
+    assert!(hoisted >= 3, "{hoisted} type II nodes");
+    let scene3 = strip_scene(6);
+    let mut big_leaf: Vec<u32> = (0..LEAF16_LIMIT).map(|i| i % 3).collect();
+    big_leaf.sort_unstable();
+    let tree3 = strip_tree(&scene3, &[big_leaf, vec![3, 4], vec![5]], false);
+    let bases = vec![
+        Base {
+            name: "grid",
+            bytes: write(&tree, &scene, false),
+            bounds: tree.bounds,
+        },
+        Base {
+            name: "grid-reordered",
+            bytes: write(&tree, &scene, true),
+            bounds: tree.bounds,
+        },
+        Base {
+            name: "type2-reordered",
+            bytes: write(&tree2, &scene2, true),
+            bounds: tree2.bounds,
+        },
+        Base {
+            name: "idx32",
+            bytes: write(&tree3, &scene3, false),
+            bounds: tree3.bounds,
+        },
+    ];
+    for b in &bases {
+        read(&b.bytes);
+    }
+    let f = read(&bases[2].bytes).figures();
+    assert!(f.t_inner >= 3 && f.idx16 > 0);
+    assert!(read(&bases[3].bytes).figures().idx32 >= u64::from(LEAF16_LIMIT));
+    bases
+}
+
+/// The bunny, reordered, with type II nodes: a bigger file, sampled.
+fn bunny_base() -> Base {
+    let scene = load_scene("bunny_npm.obj");
+    let (tree, _) = hoist(&std_tree(&scene), &scene, 21, true);
+    Base {
+        name: "bunny-type2-reordered",
+        bytes: write(&tree, &scene, true),
+        bounds: tree.bounds,
+    }
+}
+
+/// Which part of a valid file a byte lies in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Region {
+    Magic,
+    Version,
+    Endianness,
+    /// Covered by the header checksum (the checksum itself included).
+    Header,
+    /// Header bytes 340..384: reserved, zero.
+    Reserved,
+    Section(Section),
+    /// Zero padding after a section.
+    Padding(Section),
+}
+
+fn region(b: &[u8], pos: usize) -> Region {
+    match pos {
+        0..8 => Region::Magic,
+        8..12 => Region::Version,
+        12..16 => Region::Endianness,
+        16..340 => Region::Header,
+        340..HEADER_SIZE => Region::Reserved,
+        _ => {
+            let s = Section::ALL
+                .into_iter()
+                .rev()
+                .find(|&s| section(b, s).start <= pos)
+                .unwrap();
+            if section(b, s).contains(&pos) {
+                Region::Section(s)
+            } else {
+                Region::Padding(s)
+            }
+        }
+    }
+}
+
+/// The error a single corrupted byte at `pos` of a valid file must give.
+fn check_single_flip(b: &[u8], pos: usize, o: &Outcome) -> Result<(), String> {
+    let ok = match (region(b, pos), o) {
+        (Region::Magic, Outcome::Rejected(FormatError::BadMagic)) => true,
+        (Region::Version, Outcome::Rejected(FormatError::Version { expected: 1, .. })) => true,
+        (Region::Endianness, Outcome::Rejected(FormatError::Endianness)) => true,
+        (Region::Header, Outcome::Rejected(FormatError::HeaderChecksum { .. })) => true,
+        (Region::Reserved, Outcome::Rejected(FormatError::Header(_))) => true,
+        (Region::Padding(s), Outcome::Rejected(FormatError::Section { section, .. })) => {
+            *section == s.name()
+        }
+        (Region::Section(_), Outcome::Rejected(_)) => true,
+        (
+            Region::Section(s),
+            Outcome::BadChecksum(FormatError::ChecksumMismatch { section, .. }),
+        ) => *section == s.name(),
+        _ => false,
+    };
+    if ok {
+        Ok(())
+    } else {
+        Err(format!("wrong outcome for {:?}", region(b, pos)))
+    }
+}
+
+/// Runs `cases` on every small base and the bunny, each with a suite of
+/// its own (probes seeded with `probe_seed`, at least `min_cases` cases),
+/// all drawing from one generator seeded with `seed`; asserts at least
+/// `min_total` cases in all.
+fn on_every_base(
+    seed: u64,
+    probe_seed: u64,
+    min_cases: usize,
+    min_total: usize,
+    mut cases: impl FnMut(&Base, &mut Suite, &mut Rng),
+) {
+    let mut bases = small_bases();
+    bases.push(bunny_base());
+    let mut rng = Rng(seed);
+    let mut total = 0;
+    for base in &bases {
+        let mut suite = Suite::new(Probes::around(&base.bounds, probe_seed));
+        cases(base, &mut suite, &mut rng);
+        total += suite.finish(base.name, min_cases);
+    }
+    assert!(total >= min_total, "{total} cases");
+}
+
+/// (a) Every single-bit flip of the small files (exhaustively) and a sample
+/// of the bunny's is caught by `from_bytes` or `verify`, with the error of
+/// the region it lies in; random multi-bit flips are caught too.
+#[test]
+fn corrupt_bit_flips() {
+    on_every_base(100, 1, 1000, 20_000, |base, suite, rng| {
+        let orig = &base.bytes;
+        let bits = orig.len() * 8;
+        // The idx32 base and the bunny are sampled; the others exhaustive.
+        let exhaustive = bits <= 40_000;
+        let singles: Vec<usize> = if exhaustive {
+            (0..bits).collect()
+        } else {
+            (0..3000).map(|_| rng.below(bits)).collect()
+        };
+        let mut b = orig.clone();
+        for bit in singles {
+            b[bit / 8] ^= 1 << (bit % 8);
+            suite.case(
+                &|| format!("{}: flip bit {bit} (byte {})", base.name, bit / 8),
+                &b,
+                |o| check_single_flip(orig, bit / 8, o),
+            );
+            b[bit / 8] ^= 1 << (bit % 8);
+        }
+        for _ in 0..1500 {
+            let k = 2 + rng.below(15);
+            let mut flipped = Vec::new();
+            while flipped.len() < k {
+                let bit = rng.below(bits);
+                if !flipped.contains(&bit) {
+                    flipped.push(bit);
+                }
+            }
+            for &bit in &flipped {
+                b[bit / 8] ^= 1 << (bit % 8);
+            }
+            suite.case(
+                &|| format!("{}: flip bits {flipped:?}", base.name),
+                &b,
+                must_fail,
+            );
+            for &bit in &flipped {
+                b[bit / 8] ^= 1 << (bit % 8);
+            }
+        }
+    });
+}
+
+/// (b) Truncation to every length of the small files and to a sample of
+/// the bunny's is reported as `Truncated`.
+#[test]
+fn corrupt_truncations() {
+    on_every_base(200, 2, 300, 5_000, |base, suite, rng| {
+        let len = base.bytes.len();
+        let lengths: Vec<usize> = if len <= 16_384 {
+            (0..len).collect()
+        } else {
+            let mut v: Vec<usize> = (0..400).map(|_| rng.below(len)).collect();
+            v.extend([0, 1, HEADER_SIZE - 1, HEADER_SIZE, HEADER_SIZE + 1, len - 1]);
+            v
+        };
+        for cut in lengths {
+            suite.case(
+                &|| format!("{}: truncated to {cut} of {len}", base.name),
+                &base.bytes[..cut],
+                |o| match o {
+                    Outcome::Rejected(FormatError::Truncated { needed, got })
+                        if *got == cut as u64 && *needed > *got =>
+                    {
+                        Ok(())
+                    }
+                    _ => Err("not reported as truncated".into()),
+                },
+            );
+        }
+        // Longer than the layout: trailing bytes are refused too.
+        for extra in [1, 7, 64, 200] {
+            let mut b = base.bytes.clone();
+            b.resize(len + extra, 0);
+            suite.case(
+                &|| format!("{}: {extra} trailing zero bytes", base.name),
+                &b,
+                |o| match o {
+                    Outcome::Rejected(FormatError::Header(_)) => Ok(()),
+                    _ => Err("trailing bytes not refused".into()),
+                },
+            );
+        }
+    });
+}
+
+/// (c) Random byte overwrites anywhere are caught; overwrites of node words
+/// and vertices with plausible values and all checksums repaired, accepted
+/// or not, never make reading or traversal panic (these reach traversal of
+/// odd but valid trees: moved splits, other leaf ranges, extreme
+/// coordinates).
+#[test]
+fn corrupt_overwrites() {
+    on_every_base(300, 3, 1500, 5_000, |base, suite, rng| {
+        let orig = &base.bytes;
+        let len = orig.len();
+        for _ in 0..600 {
+            let mut b = orig.clone();
+            for _ in 0..1 + rng.below(8) {
+                let at = rng.below(len);
+                b[at] = rng.next() as u8;
+            }
+            let changed = b != *orig;
+            suite.case(&|| format!("{}: random overwrite", base.name), &b, |o| {
+                if changed { must_fail(o) } else { Ok(()) }
+            });
+        }
+        let n_words = section(orig, Section::Nodes).len() / 8;
+        let n_idx32 = section(orig, Section::Idx32).len() / 4;
+        let n_idx16 = section(orig, Section::Idx16).len() / 2;
+        let n_tris = section(orig, Section::Triangles).len() / 12;
+        let verts = section(orig, Section::Vertices);
+        for _ in 0..600 {
+            let mut b = orig.clone();
+            for _ in 0..1 + rng.below(3) {
+                if rng.chance(3) {
+                    // A vertex coordinate: anything finite, extremes
+                    // included.
+                    let at = verts.start + 4 * rng.below(verts.len() / 4);
+                    let v = match rng.below(4) {
+                        0 => f32::MAX * (rng.unit() - 0.5),
+                        1 => f32::MIN_POSITIVE * rng.unit(),
+                        2 => (rng.unit() - 0.5) * 1e6,
+                        _ => f32::from_bits(rng.next() as u32),
+                    };
+                    set_u32(&mut b, at, v.to_bits());
+                } else {
+                    let i = rng.below(n_words);
+                    let w = plausible_word(rng, i, n_words, n_idx32, n_idx16, n_tris);
+                    set_word(&mut b, i, w);
+                }
+            }
+            fix_all_crcs(&mut b);
+            suite.case(
+                &|| format!("{}: plausible edit, checksums repaired", base.name),
+                &b,
+                |o| match o {
+                    Outcome::BadChecksum(_) => Err("checksums were repaired".into()),
+                    _ => Ok(()),
+                },
+            );
+        }
+        // Header fields set to small or nearby values, header checksum
+        // repaired.
+        // (offset, 8 bytes wide): the counts, the section table, and the
+        // 4-byte fields that the reader checks.
+        let fields: Vec<(usize, bool)> = [
+            H_WORDS,
+            H_INNER,
+            H_T_INNER,
+            H_LEAVES,
+            H_IDX32,
+            H_IDX16,
+            H_TRIANGLES,
+            H_VERTICES,
+        ]
+        .into_iter()
+        .chain((0..6).flat_map(|s| [H_TABLE + s * H_ENTRY, H_TABLE + s * H_ENTRY + 8]))
+        .map(|f| (f, true))
+        .chain(
+            [H_MAX_DEPTH, H_FLAGS, H_PRESET]
+                .into_iter()
+                .chain((0..6).map(|k| H_BOUNDS + 4 * k))
+                .map(|f| (f, false)),
+        )
+        .collect();
+        for _ in 0..600 {
+            let mut b = orig.clone();
+            for _ in 0..1 + rng.below(3) {
+                let (at, wide) = fields[rng.below(fields.len())];
+                if wide {
+                    let old = get_u64(&b, at);
+                    let v = match rng.below(4) {
+                        0 => old.wrapping_add(rng.below(130) as u64).wrapping_sub(65),
+                        1 => rng.below(64) as u64,
+                        2 => rng.next(),
+                        _ => old ^ (1 << rng.below(64)),
+                    };
+                    set_u64(&mut b, at, v);
+                } else {
+                    let old = get_u32(&b, at);
+                    let v = match rng.below(3) {
+                        0 => old.wrapping_add(rng.below(5) as u32).wrapping_sub(2),
+                        1 => (rng.unit() * 20.0 - 10.0).to_bits(),
+                        _ => rng.next() as u32,
+                    };
+                    set_u32(&mut b, at, v);
+                }
+            }
+            fix_header_crc(&mut b);
+            suite.case(
+                &|| format!("{}: header fields, checksum repaired", base.name),
+                &b,
+                no_check,
+            );
+        }
+    });
+}
+
+/// A node word likely to pass some of the reader's checks: a leaf with a
+/// range inside the index arrays, an inner node with a forward child block,
+/// a T-reference, or random bits.
+fn plausible_word(
+    rng: &mut Rng,
+    i: usize,
+    n_words: usize,
+    n_idx32: usize,
+    n_idx16: usize,
+    n_tris: usize,
+) -> u64 {
+    let tri = rng.below(n_tris.max(1) + 2) as u32;
+    match rng.below(6) {
+        0 => {
+            let start = rng.below(n_idx16 + 2);
+            let count = rng.below((n_idx16 + 2).saturating_sub(start) + 1);
+            node::encode_leaf16(count as u32, rng.below(2) as u16, start as u32)
+        }
+        1 => {
+            let start = rng.below(n_idx32 + 2);
+            let count = rng.below((n_idx32 + 2).saturating_sub(start) + 1);
+            node::encode_leaf32(count as u32, start as u32)
+        }
+        2 => {
+            let block = i + rng.below(n_words.saturating_sub(i) + 2);
+            let pos = (rng.unit() - 0.25) * 12.0;
+            node::encode_inner(rng.below(3) as u8, rng.chance(3), block as u32, pos)
+        }
+        3 => node::encode_tref(tri),
+        4 => {
+            // Keep the word's type and move its split or range a little.
+            (rng.next() & 0xFFFF_FFFF_0000_0000) | (rng.below(256) as u64 & !0b111) | 0b011
+        }
+        _ => rng.next(),
+    }
+}
+
+/// (d) Random byte strings: raw, and with a valid magic, version, byte
+/// order and header checksum (so that they reach the later checks).
+#[test]
+fn corrupt_random_strings() {
+    let mut rng = Rng(400);
+    let mut suite = Suite::new(Probes::around(&Aabb::new(Vec3::ZERO, Vec3::splat(4.0)), 4));
+    for _ in 0..1500 {
+        let len = rng.below(3000);
+        let b: Vec<u8> = (0..len).map(|_| rng.next() as u8).collect();
+        suite.case(&|| format!("random {len} bytes"), &b, must_fail);
+    }
+    let template = &small_bases()[0].bytes;
+    for _ in 0..1500 {
+        let len = HEADER_SIZE + 64 * rng.below(40);
+        let mut b: Vec<u8> = (0..len).map(|_| rng.next() as u8).collect();
+        b[..16].copy_from_slice(&template[..16]);
+        set_u32(&mut b, H_HEADER_SIZE, HEADER_SIZE as u32);
+        if rng.chance(2) {
+            // Plausible small counts.
+            for f in [
+                H_INNER,
+                H_T_INNER,
+                H_IDX32,
+                H_IDX16,
+                H_TRIANGLES,
+                H_VERTICES,
+            ] {
+                set_u64(&mut b, f, rng.below(8) as u64);
+            }
+            let leaves = get_u64(&b, H_INNER) + get_u64(&b, H_T_INNER) + 1;
+            set_u64(&mut b, H_LEAVES, leaves);
+            let words = get_u64(&b, H_LEAVES) * 2 - 1 + get_u64(&b, H_T_INNER);
+            set_u64(&mut b, H_WORDS, words);
+        }
+        fix_header_crc(&mut b);
+        suite.case(&|| format!("forged header, {len} bytes"), &b, no_check);
+    }
+    suite.finish("random strings", 3000);
+}
+
+/// The error a targeted edit must give.
+#[derive(Clone, Copy)]
+enum Want {
+    /// One this function accepts.
+    Is(fn(&FormatError) -> bool),
+    /// `Truncated` with these lengths.
+    Truncated { needed: u64, got: u64 },
+    /// `Version`, expecting 1, with this version.
+    Version(u32),
+    /// `Section` naming this section.
+    InSection(&'static str),
+    /// `Index` naming this section.
+    InIndex(&'static str),
+}
+
+use Want::*;
+
+impl Want {
+    fn accepts(self, e: &FormatError) -> bool {
+        match (self, e) {
+            (Is(check), e) => check(e),
+            (Truncated { needed, got }, FormatError::Truncated { needed: n, got: g }) => {
+                (needed, got) == (*n, *g)
+            }
+            (Version(v), FormatError::Version { expected: 1, got }) => *got == v,
+            (InSection(name), FormatError::Section { section, .. })
+            | (InIndex(name), FormatError::Index { section, .. }) => *section == name,
+            _ => false,
+        }
+    }
+}
+
+/// (e) Targeted edits, each with the specific error it must give. Header
+/// edits repair the header checksum so that they reach the later checks;
+/// node and section edits repair nothing, so `from_bytes` must refuse them
+/// structurally (or, for pure data edits, `verify` by checksum).
+#[test]
+fn corrupt_targeted_edits() {
+    let bases = small_bases();
+    let mut suite = Suite::new(Probes::around(&bases[0].bounds, 5));
+    for base in &bases {
+        let orig = &base.bytes;
+        let file = read(orig);
+        let f = file.figures();
+        let words: Vec<u64> = file.nodes().to_vec();
+        let n = words.len();
+        let decoded: Vec<NodeWord> = words.iter().map(|&w| node::decode(w).unwrap()).collect();
+        // Inner nodes with their child blocks, leaves, T-references.
+        let inners: Vec<(usize, bool, usize)> = decoded
+            .iter()
+            .enumerate()
+            .filter_map(|(i, w)| match *w {
+                NodeWord::Inner { t_ref, block, .. } => Some((i, t_ref, block as usize)),
+                _ => None,
+            })
+            .collect();
+        let leaves: Vec<usize> = (0..n)
+            .filter(|&i| {
+                matches!(
+                    decoded[i],
+                    NodeWord::Leaf16 { .. } | NodeWord::Leaf32 { .. }
+                )
+            })
+            .collect();
+        let trefs: Vec<usize> = (0..n)
+            .filter(|&i| matches!(decoded[i], NodeWord::TRef { .. }))
+            .collect();
+        assert!(!inners.is_empty() && !leaves.is_empty());
+
+        let mut cases: Vec<(String, Vec<u8>, Want)> = Vec::new();
+        let mut add = |what: &str, edit: &dyn Fn(&mut Vec<u8>), want: Want| {
+            let mut b = orig.clone();
+            edit(&mut b);
+            cases.push((what.to_string(), b, want));
+        };
+        let header = |at: usize, v: u64, wide: bool| {
+            move |b: &mut Vec<u8>| {
+                if wide {
+                    set_u64(b, at, v);
+                } else {
+                    set_u32(b, at, v as u32);
+                }
+                fix_header_crc(b);
+            }
+        };
+        let header_err = Is(|e| matches!(e, FormatError::Header(_)));
+        let node_err = Is(|e| matches!(e, FormatError::Node { .. }));
+        let any_section = Is(|e| matches!(e, FormatError::Section { .. }));
+
+        // The first checks.
+        add(
+            "bad magic",
+            &|b| b[3] = b'X',
+            Is(|e| matches!(e, FormatError::BadMagic)),
+        );
+        add(
+            "empty",
+            &|b| b.clear(),
+            Truncated {
+                needed: 384,
+                got: 0,
+            },
+        );
+        add(
+            "100 bytes",
+            &|b| b.truncate(100),
+            Truncated {
+                needed: 384,
+                got: 100,
+            },
+        );
+        add(
+            "one byte short",
+            &|b| {
+                b.pop();
+            },
+            Is(|e| matches!(e, FormatError::Truncated { .. })),
+        );
+        add(
+            "header checksum off by one",
+            &|b| {
+                let c = get_u32(b, H_CRC);
+                set_u32(b, H_CRC, c.wrapping_add(1));
+            },
+            Is(|e| matches!(e, FormatError::HeaderChecksum { .. })),
+        );
+        add(
+            "count edited, checksum not repaired",
+            &|b| {
+                set_u64(b, H_LEAVES, f.leaves + 1);
+            },
+            Is(|e| matches!(e, FormatError::HeaderChecksum { .. })),
+        );
+        // One header field set (`wide`: 8 bytes), the checksum repaired.
+        let flags = get_u32(orig, H_FLAGS);
+        let fields: [(&str, usize, u64, bool, Want); 20] = [
+            ("version 2", H_VERSION, 2, false, Version(2)),
+            ("version 0", H_VERSION, 0, false, Version(0)),
+            (
+                "other byte order",
+                H_ENDIAN,
+                0x0D0C_0B0A,
+                false,
+                Is(|e| matches!(e, FormatError::Endianness)),
+            ),
+            // Header fields out of range.
+            ("header size 512", H_HEADER_SIZE, 512, false, header_err),
+            ("unknown flag", H_FLAGS, 2, false, header_err),
+            ("unknown preset", H_PRESET, 9, false, header_err),
+            (
+                "NaN bound",
+                H_BOUNDS,
+                f32::NAN.to_bits().into(),
+                false,
+                header_err,
+            ),
+            (
+                "infinite bound",
+                H_BOUNDS + 20,
+                f32::INFINITY.to_bits().into(),
+                false,
+                header_err,
+            ),
+            (
+                "inverted bounds",
+                H_BOUNDS,
+                1e30f32.to_bits().into(),
+                false,
+                header_err,
+            ),
+            ("depth over MAX_DEPTH", H_MAX_DEPTH, 101, false, header_err),
+            ("zero node words", H_WORDS, 0, true, header_err),
+            ("node words + 1", H_WORDS, f.words + 1, true, header_err),
+            ("leaves + 1", H_LEAVES, f.leaves + 1, true, header_err),
+            ("inner + 1", H_INNER, f.inner + 1, true, header_err),
+            (
+                "triangles + 1",
+                H_TRIANGLES,
+                f.triangles + 1,
+                true,
+                InSection("triangles"),
+            ),
+            ("idx16 + 1", H_IDX16, f.idx16 + 1, true, InSection("idx16")),
+            (
+                "vertices count - 1",
+                H_VERTICES,
+                f.vertices - 1,
+                true,
+                InSection("vertices"),
+            ),
+            ("2^40 triangles", H_TRIANGLES, 1 << 40, true, header_err),
+            (
+                "reordered flag toggled",
+                H_FLAGS,
+                u64::from(flags ^ 1),
+                false,
+                InSection("tri_map"),
+            ),
+            (
+                "header depth below the tree's",
+                H_MAX_DEPTH,
+                0,
+                false,
+                node_err,
+            ),
+        ];
+        for (what, at, v, wide, want) in fields {
+            add(what, &header(at, v, wide), want);
+        }
+        add(
+            "counts add up but not to the section",
+            &|b| {
+                set_u64(b, H_INNER, f.inner + 1);
+                set_u64(b, H_LEAVES, f.leaves + 1);
+                set_u64(b, H_WORDS, f.words + 2);
+                fix_header_crc(b);
+            },
+            InSection("nodes"),
+        );
+        add(
+            "a type I node counted as type II",
+            &|b| {
+                // Inner − 1 and t-inner + 1 keep leaves = inner + t-inner + 1
+                // but add a T-reference word, which the node section lacks.
+                set_u64(b, H_INNER, f.inner.wrapping_sub(1));
+                set_u64(b, H_T_INNER, f.t_inner + 1);
+                set_u64(b, H_WORDS, f.words + 1);
+                fix_header_crc(b);
+            },
+            InSection("nodes"),
+        );
+        // The section table: an entry's offset, or its length, set.
+        for s in Section::ALL {
+            let e = H_TABLE + s as usize * H_ENTRY;
+            let ofs = get_u64(orig, e);
+            let name = s.name();
+            let mut entries = vec![
+                ("offset + 64", e, ofs + 64),
+                ("offset misaligned", e, ofs + 4),
+                ("offset into the header", e, 320),
+            ];
+            // The start of the last non-empty section before this one.
+            if let Some(prev) = Section::ALL[..s as usize]
+                .iter()
+                .map(|&p| section(orig, p))
+                .rfind(|r| !r.is_empty())
+            {
+                entries.push(("overlaps the previous section", e, prev.start as u64));
+            }
+            entries.push(("offset near 2^64", e, u64::MAX - 63));
+            entries.push(("length + 8", e + 8, get_u64(orig, e + 8) + 8));
+            for (what, at, v) in entries {
+                add(&format!("{name} {what}"), &header(at, v, true), any_section);
+            }
+        }
+        add("non-zero reserved header byte", &|b| b[380] = 1, header_err);
+        add("trailing byte", &|b| b.push(0), header_err);
+        if let Some(s) = Section::ALL
+            .into_iter()
+            .find(|&s| !section(orig, s).len().is_multiple_of(64))
+        {
+            let at = section(orig, s).end;
+            add("non-zero padding", &|b| b[at] = 0x80, InSection(s.name()));
+        }
+
+        // Node words (nothing repaired).
+        let with_block = |i: usize, block: usize| {
+            let (axis, t_ref, pos) = match decoded[i] {
+                NodeWord::Inner {
+                    axis, t_ref, pos, ..
+                } => (axis, t_ref, pos),
+                _ => unreachable!(),
+            };
+            node::encode_inner(axis, t_ref, block as u32, pos)
+        };
+        let (root_block, last) = (inners[0].2, inners[inners.len() - 1]);
+        // (what, inner node, its new child block)
+        let mut blocks = vec![
+            ("root's child block is itself", 0, 0),
+            ("child block past the end", 0, n - 1),
+            ("child block at 2^29 - 1", 0, (1 << 29) - 1),
+            ("child block shifted by one", 0, root_block + 1),
+        ];
+        if last.0 > 0 {
+            blocks.push(("child block backwards", last.0, last.0 - 1));
+            blocks.push(("child block pointing to itself", last.0, last.0));
+            blocks.push(("child block pointing to the root", last.0, 0));
+        }
+        if inners.len() >= 2 {
+            let (i, _, block) = inners[1];
+            blocks.push(("two parents for one block", i, root_block));
+            blocks.push(("child block skips a node", i, block + 1));
+        }
+        for (what, i, block) in blocks {
+            add(what, &|b| set_word(b, i, with_block(i, block)), node_err);
+        }
+        let leaf = leaves[0];
+        let (i, ..) = inners[0];
+        let split = |pos: f32| (u64::from(pos.to_bits()) << 32) | (words[0] & 0xFFFF_FFFF);
+        // (what, node, its new word)
+        let mut node_words = vec![
+            (
+                "a T-reference where a child belongs",
+                leaf,
+                node::encode_tref(0),
+            ),
+            ("the root is a T-reference", 0, node::encode_tref(0)),
+        ];
+        assert_eq!(trefs.len() as u64, f.t_inner);
+        for &t in &trefs {
+            node_words.push((
+                "T-reference replaced by a leaf",
+                t,
+                node::encode_leaf16(0, 0, 0),
+            ));
+            node_words.push((
+                "T-reference to a triangle out of range",
+                t,
+                node::encode_tref(f.triangles as u32),
+            ));
+            node_words.push(("T-reference with unused bits", t, words[t] | 0x100));
+        }
+        node_words.push(("NaN split", 0, split(f32::NAN)));
+        node_words.push(("infinite split", 0, split(f32::NEG_INFINITY)));
+        for (what, at, word) in node_words {
+            add(what, &|b| set_word(b, at, word), node_err);
+        }
+        add(
+            "type I and II swapped",
+            &|b| set_word(b, i, words[i] ^ node::A_TYPE2),
+            Is(|e| matches!(e, FormatError::Node { .. } | FormatError::Header(_))),
+        );
+        for mode in [0b10u64, 0b11] {
+            add(
+                &format!("leaf mode E = {mode:02b}"),
+                &|b| set_word(b, leaf, (words[leaf] & !0b11000) | (mode << 3)),
+                node_err,
+            );
+        }
+        for &l in &leaves {
+            match decoded[l] {
+                NodeWord::Leaf32 { count, start } => {
+                    let past = f.idx32 as u32 - start + 1;
+                    add(
+                        "4-byte leaf range past idx32",
+                        &|b| set_word(b, l, node::encode_leaf32(past.max(count + 1), start)),
+                        node_err,
+                    );
+                    add(
+                        "4-byte leaf starting past idx32",
+                        &|b| set_word(b, l, node::encode_leaf32(1, f.idx32 as u32)),
+                        node_err,
+                    );
+                    add(
+                        "4-byte leaf start near 2^32",
+                        &|b| set_word(b, l, node::encode_leaf32(count.max(1), u32::MAX)),
+                        node_err,
+                    );
+                    add(
+                        "index of idx32 out of range",
+                        &|b| {
+                            let at = section(b, Section::Idx32).start + 4 * start as usize;
+                            set_u32(b, at, f.triangles as u32);
+                        },
+                        InIndex("idx32"),
+                    );
+                }
+                NodeWord::Leaf16 {
+                    count,
+                    upper,
+                    start,
+                } if count > 0 => {
+                    add(
+                        "2-byte leaf range past idx16",
+                        &|b| {
+                            set_word(
+                                b,
+                                l,
+                                node::encode_leaf16(count, upper, f.idx16 as u32 - count + 1),
+                            )
+                        },
+                        node_err,
+                    );
+                    add(
+                        "2-byte leaf with upper bits out of range",
+                        &|b| set_word(b, l, node::encode_leaf16(count, upper + 1, start)),
+                        node_err,
+                    );
+                    add(
+                        "index of idx16 out of range",
+                        &|b| {
+                            let at = section(b, Section::Idx16).start + 2 * start as usize;
+                            b[at..at + 2].copy_from_slice(&[0xFF, 0xFF]);
+                        },
+                        node_err,
+                    );
+                }
+                _ => {}
+            }
+        }
+        // Geometry: one 4-byte word of a section set.
+        let mut geometry = vec![
+            (
+                "vertex index out of range",
+                Section::Triangles,
+                4,
+                f.vertices as u32,
+            ),
+            ("NaN vertex", Section::Vertices, 8, f32::NAN.to_bits()),
+            (
+                "infinite vertex",
+                Section::Vertices,
+                0,
+                f32::INFINITY.to_bits(),
+            ),
+        ];
+        if file.is_reordered() {
+            let first = get_u32(orig, section(orig, Section::TriMap).start);
+            geometry.push(("tri_map repeats an id", Section::TriMap, 4, first));
+            geometry.push((
+                "tri_map id out of range",
+                Section::TriMap,
+                0,
+                f.triangles as u32,
+            ));
+        }
+        for (what, s, offset, v) in geometry {
+            add(
+                what,
+                &|b| {
+                    let at = section(b, s).start + offset;
+                    set_u32(b, at, v);
+                },
+                InIndex(s.name()),
+            );
+        }
+
+        // Pure data edits: structurally valid, caught by the checksums.
+        let mut data_edits: Vec<(String, Vec<u8>, &'static str)> = Vec::new();
+        let mut b = orig.clone();
+        let at = section(&b, Section::Vertices).start;
+        let v = f32::from_bits(get_u32(&b, at));
+        set_u32(&mut b, at, (v + 1.0).to_bits());
+        data_edits.push(("vertex moved".into(), b, "vertices"));
+        let mut b = orig.clone();
+        let (i, ..) = inners[0];
+        let pos = match decoded[i] {
+            NodeWord::Inner { pos, .. } => pos,
+            _ => unreachable!(),
+        };
+        set_word(
+            &mut b,
+            i,
+            (u64::from((pos + 0.5).to_bits()) << 32) | (words[i] & 0xFFFF_FFFF),
+        );
+        data_edits.push(("split moved".into(), b, "nodes"));
+        let mut b = orig.clone();
+        let at = section(&b, Section::Triangles).start;
+        let (v0, v1) = (get_u32(&b, at), get_u32(&b, at + 4));
+        set_u32(&mut b, at, v1);
+        set_u32(&mut b, at + 4, v0);
+        if v0 != v1 {
+            data_edits.push(("triangle's vertices swapped".into(), b, "triangles"));
+        }
+
+        for (what, bytes, check) in cases {
+            suite.case(&|| format!("{}: {what}", base.name), &bytes, |o| match o {
+                Outcome::Rejected(e) if check.accepts(e) => Ok(()),
+                _ => Err("not the expected error".into()),
+            });
+        }
+        for (what, bytes, name) in data_edits {
+            suite.case(&|| format!("{}: {what}", base.name), &bytes, |o| match o {
+                Outcome::BadChecksum(FormatError::ChecksumMismatch { section, .. })
+                    if *section == name =>
+                {
+                    Ok(())
+                }
+                _ => Err("not caught by the section checksum".into()),
+            });
+        }
+    }
+    // An unaligned buffer.
+    let mut words = vec![0u64; bases[0].bytes.len() / 8 + 1];
+    let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut words);
+    bytes[1..=bases[0].bytes.len()].copy_from_slice(&bases[0].bytes);
+    let unaligned = &bytes[1..=bases[0].bytes.len()];
+    assert!(matches!(
+        KdFile::from_bytes(unaligned),
+        Err(FormatError::Misaligned)
+    ));
+    suite.finish("targeted edits", 200);
+}
