@@ -151,21 +151,7 @@ pub fn best_split(
         boxes,
         which,
     };
-    match simd {
-        #[cfg(target_arch = "x86_64")]
-        SimdLevel::Avx512 => {
-            // SAFETY: `SimdLevel::Avx512` is only made by `SimdLevel::detect`
-            // (or chosen from `SimdLevel::available`) when the CPU reports
-            // avx512f.
-            unsafe { best_split_avx512(&node, scratch, best) }
-        }
-        #[cfg(target_arch = "x86_64")]
-        SimdLevel::Avx2 => {
-            // SAFETY: as above, the CPU reported avx2.
-            unsafe { best_split_avx2(&node, scratch, best) }
-        }
-        _ => best_split_lanes(&node, scratch, best),
-    }
+    crate::simd_dispatch!(simd, |_WIDE| best_split_lanes(&node, scratch, best))
 }
 
 /// The arguments of [`best_split`] that describe the node.
@@ -176,21 +162,6 @@ struct TinyNode<'a> {
     boxes: &'a [Box6],
     which: Boxes,
 }
-
-/// `$name`: [`best_split_lanes`] compiled with the instruction set
-/// `$feature` enabled.
-macro_rules! best_split_with {
-    ($name:ident, $feature:literal) => {
-        #[cfg(target_arch = "x86_64")]
-        #[target_feature(enable = $feature)]
-        fn $name(node: &TinyNode<'_>, scratch: &mut Scratch, best: &mut Option<Split>) {
-            best_split_lanes(node, scratch, best)
-        }
-    };
-}
-
-best_split_with!(best_split_avx512, "avx512f");
-best_split_with!(best_split_avx2, "avx2");
 
 #[inline(always)]
 fn best_split_lanes(node: &TinyNode<'_>, scratch: &mut Scratch, best: &mut Option<Split>) {
