@@ -6,6 +6,7 @@
 
 mod common;
 
+use common::kd;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
@@ -134,9 +135,8 @@ proptest! {
 fn hoisted_triangles_are_counted_and_tested() {
     // A scene whose slim tree hoists: the counting traversal reports hoisted
     // tests, and the hoisted triangle occludes.
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
-    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+    let scene = kd::load_scene("bunny_npm.obj");
+    let tree = kd::std_tree(&scene);
     let params = SlimParams::SMALL.with_rule(HoistRule::Paper);
     let (slim, report) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
     assert!(report.hoisted > 0);
@@ -224,19 +224,8 @@ fn ray_files_round_trip_and_bad_records_are_named() {
 
 #[test]
 fn batches_match_one_by_one_and_the_peer_checksums() {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
-    let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
-    let bytes = format::write_to_vec(
-        &tree,
-        &scene,
-        &WriteOptions {
-            reorder: true,
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+    let scene = kd::load_scene("bunny_npm.obj");
+    let file = kd::read(&kd::write(&kd::std_tree(&scene), &scene, true));
     let b = scene.bounds();
     // 1000 rays (not a multiple of 16 or 256) from a point; every other one
     // ends exactly at its closest hit (a hit, but not occluded: the open
