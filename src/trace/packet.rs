@@ -487,6 +487,61 @@ fn clip_lanes<const M: bool>(p: &Packet, bounds: &crate::geom::Aabb) -> (u16, La
     (bits::<M>(enter), t0, t1)
 }
 
+/// Tests one triangle in the lanes of `mask`; returns the lanes it hit
+/// (their first hit, for any-hit queries). Always inlined into the walk
+/// (as a closure called from two places it was a call per triangle).
+#[inline(always)]
+fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
+    src: W,
+    p: &Packet,
+    perm: Option<[usize; 3]>,
+    t_src: u32,
+    mask: u16,
+    best: &mut Best,
+) -> u16 {
+    let tri = src.triangle(t_src);
+    let id = src.input_id(t_src).0;
+    let lanes = match perm {
+        Some(k) => kernel_shared_perm::<M>(p, &tri, k, best),
+        None => kernel_any_perm::<M>(p, &tri, best),
+    };
+    // Keep each lane's hit if it is closer (or, for any-hit queries,
+    // before tmax), all lanes at once.
+    let ok = lanes.ok & mask & !lanes.fallback;
+    let mut take = [false; LANES];
+    for i in 0..LANES {
+        let t = lanes.t[i];
+        let better = if ANY {
+            t < p.tmax[i]
+        } else {
+            (t < best.t[i]) | ((t == best.t[i]) & (id < best.id[i]))
+        };
+        take[i] = (ok & (1 << i) != 0) & better;
+        best.t[i] = if take[i] { t } else { best.t[i] };
+        best.id[i] = if take[i] { id } else { best.id[i] };
+    }
+    let mut hit = bits::<M>(take);
+    let mut fallback = lanes.fallback & mask;
+    while fallback != 0 {
+        let i = fallback.trailing_zeros() as usize;
+        fallback &= fallback - 1;
+        let limit = best.t[i].min(p.tmax[i]);
+        if let Some(t) = intersect_triangle(&p.rp[i], &tri, p.tmin[i], limit) {
+            if ANY {
+                if t < p.tmax[i] {
+                    best.t[i] = t;
+                    best.id[i] = id;
+                    hit |= 1 << i;
+                }
+            } else if t < best.t[i] || (t == best.t[i] && id < best.id[i]) {
+                best.t[i] = t;
+                best.id[i] = id;
+            }
+        }
+    }
+    hit
+}
+
 /// Walks the lanes of `mask`, which share one octant, as one packet.
 #[inline(always)]
 fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
@@ -513,51 +568,6 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
     let perm = p.shared_permutation(mask);
     // The lanes that are done (any-hit queries only).
     let mut done = 0u16;
-    // Tests one triangle in the lanes of `mask`; returns the lanes it hit
-    // (their first hit, for any-hit queries).
-    let test = |t_src: u32, mask: u16, best: &mut Best| -> u16 {
-        let tri = src.triangle(t_src);
-        let id = src.input_id(t_src).0;
-        let lanes = match perm {
-            Some(k) => kernel_shared_perm::<M>(p, &tri, k, best),
-            None => kernel_any_perm::<M>(p, &tri, best),
-        };
-        // Keep each lane's hit if it is closer (or, for any-hit queries,
-        // before tmax), all lanes at once.
-        let ok = lanes.ok & mask & !lanes.fallback;
-        let mut take = [false; LANES];
-        for i in 0..LANES {
-            let t = lanes.t[i];
-            let better = if ANY {
-                t < p.tmax[i]
-            } else {
-                (t < best.t[i]) | ((t == best.t[i]) & (id < best.id[i]))
-            };
-            take[i] = (ok & (1 << i) != 0) & better;
-            best.t[i] = if take[i] { t } else { best.t[i] };
-            best.id[i] = if take[i] { id } else { best.id[i] };
-        }
-        let mut hit = bits::<M>(take);
-        let mut fallback = lanes.fallback & mask;
-        while fallback != 0 {
-            let i = fallback.trailing_zeros() as usize;
-            fallback &= fallback - 1;
-            let limit = best.t[i].min(p.tmax[i]);
-            if let Some(t) = intersect_triangle(&p.rp[i], &tri, p.tmin[i], limit) {
-                if ANY {
-                    if t < p.tmax[i] {
-                        best.t[i] = t;
-                        best.id[i] = id;
-                        hit |= 1 << i;
-                    }
-                } else if t < best.t[i] || (t == best.t[i] && id < best.id[i]) {
-                    best.t[i] = t;
-                    best.id[i] = id;
-                }
-            }
-        }
-        hit
-    };
     // All lanes share the direction sign on every axis.
     let lane0 = mask.trailing_zeros() as usize;
     let up = [
@@ -585,13 +595,13 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             stats.hoisted += u64::from(cur.mask.count_ones());
                         }
                         if ANY {
-                            done |= test(tri, cur.mask, best);
+                            done |= test_triangle::<_, ANY, M>(src, p, perm, tri, cur.mask, best);
                             cur.mask &= !done;
                             if mask & !done == 0 {
                                 return;
                             }
                         } else {
-                            test(tri, cur.mask, best);
+                            test_triangle::<_, ANY, M>(src, p, perm, tri, cur.mask, best);
                         }
                     }
                     let k = axis as usize;
@@ -636,11 +646,11 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             stats.tris += u64::from(cur.mask.count_ones());
                         }
                         if ANY {
-                            done |= test(t, cur.mask, best);
+                            done |= test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
                             cur.mask &= !done;
                             cur.mask == 0
                         } else {
-                            test(t, cur.mask, best);
+                            test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
                             false
                         }
                     });
