@@ -1,0 +1,202 @@
+//! The steps of one pass of the driver: the pending subtrees ([`Todo`])
+//! with their shares of the progress, the top-down search for the highest
+//! picks in each, and the rebuild of a pick's subtree without its triangle
+//! with the decision (hoisted, cancelled, rejected or skipped).
+
+use super::SlimParams;
+use super::bytes::{ByteModel, min_subtree_bytes};
+use super::oracle::{Analysis, analyze};
+use super::work::{WNode, Work};
+use crate::build::level::SubtreeBuilder;
+use crate::geom::{Aabb, clip_triangle};
+use crate::progress::Progress;
+use crate::scene::TriangleColumns;
+use crate::tree::{Node, TreeIr, TriId};
+use std::sync::Arc;
+
+/// A subtree to process: its root, node count (a contiguous pre-order
+/// range of the work tree), cell, depth, the hoisted triangles on the path
+/// above it, the analysis of an enclosing subtree if it still holds, and
+/// its share of the progress ([`Progress::TOTAL`] for the whole tree).
+#[derive(Clone)]
+pub(super) struct Todo {
+    pub(super) node: u32,
+    pub(super) size: u32,
+    pub(super) cell: Aabb,
+    pub(super) depth: u32,
+    pub(super) t2rn: u32,
+    pub(super) analysis: Option<Arc<Analysis>>,
+    pub(super) weight: u64,
+}
+
+impl Todo {
+    /// The children of an inner node as subtrees to process. Each gets a
+    /// share of this subtree's progress weight in proportion to its node
+    /// count; the rest (this node's own share, and rounding) is done, and
+    /// added to `progress`.
+    pub(super) fn children(
+        &self,
+        work: &Work,
+        t2rn: u32,
+        analysis: Option<Arc<Analysis>>,
+        progress: Option<&Progress>,
+    ) -> [Todo; 2] {
+        let WNode::Inner {
+            axis,
+            pos,
+            left,
+            right,
+            ..
+        } = work.nodes[self.node as usize]
+        else {
+            unreachable!("children() is called on inner nodes only");
+        };
+        let (lc, rc) = self.cell.split(axis as usize, pos);
+        let size_l = right - left;
+        let children =
+            [(left, size_l, lc), (right, self.size - 1 - size_l, rc)].map(|(node, size, cell)| {
+                Todo {
+                    node,
+                    size,
+                    cell,
+                    depth: self.depth + 1,
+                    t2rn,
+                    analysis: analysis.clone(),
+                    weight: (u128::from(self.weight) * u128::from(size)
+                        / u128::from(self.size.max(1))) as u64,
+                }
+            });
+        Progress::add(
+            progress,
+            self.weight - children[0].weight - children[1].weight,
+        );
+        children
+    }
+}
+
+/// A node where the oracle picked a triangle (`at.analysis` is the
+/// analysis that picked it).
+pub(super) struct Pick {
+    pub(super) at: Todo,
+    pub(super) tri: TriId,
+}
+
+/// Walks a subtree top-down and returns the highest nodes where a triangle
+/// is picked (their subtrees are not walked further in this pass).
+///
+/// The progress weight of every node walked and not picked is done here;
+/// the picks carry theirs on.
+pub(super) fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
+    let mut picks = Vec::new();
+    if sub.t2rn >= ctx.params.max_t2rn
+        || !matches!(work.nodes[sub.node as usize], WNode::Inner { .. })
+    {
+        Progress::add(ctx.progress, sub.weight);
+        return picks;
+    }
+    let analysis = match &sub.analysis {
+        Some(a) => a.clone(),
+        None => Arc::new(analyze(
+            work,
+            sub.node,
+            sub.size,
+            sub.cell,
+            ctx.sa_root,
+            ctx.params,
+            ctx.scene.len(),
+        )),
+    };
+    let mut stack = vec![sub];
+    while let Some(mut at) = stack.pop() {
+        if !matches!(work.nodes[at.node as usize], WNode::Inner { .. }) {
+            Progress::add(ctx.progress, at.weight);
+            continue;
+        }
+        if let Some(tri) = analysis.pick(at.node) {
+            at.analysis = Some(analysis.clone());
+            picks.push(Pick { at, tri });
+            continue;
+        }
+        let [l, r] = at.children(work, at.t2rn, None, ctx.progress);
+        stack.push(r);
+        stack.push(l);
+    }
+    picks
+}
+
+/// What became of a pick.
+pub(super) enum Outcome {
+    Hoisted(TreeIr),
+    Cancelled,
+    Rejected,
+    /// Rejected without a rebuild: the subtree is too small for any
+    /// rebuilt one to save bytes ([`min_subtree_bytes`]).
+    Skipped,
+}
+
+/// The fixed inputs of a run.
+pub(super) struct Ctx<'a> {
+    pub(super) scene: &'a TriangleColumns,
+    pub(super) params: &'a SlimParams,
+    pub(super) sa_root: f64,
+    pub(super) bytes: Option<ByteModel>,
+    pub(super) progress: Option<&'a Progress>,
+}
+
+/// Rebuilds the subtree of a pick without its triangle and decides.
+/// Returns the outcome and the number of triangles rebuilt.
+pub(super) fn rebuild_pick(
+    work: &Work,
+    p: &Pick,
+    ctx: &Ctx,
+    builder: &mut SubtreeBuilder,
+    tris: &mut Vec<TriId>,
+    refs: &mut Vec<(TriId, Aabb)>,
+) -> (Outcome, usize) {
+    let (s, e) = work.tri_range(p.at.node, p.at.size);
+    tris.clear();
+    tris.extend_from_slice(&work.tris[s..e]);
+    tris.sort_unstable();
+    tris.dedup();
+    tris.retain(|&t| t != p.tri);
+    refs.clear();
+    let mut clipped = false;
+    let mut clip_all = |refs: &mut Vec<(TriId, Aabb)>| {
+        if !clipped {
+            clipped = true;
+            refs.extend(tris.iter().filter_map(|&t| {
+                clip_triangle(&ctx.scene.tri(t.0), &p.at.cell).map(|bounds| (t, bounds))
+            }));
+        }
+    };
+    let old = ctx
+        .bytes
+        .as_ref()
+        .map(|m| m.subtree(work, p.at.node, p.at.size));
+    // The skip test `old <= 8 + min_subtree_bytes(refs.len())`, clipping
+    // only when `0 <= refs.len() <= tris.len()` does not decide it.
+    let skip = match old {
+        None => false,
+        Some(old) if old > 8 + min_subtree_bytes(tris.len()) => false,
+        Some(old) if old <= 8 + min_subtree_bytes(0) => true,
+        Some(old) => {
+            clip_all(refs);
+            old <= 8 + min_subtree_bytes(refs.len())
+        }
+    };
+    if skip {
+        return (Outcome::Skipped, tris.len());
+    }
+    clip_all(refs);
+    let fresh = builder.build(refs.iter().copied(), p.at.cell, p.at.depth);
+    let outcome = if matches!(fresh.nodes[0], Node::Leaf { .. }) {
+        Outcome::Cancelled
+    } else if let (Some(m), Some(old)) = (&ctx.bytes, old)
+        && m.tree(&fresh) + 8 >= old
+    {
+        Outcome::Rejected
+    } else {
+        Outcome::Hoisted(fresh)
+    };
+    (outcome, tris.len())
+}
