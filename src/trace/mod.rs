@@ -125,14 +125,6 @@ pub enum LeafTris<'a> {
 }
 
 impl LeafTris<'_> {
-    #[inline]
-    pub fn for_each(&self, mut f: impl FnMut(u32)) {
-        match self {
-            LeafTris::Ids(ids) => ids.iter().for_each(|t| f(t.0)),
-            LeafTris::File(l) => l.for_each(f),
-        }
-    }
-
     /// Calls `f` on each triangle until it returns `true`; says whether it
     /// did (the any-hit query's early exit).
     #[inline]
@@ -317,48 +309,6 @@ pub fn clip_ray(bounds: &Aabb, ray: &Ray, inv_dir: Vec3) -> Option<(f32, f32)> {
     }
 }
 
-/// Which children a ray visits at a split, and over which intervals: the
-/// one decision rule of every traverser (see the module docs).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SplitVisit {
-    /// The interval in the left child, if it is visited.
-    pub left: Option<(f32, f32)>,
-    pub right: Option<(f32, f32)>,
-    /// Whether the left child comes first along the ray.
-    pub left_first: bool,
-}
-
-#[inline]
-pub fn split_visit(o: f32, d: f32, inv_d: f32, pos: f32, tmin: f32, tmax: f32) -> SplitVisit {
-    let ts = (pos - o) * inv_d;
-    let below_first = o < pos || (o == pos && d <= 0.0);
-    let (near, far) = if o == pos {
-        // The ray starts in the plane (or lies in it: ts is NaN). The far
-        // cell touches it only at t = 0, but a triangle there may be
-        // computed a rounding error beyond 0, so both cells are visited.
-        (Some((tmin, tmax)), Some((tmin, tmax)))
-    } else if ts <= 0.0 || ts - ts * MARGIN > tmax {
-        (Some((tmin, tmax)), None)
-    } else if ts + ts * MARGIN < tmin {
-        (None, Some((tmin, tmax)))
-    } else {
-        (Some((tmin, ts.min(tmax))), Some((ts.max(tmin), tmax)))
-    };
-    if below_first {
-        SplitVisit {
-            left: near,
-            right: far,
-            left_first: true,
-        }
-    } else {
-        SplitVisit {
-            left: far,
-            right: near,
-            left_first: false,
-        }
-    }
-}
-
 /// The scalar traversal of an in-memory tree.
 pub fn closest_hit(tree: &TreeIr, scene: &TriangleColumns, ray: &Ray) -> Hit {
     traverse(&TreeTracer { tree, scene }, ray)
@@ -486,8 +436,8 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                         return best;
                     }
                 }
-                // split_visit, written out: the same expressions in the
-                // same order, so the same decisions. Branches, not selects:
+                // The one decision rule at a split (the packet traverser
+                // makes it per lane with the same expressions). Branches, not selects:
                 // a predicted branch lets the next node's load start before
                 // this decision is computed (branch-free selects measured
                 // 1.7x slower on single rays).

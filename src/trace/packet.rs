@@ -10,10 +10,10 @@
 //! of a (sub-)packet share the watertight test's axis permutation, as
 //! nearly all coherent rays do, the leaf kernel picks each vertex
 //! component once for all lanes instead of per lane. Each lane makes
-//! exactly the scalar traverser's decisions
-//! ([`super::split_visit`]): a child is visited when any active lane needs
-//! it, and a lane is active in a cell only when the scalar traverser would
-//! visit that cell. Pending cells are culled per lane by the same rule. The
+//! exactly the scalar traverser's decisions (its split rule, with the same
+//! expressions): a child is visited when any active lane needs it, and a
+//! lane is active in a cell only when the scalar traverser would visit that
+//! cell. Pending cells are culled per lane by the same rule. The
 //! ray–triangle kernel performs the scalar watertight test's operations in
 //! the same order (no fused multiply–add), so a packet returns exactly the
 //! scalar traverser's hits, bit for bit, whatever instruction set ran it.
@@ -367,8 +367,8 @@ struct LaneSplit {
     r_tmax: Lanes,
 }
 
-/// [`super::split_visit`] for 16 lanes at once, written branch-free so that
-/// it vectorises. Each lane makes exactly the scalar decision: the cases
+/// The scalar traverser's split rule for 16 lanes at once, written
+/// branch-free so that it vectorises. Each lane makes exactly the scalar decision: the cases
 /// (ray starts in the plane, near only, far only, both) and intervals are
 /// the same expressions.
 #[inline(always)]
