@@ -114,7 +114,8 @@ fn cli_dump_t_and_json_match_brute_force() {
     }
     assert_eq!(j["width"], 37);
     assert_eq!(j["height"], 23);
-    assert_eq!(j["mode"], "single");
+    // Packets by default.
+    assert_eq!(j["mode"], "packet");
 
     // Brute force in-process with the same camera.
     let (scene, _) = scene::load_obj(&scene_path).unwrap();

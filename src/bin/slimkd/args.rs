@@ -383,8 +383,9 @@ pub(crate) struct RenderArgs {
     /// View id in the views file, matched with the scene file's stem.
     #[arg(long)]
     pub(crate) view: Option<String>,
-    /// Traversal mode.
-    #[arg(long, value_enum, default_value_t = ModeArg::Single)]
+    /// Traversal mode: 4×4 packets (the default, as the main job), single
+    /// rays, or brute force (the reference).
+    #[arg(long, value_enum, default_value_t = ModeArg::Packet)]
     pub(crate) mode: ModeArg,
     /// Frames to trace (at least 1); Mrays/s is the median.
     #[arg(long, default_value_t = 1, value_parser = parse_positive)]
