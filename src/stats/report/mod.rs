@@ -1,7 +1,7 @@
 //! The paper's tables and figures for a set of scenes (Choi, Chang & Ihm
 //! 2013): what `slimkd report` writes.
 //!
-//! [`run`] builds, for every scene, the standard SAH tree (level builder),
+//! [`run()`] builds, for every scene, the standard SAH tree (level builder),
 //! the `fast` and `small` slim trees ([`SlimParams::FAST`],
 //! [`SlimParams::SMALL`]), writes each as `.kd` bytes in memory (Morton
 //! reordering on, so 2-byte leaves are used wherever they fit), opens the
