@@ -151,7 +151,9 @@ pub fn write_png(path: &Path, frame: &Frame) -> Result<(), ImageError> {
     })
 }
 
-/// Writes an OpenEXR file with channels R, G, B (f32, linear) and Z (f32 depth; +inf for a miss), scanline or tiled, uncompressed or lossless compression is fine. y=0 is the top row of the image as EXR viewers show it.
+/// Writes an OpenEXR file with channels R, G, B (f32, linear) and Z (f32
+/// depth; +inf for a miss), ZIP-compressed (lossless). y=0 is the top row
+/// of the image as EXR viewers show it.
 pub fn write_exr(path: &Path, frame: &Frame) -> Result<(), ImageError> {
     use exr::prelude::*;
 
@@ -165,7 +167,10 @@ pub fn write_exr(path: &Path, frame: &Frame) -> Result<(), ImageError> {
     list.push(AnyChannel::new("Z", FlatSamples::F32(frame.depth.clone())));
     // EXR flat samples are stored row by row with increasing y going down the
     // display, so the frame's top-first row order maps across unchanged.
-    let image = Image::from_channels(size, AnyChannels::sort(list));
+    // Lossless ZIP in 16-line blocks: run-length encoding leaves float
+    // channels as large as uncompressed (4.9 MB at 640×480).
+    let image =
+        Image::from_encoded_channels(size, Encoding::SMALL_LOSSLESS, AnyChannels::sort(list));
     write_atomically(path, |w| {
         image.write().to_buffered(w).map_err(|e| match e {
             exr::error::Error::Io(source) => io_err(path, source),
@@ -298,6 +303,7 @@ mod tests {
         let image = read_all_flat_layers_from_file(&path).unwrap();
         let layer = &image.layer_data[0];
         assert_eq!(layer.size, Vec2(5, 3));
+        assert_eq!(layer.encoding.compression, Compression::ZIP16);
         let channel = |name: &str| -> Vec<f32> {
             let c = layer
                 .channel_data
