@@ -168,7 +168,8 @@ pub fn write_exr(path: &Path, frame: &Frame) -> Result<(), ImageError> {
     // EXR flat samples are stored row by row with increasing y going down the
     // display, so the frame's top-first row order maps across unchanged.
     // Lossless ZIP in 16-line blocks: run-length encoding leaves float
-    // channels as large as uncompressed (4.9 MB at 640×480).
+    // channels as large as uncompressed (the default view at 640×480:
+    // 4.4 MB with it, 0.34 MB with ZIP).
     let image =
         Image::from_encoded_channels(size, Encoding::SMALL_LOSSLESS, AnyChannels::sort(list));
     write_atomically(path, |w| {
