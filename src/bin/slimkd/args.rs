@@ -57,13 +57,17 @@ pub(crate) enum Command {
     Render(Box<RenderArgs>),
     /// Print the header and figures of a .kd file.
     Info {
+        /// A .kd file written by `slimkd build -o`.
         file: PathBuf,
         /// Print one JSON object instead of text.
         #[arg(long)]
         json: bool,
     },
     /// Check a .kd file completely, checksums included; exit 0 if valid.
-    Verify { file: PathBuf },
+    Verify {
+        /// A .kd file written by `slimkd build -o`.
+        file: PathBuf,
+    },
     /// Parse a scene once and write it as a binary scene cache (.kds),
     /// which every command reads instead of the OBJ in a fraction of the
     /// time (the same triangles, bit for bit).
@@ -396,6 +400,9 @@ pub(crate) struct RenderArgs {
     /// Write W·H little-endian f32 hit distances (+inf for a miss).
     #[arg(long)]
     pub(crate) dump_t: Option<PathBuf>,
+    /// Image colours: `eye-light` (grey, lit from the eye by the cosine
+    /// to the surface) or `normals` (the geometric normal facing the eye,
+    /// mapped from [-1, 1] to [0, 1] as RGB).
     #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
     pub(crate) shading: ShadingArg,
     /// Print one JSON object instead of text.
