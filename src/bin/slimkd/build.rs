@@ -161,13 +161,18 @@ pub(crate) fn build_tree(
     })
 }
 
-pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
+/// The summary's first line: the scene and its load.
+pub(crate) fn print_scene_line(loaded: &Loaded) {
     println!(
         "scene      {} ({}; loaded in {:.3} s)",
         loaded.path.display(),
         loaded.summary,
         loaded.seconds
     );
+}
+
+pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
+    print_scene_line(loaded);
     println!(
         "tree       {} nodes ({} inner, {} leaves, {} empty), {} triangle references ({:.2} per triangle)",
         stats.nodes,

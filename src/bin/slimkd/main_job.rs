@@ -140,12 +140,7 @@ pub(crate) fn main_job(verbose: bool) -> Res<()> {
     if verbose {
         print_summary(&loaded, &built, &stats);
     } else {
-        println!(
-            "scene      {} ({}; loaded in {:.3} s)",
-            loaded.path.display(),
-            loaded.summary,
-            loaded.seconds
-        );
+        print_scene_line(&loaded);
         println!(
             "build      std tree in {:.3} s with the {} builder on {} threads",
             built.std_seconds,
