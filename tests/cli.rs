@@ -464,3 +464,34 @@ fn sah_constants_are_flags_recorded_in_the_file() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn a_closed_output_pipe_ends_quietly() {
+    use std::io::Read;
+    use std::process::Stdio;
+    // The main job prints its first line before a second of work, so the
+    // lines after it meet the closed pipe.
+    let dir = fresh_temp_dir("closed-pipe");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_slimkd"))
+        .current_dir(&dir)
+        .env("TMPDIR", &dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the binary runs");
+    // Read one byte of the output, then close the pipe (as `| head -c 1`).
+    let mut out = child.stdout.take().unwrap();
+    let mut byte = [0u8; 1];
+    out.read_exact(&mut byte).unwrap();
+    drop(out);
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    child.wait().unwrap();
+    assert!(!err.contains("panicked"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

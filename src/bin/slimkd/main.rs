@@ -34,6 +34,15 @@ pub(crate) const DEFAULT_ARG: &str = "default";
 pub(crate) type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
 
 fn main() -> ExitCode {
+    // A closed pipe (`slimkd info x.kd | head`) ends the process quietly,
+    // as it does other command-line tools, instead of a panic on the next
+    // print: the Rust runtime ignores SIGPIPE, so restore its default.
+    #[cfg(target_os = "linux")]
+    // SAFETY: setting a signal's disposition to its default at start-up,
+    // before any thread is spawned, has no precondition.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let matches = Cli::command().get_matches();
     let mut cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     if let Some((_, sub)) = matches.subcommand() {
