@@ -18,6 +18,11 @@
 //! 5. [`render`] shoots camera rays over image tiles in parallel and writes
 //!    PNG or OpenEXR; [`stats`] reports the figures of the papers.
 //!
+//! [`accel`] wraps steps 2–4 for a renderer: [`accel::Accel`] builds from a
+//! scene or the caller's buffers, writes and maps `.kd` files, and traces
+//! single rays and masked 16-ray packets, with hit records (barycentrics,
+//! geometric normal, input triangle id).
+//!
 //! ```
 //! use slimkd::{build, scene::TriangleColumns, trace, geom::Ray};
 //! use glam::Vec3;
@@ -31,10 +36,29 @@
 //! assert_eq!(hit.t, 5.0);
 //! assert_eq!(hit.tri.0, 0);
 //! ```
+//!
+//! The same through the facade, round trip through a file included:
+//!
+//! ```
+//! use slimkd::accel::{Accel, BuildOptions};
+//! use slimkd::geom::Ray;
+//! use glam::Vec3;
+//!
+//! let vertices = [[0.0, 0.0, 5.0], [2.0, 0.0, 5.0], [0.0, 2.0, 5.0]];
+//! let built = Accel::from_buffers(&vertices, &[[0, 1, 2]], &BuildOptions::default()).unwrap();
+//! let path = std::env::temp_dir().join(format!("slimkd-lib-doc-{}.kd", std::process::id()));
+//! built.write(&path).unwrap();
+//! let accel = Accel::open(&path).unwrap();
+//! let hit = accel.intersect(&Ray::new(Vec3::new(0.5, 0.5, 0.0), Vec3::Z)).unwrap();
+//! assert_eq!((hit.t, hit.prim, hit.u, hit.v), (5.0, 0, 0.25, 0.25));
+//! assert_eq!(hit.ng, Vec3::new(0.0, 0.0, 4.0));
+//! std::fs::remove_file(&path).unwrap();
+//! ```
 
 #![deny(unsafe_op_in_unsafe_fn)]
 #![warn(clippy::undocumented_unsafe_blocks)]
 
+pub mod accel;
 pub mod build;
 pub mod columns;
 pub mod format;

@@ -1,0 +1,525 @@
+//! A facade for the whole flow a renderer needs: build a tree from a scene
+//! or from its own vertex and index buffers, write it as a `.kd` file, map
+//! it back, and trace single rays or 16-ray packets.
+//!
+//! [`Accel`] is one type whether its tree is an in-memory `.kd` image or a
+//! mapped file: both trace through the same file walk
+//! ([`crate::trace::FileWalk`]), so a tree answers exactly the same hits
+//! before and after a round trip through the disk.
+//!
+//! ```
+//! use slimkd::accel::{Accel, BuildOptions};
+//! use slimkd::geom::Ray;
+//! use glam::Vec3;
+//!
+//! let vertices = [[0.0, 0.0, 5.0], [2.0, 0.0, 5.0], [0.0, 2.0, 5.0]];
+//! let accel = Accel::from_buffers(&vertices, &[[0, 1, 2]], &BuildOptions::default()).unwrap();
+//! let dir = std::env::temp_dir().join(format!("slimkd-accel-doc-{}", std::process::id()));
+//! std::fs::create_dir_all(&dir).unwrap();
+//! let path = dir.join("tri.kd");
+//! accel.write(&path).unwrap();
+//! let mapped = Accel::open(&path).unwrap();
+//! let hit = mapped.intersect(&Ray::new(Vec3::new(0.5, 0.5, 0.0), Vec3::Z)).unwrap();
+//! assert_eq!((hit.t, hit.prim), (5.0, 0));
+//! assert_eq!((hit.u, hit.v), (0.25, 0.25));
+//! std::fs::remove_dir_all(&dir).unwrap();
+//! ```
+
+#![warn(missing_docs)]
+
+use crate::build::{self, BuildConfig, BuildError, Builder};
+use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped, WriteOptions};
+use crate::geom::{Aabb, Ray, RayPrecomp};
+use crate::scene::{InvalidColumns, TriangleColumns};
+use crate::slim::{self, HoistRule, SlimParams};
+use crate::trace::packet::PacketTracer;
+use crate::trace::{ClosestHit, Hit, Scalar};
+use glam::Vec3;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// Which tree to build.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Preset {
+    /// The standard SAH kd-tree.
+    #[default]
+    Std,
+    /// Slimmed with [`SlimParams::FAST`] (few hoists, fast traversal).
+    Fast,
+    /// Slimmed with [`SlimParams::SMALL`] (more hoists, smaller tree).
+    Small,
+}
+
+/// How [`Accel::build`] builds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BuildOptions {
+    /// The tree to build.
+    pub preset: Preset,
+    /// Renumber triangles in Morton order in the file (smaller leaves; hit
+    /// ids stay the input's). Default `true`.
+    pub reorder: bool,
+    /// Worker threads for the build; `None` (or `Some(0)`) uses rayon's
+    /// current pool.
+    pub threads: Option<usize>,
+}
+
+impl Default for BuildOptions {
+    fn default() -> Self {
+        BuildOptions {
+            preset: Preset::Std,
+            reorder: true,
+            threads: None,
+        }
+    }
+}
+
+/// A ray hit, in the input's numbering.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HitRecord {
+    /// Hit distance along the ray (in units of its direction's length).
+    pub t: f32,
+    /// Barycentric weight of the triangle's vertex 1: the hit point is
+    /// `(1 - u - v)·v0 + u·v1 + v·v2`, as in Embree.
+    pub u: f32,
+    /// Barycentric weight of the triangle's vertex 2.
+    pub v: f32,
+    /// Geometric normal `(v1 - v0) × (v2 - v0)`, not normalised.
+    pub ng: Vec3,
+    /// The triangle hit: its index in the input (the scene's triangle
+    /// order, or the index buffer's triple).
+    pub prim: u32,
+}
+
+/// 16 rays in structure-of-arrays form; lane `i` is the ray
+/// `org_*[i] + t·dir_*[i]`, `t` in `(tmin[i], tmax[i]]`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayPacket {
+    /// Origin x per lane.
+    pub org_x: [f32; 16],
+    /// Origin y per lane.
+    pub org_y: [f32; 16],
+    /// Origin z per lane.
+    pub org_z: [f32; 16],
+    /// Direction x per lane.
+    pub dir_x: [f32; 16],
+    /// Direction y per lane.
+    pub dir_y: [f32; 16],
+    /// Direction z per lane.
+    pub dir_z: [f32; 16],
+    /// Start of the ray interval per lane (exclusive).
+    pub tmin: [f32; 16],
+    /// End of the ray interval per lane (inclusive for hits).
+    pub tmax: [f32; 16],
+}
+
+impl RayPacket {
+    /// Lane `i` of the packet as a [`Ray`].
+    pub fn ray(&self, i: usize) -> Ray {
+        Ray {
+            origin: Vec3::new(self.org_x[i], self.org_y[i], self.org_z[i]),
+            dir: Vec3::new(self.dir_x[i], self.dir_y[i], self.dir_z[i]),
+            tmin: self.tmin[i],
+            tmax: self.tmax[i],
+        }
+    }
+
+    /// A packet of up to 16 rays (lanes past `rays.len()` are rays with
+    /// zero direction and an empty interval).
+    pub fn from_rays(rays: &[Ray]) -> RayPacket {
+        assert!(rays.len() <= 16, "a packet holds at most 16 rays");
+        let mut p = RayPacket {
+            org_x: [0.0; 16],
+            org_y: [0.0; 16],
+            org_z: [0.0; 16],
+            dir_x: [0.0; 16],
+            dir_y: [0.0; 16],
+            dir_z: [0.0; 16],
+            tmin: [0.0; 16],
+            tmax: [0.0; 16],
+        };
+        for (i, r) in rays.iter().enumerate() {
+            p.org_x[i] = r.origin.x;
+            p.org_y[i] = r.origin.y;
+            p.org_z[i] = r.origin.z;
+            p.dir_x[i] = r.dir.x;
+            p.dir_y[i] = r.dir.y;
+            p.dir_z[i] = r.dir.z;
+            p.tmin[i] = r.tmin;
+            p.tmax[i] = r.tmax;
+        }
+        p
+    }
+}
+
+/// Why an [`Accel`] could not be built, written or opened.
+#[derive(Debug)]
+pub enum AccelError {
+    /// The caller's buffers break the scene invariant (a non-finite
+    /// vertex, an index out of range).
+    Scene(InvalidColumns),
+    /// The builder failed (its columns).
+    Build(BuildError),
+    /// The build's thread pool could not be made.
+    Threads(String),
+    /// The tree could not be stored, or a `.kd` file is not valid;
+    /// `path` is the file, where there is one.
+    Format {
+        /// The file read or written (`None` for an in-memory image).
+        path: Option<PathBuf>,
+        /// What is wrong.
+        source: FormatError,
+    },
+    /// Reading or writing a file failed.
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The operating system's error.
+        source: std::io::Error,
+    },
+}
+
+impl fmt::Display for AccelError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            AccelError::Scene(e) => write!(f, "invalid scene buffers: {e}"),
+            AccelError::Build(e) => write!(f, "kd-tree build failed: {e}"),
+            AccelError::Threads(e) => write!(f, "cannot start the build threads: {e}"),
+            AccelError::Format {
+                path: Some(p),
+                source: FormatError::Io { source, .. },
+            } => write!(f, "{}: {source}", p.display()),
+            AccelError::Format {
+                path: Some(p),
+                source,
+            } => write!(f, "{}: {source}", p.display()),
+            AccelError::Format { path: None, source } => write!(f, "kd image: {source}"),
+            AccelError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+        }
+    }
+}
+
+impl std::error::Error for AccelError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            AccelError::Scene(e) => Some(e),
+            AccelError::Build(e) => Some(e),
+            AccelError::Threads(_) => None,
+            AccelError::Format { source, .. } => Some(source),
+            AccelError::Io { source, .. } => Some(source),
+        }
+    }
+}
+
+impl AccelError {
+    /// The file the error is about, if any.
+    pub fn path(&self) -> Option<&Path> {
+        match self {
+            AccelError::Format { path, .. } => path.as_deref(),
+            AccelError::Io { path, .. } => Some(path),
+            _ => None,
+        }
+    }
+}
+
+/// The tree's `.kd` image: built in memory or mapped from a file.
+enum Image {
+    Memory(KdFile<AlignedBytes>),
+    Mapped(KdFile<Mapped>),
+}
+
+/// Calls `$body` with `$f` bound to the image's `KdFile`, whichever kind.
+macro_rules! with_file {
+    ($img:expr, |$f:ident| $body:expr) => {
+        match $img {
+            Image::Memory($f) => $body,
+            Image::Mapped($f) => $body,
+        }
+    };
+}
+
+/// A kd-tree with its geometry, ready to trace.
+///
+/// Tracing takes `&self` and `Accel` is `Sync`, so one `Accel` serves any
+/// number of threads.
+pub struct Accel {
+    image: Image,
+    /// Input triangle id → file triangle id (the inverse of the file's
+    /// `tri_map`; empty when the file is not reordered).
+    file_id: Vec<u32>,
+    /// The mapped file (for errors).
+    path: Option<PathBuf>,
+}
+
+impl fmt::Debug for Accel {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Accel")
+            .field("mapped", &self.is_mapped())
+            .field("triangles", &self.len())
+            .finish()
+    }
+}
+
+impl Accel {
+    /// Builds the tree of `scene` with the level builder, slims it for
+    /// [`Preset::Fast`] and [`Preset::Small`] (byte hoist rule for the file
+    /// as `options.reorder` writes it), and keeps its `.kd` image in
+    /// memory. The header records the configuration built with.
+    pub fn build(scene: &TriangleColumns, options: &BuildOptions) -> Result<Accel, AccelError> {
+        match options.threads {
+            Some(n) if n > 0 => rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .map_err(|e| AccelError::Threads(e.to_string()))?
+                .install(|| Self::build_here(scene, options)),
+            _ => Self::build_here(scene, options),
+        }
+    }
+
+    fn build_here(scene: &TriangleColumns, options: &BuildOptions) -> Result<Accel, AccelError> {
+        let config = BuildConfig::default();
+        let tree = build::build(scene, &config, Builder::Level, None).map_err(AccelError::Build)?;
+        let rule = HoistRule::Bytes {
+            reordered: options.reorder,
+        };
+        let (params, preset) = match options.preset {
+            Preset::Std => (None, format::Preset::Std),
+            Preset::Fast => (Some(SlimParams::FAST.with_rule(rule)), format::Preset::Fast),
+            Preset::Small => (
+                Some(SlimParams::SMALL.with_rule(rule)),
+                format::Preset::Small,
+            ),
+        };
+        let tree = match &params {
+            Some(p) => slim::slim(&tree, scene, &config, p).0,
+            None => tree,
+        };
+        let write = WriteOptions {
+            reorder: options.reorder,
+            config: crate::pipeline::file_config(&config, scene.len(), preset, params.as_ref()),
+        };
+        let bad = |source| AccelError::Format { path: None, source };
+        let bytes = format::write_to_vec(&tree, scene, &write).map_err(bad)?;
+        drop(tree);
+        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).map_err(bad)?;
+        Ok(Accel::new(Image::Memory(file), None))
+    }
+
+    /// Builds from the caller's buffers: triangle `i` is
+    /// `indices[i]` into `vertices`, and hits report `prim == i`.
+    pub fn from_buffers(
+        vertices: &[[f32; 3]],
+        indices: &[[u32; 3]],
+        options: &BuildOptions,
+    ) -> Result<Accel, AccelError> {
+        let positions = vertices.iter().map(|&v| Vec3::from_array(v)).collect();
+        let scene = TriangleColumns::new(positions, indices.to_vec()).map_err(AccelError::Scene)?;
+        Accel::build(&scene, options)
+    }
+
+    /// Maps a `.kd` file and validates its structure (not its checksums:
+    /// see [`Accel::verify`]). The file must not be modified in place
+    /// while mapped (slimkd replaces files by rename, which is safe; see
+    /// [`KdFile::open`]).
+    pub fn open(path: impl AsRef<Path>) -> Result<Accel, AccelError> {
+        let path = path.as_ref();
+        let file = KdFile::open(path, false).map_err(|source| AccelError::Format {
+            path: Some(path.to_path_buf()),
+            source,
+        })?;
+        Ok(Accel::new(Image::Mapped(file), Some(path.to_path_buf())))
+    }
+
+    /// Writes the tree as a `.kd` file, atomically (a temporary file in the
+    /// same directory, renamed into place).
+    pub fn write(&self, path: impl AsRef<Path>) -> Result<(), AccelError> {
+        let path = path.as_ref();
+        let bytes = with_file!(&self.image, |f| f.as_bytes());
+        crate::fsio::write_atomically(
+            path,
+            |source| AccelError::Io {
+                path: path.to_path_buf(),
+                source,
+            },
+            |file| {
+                use std::io::Write;
+                file.write_all(bytes).map_err(|source| AccelError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                })
+            },
+        )
+    }
+
+    /// Checks every section's checksum (reads the whole image).
+    pub fn verify(&self) -> Result<(), AccelError> {
+        let path = self.path.clone();
+        with_file!(&self.image, |f| f.verify())
+            .map_err(|source| AccelError::Format { path, source })
+    }
+
+    fn new(image: Image, path: Option<PathBuf>) -> Accel {
+        let file_id = with_file!(&image, |f| match f.tri_map() {
+            Some(map) => {
+                let mut inv = vec![0u32; map.len()];
+                for (file, &input) in map.iter().enumerate() {
+                    inv[input as usize] = file as u32;
+                }
+                inv
+            }
+            None => Vec::new(),
+        });
+        Accel {
+            image,
+            file_id,
+            path,
+        }
+    }
+
+    /// Whether the tree is a mapped file (from [`Accel::open`]).
+    pub fn is_mapped(&self) -> bool {
+        matches!(self.image, Image::Mapped(_))
+    }
+
+    /// The number of triangles.
+    pub fn len(&self) -> usize {
+        with_file!(&self.image, |f| f.triangles().len())
+    }
+
+    /// Whether there are no triangles.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The box around every triangle (the root cell).
+    pub fn bounds(&self) -> Aabb {
+        with_file!(&self.image, |f| f.bounds())
+    }
+
+    /// The `.kd` bytes.
+    pub fn as_bytes(&self) -> &[u8] {
+        with_file!(&self.image, |f| f.as_bytes())
+    }
+
+    /// The vertices of input triangle `prim`.
+    pub fn triangle(&self, prim: u32) -> [Vec3; 3] {
+        let id = if self.file_id.is_empty() {
+            prim
+        } else {
+            self.file_id[prim as usize]
+        };
+        with_file!(&self.image, |f| f.triangle(id))
+    }
+
+    /// The closest hit with `t` in `(ray.tmin, ray.tmax]`, if any (ties go
+    /// to the smaller `prim`).
+    pub fn intersect(&self, ray: &Ray) -> Option<HitRecord> {
+        let hit = with_file!(&self.image, |f| Scalar::new(f).closest_hit(ray));
+        self.record(ray, hit)
+    }
+
+    /// Whether anything is hit with `t` in `(ray.tmin, ray.tmax)`.
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        with_file!(&self.image, |f| Scalar::new(f).occluded(ray))
+    }
+
+    /// [`Accel::intersect`] for the lanes of `packet` whose bit is set in
+    /// `mask` (traced as one packet); the other lanes are `None`.
+    pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
+        let (rays, lanes, n) = gather(packet, mask);
+        let mut hits = [Hit::MISS; 16];
+        with_file!(&self.image, |f| PacketTracer::new(f)
+            .closest_hit_n(&rays[..n], &mut hits[..n]));
+        let mut out = [None; 16];
+        for i in 0..n {
+            out[lanes[i]] = self.record(&rays[i], hits[i]);
+        }
+        out
+    }
+
+    /// [`Accel::occluded`] for the lanes of `packet` whose bit is set in
+    /// `mask`: bit `i` of the result is set iff lane `i` is in the mask and
+    /// occluded.
+    pub fn occluded_packet(&self, packet: &RayPacket, mask: u16) -> u16 {
+        let (rays, lanes, n) = gather(packet, mask);
+        let mut occ = [false; 16];
+        with_file!(&self.image, |f| PacketTracer::new(f)
+            .occluded_n(&rays[..n], &mut occ[..n]));
+        (0..n).filter(|&i| occ[i]).fold(0, |m, i| m | 1 << lanes[i])
+    }
+
+    /// The record of a traversal's hit: barycentrics and normal from the
+    /// hit triangle's vertices.
+    fn record(&self, ray: &Ray, hit: Hit) -> Option<HitRecord> {
+        if !hit.is_hit() {
+            return None;
+        }
+        let prim = hit.tri.0;
+        let tri = self.triangle(prim);
+        let (u, v) = barycentrics(ray, &tri);
+        Some(HitRecord {
+            t: hit.t,
+            u,
+            v,
+            ng: (tri[1] - tri[0]).cross(tri[2] - tri[0]),
+            prim,
+        })
+    }
+}
+
+/// The masked lanes of a packet, packed: the rays, their lane numbers and
+/// how many.
+fn gather(packet: &RayPacket, mask: u16) -> ([Ray; 16], [usize; 16], usize) {
+    let mut rays = [Ray::new(Vec3::ZERO, Vec3::Z); 16];
+    let mut lanes = [0usize; 16];
+    let mut n = 0;
+    for lane in 0..16 {
+        if mask & (1 << lane) != 0 {
+            rays[n] = packet.ray(lane);
+            lanes[n] = lane;
+            n += 1;
+        }
+    }
+    (rays, lanes, n)
+}
+
+/// The barycentric weights `(u, v)` of vertices 1 and 2 at the ray's hit
+/// point, computed with the watertight test's own operations
+/// ([`crate::geom::intersect_triangle`]): the sheared, permuted vertices
+/// relative to the origin, the edge functions `e0` (opposite vertex 0),
+/// `e1`, `e2` (redone in `f64` when one is zero, as the test does), and
+/// `u = e1 / det`, `v = e2 / det` with `det = e0 + e1 + e2`. So `u`, `v`
+/// are exactly the weights the test's `t` was computed with.
+pub fn barycentrics(ray: &Ray, tri: &[Vec3; 3]) -> (f32, f32) {
+    let rp = RayPrecomp::new(ray);
+    let pick = |p: Vec3| {
+        let d = p - rp.origin;
+        [d[rp.kx], d[rp.ky], d[rp.kz]]
+    };
+    let a = pick(tri[0]);
+    let b = pick(tri[1]);
+    let c = pick(tri[2]);
+    let ax = a[0] - rp.sx * a[2];
+    let ay = a[1] - rp.sy * a[2];
+    let bx = b[0] - rp.sx * b[2];
+    let by = b[1] - rp.sy * b[2];
+    let cx = c[0] - rp.sx * c[2];
+    let cy = c[1] - rp.sy * c[2];
+    let mut e0 = cx * by - cy * bx;
+    let mut e1 = ax * cy - ay * cx;
+    let mut e2 = bx * ay - by * ax;
+    if e0 == 0.0 || e1 == 0.0 || e2 == 0.0 {
+        let (ax, ay, bx, by, cx, cy) = (
+            f64::from(ax),
+            f64::from(ay),
+            f64::from(bx),
+            f64::from(by),
+            f64::from(cx),
+            f64::from(cy),
+        );
+        e0 = (cx * by - cy * bx) as f32;
+        e1 = (ax * cy - ay * cx) as f32;
+        e2 = (bx * ay - by * ax) as f32;
+    }
+    let det = e0 + e1 + e2;
+    (e1 / det, e2 / det)
+}

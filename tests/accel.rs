@@ -1,0 +1,207 @@
+//! The `Accel` facade: built in memory, written, mapped back, it traces
+//! exactly as brute force does, in the input's numbering, for single rays
+//! and masked packets; bad files are errors naming the file.
+
+mod common;
+
+use common::kd::{Rng, load_scene, rays_at};
+use common::*;
+use glam::Vec3;
+use slimkd::accel::{self, Accel, AccelError, BuildOptions, HitRecord, Preset, RayPacket};
+use slimkd::geom::Ray;
+use slimkd::scene::TriangleColumns;
+use slimkd::trace;
+
+/// A few hundred rays at the scene, a third of them with a finite `tmax`
+/// (so that occlusion has both answers).
+fn rays(accel: &Accel, seed: u64) -> Vec<Ray> {
+    let mut rng = Rng(seed);
+    let mut rays = rays_at(&accel.bounds(), &mut rng, 300);
+    for (i, r) in rays.iter_mut().enumerate() {
+        if i % 3 == 0 {
+            r.tmax = rng.unit() * 1.5;
+        }
+        if i % 7 == 0 {
+            r.tmin = rng.unit() * 0.2;
+        }
+    }
+    rays
+}
+
+/// The record brute force's hit gives, computed from the scene directly.
+fn expected(scene: &TriangleColumns, ray: &Ray) -> Option<HitRecord> {
+    let hit = trace::brute_force(scene, ray);
+    if !hit.is_hit() {
+        return None;
+    }
+    let tri = scene.tri(hit.tri.0);
+    let (u, v) = accel::barycentrics(ray, &tri);
+    Some(HitRecord {
+        t: hit.t,
+        u,
+        v,
+        ng: (tri[1] - tri[0]).cross(tri[2] - tri[0]),
+        prim: hit.tri.0,
+    })
+}
+
+fn assert_traces_as_brute_force(scene: &TriangleColumns, accel: &Accel, rays: &[Ray]) {
+    let mut hits = 0;
+    for (i, ray) in rays.iter().enumerate() {
+        let want = expected(scene, ray);
+        let got = accel.intersect(ray);
+        assert_eq!(got, want, "ray {i}: {ray:?}");
+        assert_eq!(
+            accel.occluded(ray),
+            got.is_some_and(|h| h.t < ray.tmax),
+            "occluded, ray {i}: {ray:?}"
+        );
+        if let Some(h) = got {
+            hits += 1;
+            // The weights interpolate the hit point.
+            let [a, b, c] = scene.tri(h.prim);
+            let p = a * (1.0 - h.u - h.v) + b * h.u + c * h.v;
+            let q = ray.origin + ray.dir * h.t;
+            let scale = (a.abs().max(b.abs()).max(c.abs()) + q.abs()).max_element();
+            assert!((p - q).length() <= 1e-3 * scale, "ray {i}: {p} vs {q}");
+            assert!((-1e-6..=1.0 + 1e-6).contains(&h.u) && (-1e-6..=1.0 + 1e-6).contains(&h.v));
+        }
+    }
+    assert!(hits > rays.len() / 4, "only {hits} hits");
+    for chunk in rays.chunks(16) {
+        let packet = RayPacket::from_rays(chunk);
+        for mask in [0xFFFFu16, 0x0001, 0x8421, 0] {
+            let mask = mask & ((1u32 << chunk.len()) - 1) as u16;
+            let got = accel.intersect_packet(&packet, mask);
+            let occ = accel.occluded_packet(&packet, mask);
+            for lane in 0..16 {
+                let on = mask & (1 << lane) != 0;
+                let want = if on {
+                    accel.intersect(&chunk[lane])
+                } else {
+                    None
+                };
+                assert_eq!(got[lane], want, "mask {mask:#x} lane {lane}");
+                let want_occ = on && accel.occluded(&chunk[lane]);
+                assert_eq!(
+                    occ & (1 << lane) != 0,
+                    want_occ,
+                    "mask {mask:#x} lane {lane}"
+                );
+            }
+        }
+    }
+}
+
+fn round_trip(preset: Preset, reorder: bool) {
+    let scene = load_scene("nexuiz_dieselpower.obj");
+    let options = BuildOptions {
+        preset,
+        reorder,
+        threads: None,
+    };
+    let memory = Accel::build(&scene, &options).unwrap();
+    assert!(!memory.is_mapped());
+    assert_eq!(memory.len(), scene.len());
+    let dir = fresh_temp_dir(&format!("{preset:?}-{reorder}"));
+    let path = dir.join("scene.kd");
+    memory.write(&path).unwrap();
+    let mapped = Accel::open(&path).unwrap();
+    assert!(mapped.is_mapped());
+    mapped.verify().unwrap();
+    assert_eq!(mapped.as_bytes(), memory.as_bytes());
+    let rays = rays(&memory, 7 + reorder as u64);
+    assert_traces_as_brute_force(&scene, &memory, &rays);
+    assert_traces_as_brute_force(&scene, &mapped, &rays);
+    // The header records what was built.
+    let file = slimkd::format::KdFile::open(&path, true).unwrap();
+    assert_eq!(file.is_reordered(), reorder);
+    assert_eq!(
+        file.config().preset,
+        match preset {
+            Preset::Std => slimkd::format::Preset::Std,
+            Preset::Fast => slimkd::format::Preset::Fast,
+            Preset::Small => slimkd::format::Preset::Small,
+        }
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn std_reordered() {
+    round_trip(Preset::Std, true);
+}
+
+#[test]
+fn std_in_input_order() {
+    round_trip(Preset::Std, false);
+}
+
+#[test]
+fn small_reordered() {
+    round_trip(Preset::Small, true);
+}
+
+#[test]
+fn small_in_input_order() {
+    round_trip(Preset::Small, false);
+}
+
+#[test]
+fn fast_on_two_threads() {
+    let scene = load_scene("nexuiz_dieselpower.obj");
+    let options = BuildOptions {
+        preset: Preset::Fast,
+        threads: Some(2),
+        ..Default::default()
+    };
+    let accel = Accel::build(&scene, &options).unwrap();
+    assert_traces_as_brute_force(&scene, &accel, &rays(&accel, 3));
+}
+
+#[test]
+fn buffers_keep_their_numbering() {
+    let tris = box_mesh(v(0.0, 0.0, 0.0), v(2.0, 3.0, 4.0));
+    let vertices: Vec<[f32; 3]> = tris.iter().flatten().map(|p| p.to_array()).collect();
+    let indices: Vec<[u32; 3]> = (0..tris.len() as u32)
+        .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+        .collect();
+    let accel = Accel::from_buffers(&vertices, &indices, &BuildOptions::default()).unwrap();
+    let scene = TriangleColumns::from_triangles(&tris).unwrap();
+    let mut rays = rays(&accel, 11);
+    rays.push(Ray::new(v(1.0, 1.5, -5.0), Vec3::Z));
+    assert_traces_as_brute_force(&scene, &accel, &rays);
+    let bad = Accel::from_buffers(&vertices, &[[0, 1, 99_999]], &BuildOptions::default());
+    assert!(matches!(bad, Err(AccelError::Scene(_))));
+}
+
+#[test]
+fn bad_files_are_errors_naming_the_file() {
+    let scene =
+        TriangleColumns::from_triangles(&box_mesh(v(0.0, 0.0, 0.0), v(1.0, 1.0, 1.0))).unwrap();
+    let accel = Accel::build(&scene, &BuildOptions::default()).unwrap();
+    let dir = fresh_temp_dir("bad");
+    let bytes = accel.as_bytes();
+    let cases: [(&str, Vec<u8>); 4] = [
+        ("truncated.kd", bytes[..bytes.len() / 2].to_vec()),
+        ("header-only.kd", bytes[..100].to_vec()),
+        (
+            "garbage.kd",
+            (0..bytes.len()).map(|i| (i * 131 % 251) as u8).collect(),
+        ),
+        ("empty.kd", Vec::new()),
+    ];
+    for (name, data) in cases {
+        let path = dir.join(name);
+        std::fs::write(&path, data).unwrap();
+        let err = Accel::open(&path).unwrap_err();
+        assert_eq!(err.path(), Some(path.as_path()), "{name}: {err}");
+        assert!(err.to_string().contains(name), "{name}: {err}");
+    }
+    let missing = dir.join("missing.kd");
+    let err = Accel::open(&missing).unwrap_err();
+    assert!(err.to_string().contains("missing.kd"), "{err}");
+    let err = accel.write(dir.join("no-such-dir/out.kd")).unwrap_err();
+    assert!(err.to_string().contains("no-such-dir"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
