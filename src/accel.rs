@@ -490,36 +490,7 @@ fn gather(packet: &RayPacket, mask: u16) -> ([Ray; 16], [usize; 16], usize) {
 /// `u = e1 / det`, `v = e2 / det` with `det = e0 + e1 + e2`. So `u`, `v`
 /// are exactly the weights the test's `t` was computed with.
 pub fn barycentrics(ray: &Ray, tri: &[Vec3; 3]) -> (f32, f32) {
-    let rp = RayPrecomp::new(ray);
-    let pick = |p: Vec3| {
-        let d = p - rp.origin;
-        [d[rp.kx], d[rp.ky], d[rp.kz]]
-    };
-    let a = pick(tri[0]);
-    let b = pick(tri[1]);
-    let c = pick(tri[2]);
-    let ax = a[0] - rp.sx * a[2];
-    let ay = a[1] - rp.sy * a[2];
-    let bx = b[0] - rp.sx * b[2];
-    let by = b[1] - rp.sy * b[2];
-    let cx = c[0] - rp.sx * c[2];
-    let cy = c[1] - rp.sy * c[2];
-    let mut e0 = cx * by - cy * bx;
-    let mut e1 = ax * cy - ay * cx;
-    let mut e2 = bx * ay - by * ax;
-    if e0 == 0.0 || e1 == 0.0 || e2 == 0.0 {
-        let (ax, ay, bx, by, cx, cy) = (
-            f64::from(ax),
-            f64::from(ay),
-            f64::from(bx),
-            f64::from(by),
-            f64::from(cx),
-            f64::from(cy),
-        );
-        e0 = (cx * by - cy * bx) as f32;
-        e1 = (ax * cy - ay * cx) as f32;
-        e2 = (bx * ay - by * ax) as f32;
-    }
+    let [e0, e1, e2] = crate::geom::edge_functions(&RayPrecomp::new(ray), tri);
     let det = e0 + e1 + e2;
     (e1 / det, e2 / det)
 }

@@ -83,30 +83,7 @@ fn watertight(
     let a = pick(tri[0] - rp.origin);
     let b = pick(tri[1] - rp.origin);
     let c = pick(tri[2] - rp.origin);
-    let ax = a[0] - rp.sx * a[2];
-    let ay = a[1] - rp.sy * a[2];
-    let bx = b[0] - rp.sx * b[2];
-    let by = b[1] - rp.sy * b[2];
-    let cx = c[0] - rp.sx * c[2];
-    let cy = c[1] - rp.sy * c[2];
-    let mut u = cx * by - cy * bx;
-    let mut v = ax * cy - ay * cx;
-    let mut w = bx * ay - by * ax;
-    if u == 0.0 || v == 0.0 || w == 0.0 {
-        // Fall back to double precision on edges, as the paper does, so that
-        // the sign of the edge function is exact.
-        let (ax, ay, bx, by, cx, cy) = (
-            f64::from(ax),
-            f64::from(ay),
-            f64::from(bx),
-            f64::from(by),
-            f64::from(cx),
-            f64::from(cy),
-        );
-        u = (cx * by - cy * bx) as f32;
-        v = (ax * cy - ay * cx) as f32;
-        w = (bx * ay - by * ax) as f32;
-    }
+    let [u, v, w] = sheared_edges(rp, a, b, c);
     if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
         return None;
     }
@@ -120,6 +97,51 @@ fn watertight(
     let t_scaled = u * az + v * bz + w * cz;
     let t = t_scaled / det;
     if t > tmin && t <= tmax { Some(t) } else { None }
+}
+
+/// The edge functions `[e0, e1, e2]` of the sheared, permuted vertices
+/// `a`, `b`, `c` (relative to the origin): `e_i` is opposite vertex `i`,
+/// redone in `f64` when one is zero so that its sign is exact.
+#[inline(always)]
+fn sheared_edges(rp: &RayPrecomp, a: [f32; 3], b: [f32; 3], c: [f32; 3]) -> [f32; 3] {
+    let ax = a[0] - rp.sx * a[2];
+    let ay = a[1] - rp.sy * a[2];
+    let bx = b[0] - rp.sx * b[2];
+    let by = b[1] - rp.sy * b[2];
+    let cx = c[0] - rp.sx * c[2];
+    let cy = c[1] - rp.sy * c[2];
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    if u == 0.0 || v == 0.0 || w == 0.0 {
+        // Fall back to double precision on edges, as the paper does, so that
+        // the sign of the edge function is exact.
+        let (ax, ay, bx, by, cx, cy) = (
+            f64::from(ax),
+            f64::from(ay),
+            f64::from(bx),
+            f64::from(by),
+            f64::from(cx),
+            f64::from(cy),
+        );
+        return [
+            (cx * by - cy * bx) as f32,
+            (ax * cy - ay * cx) as f32,
+            (bx * ay - by * ax) as f32,
+        ];
+    }
+    [u, v, w]
+}
+
+/// The watertight test's edge functions `[e0, e1, e2]` for this ray and
+/// triangle, by its own operations: divided by their sum they are the
+/// barycentric weights of vertices 0, 1, 2 that its `t` was computed with.
+pub fn edge_functions(rp: &RayPrecomp, tri: &[Vec3; 3]) -> [f32; 3] {
+    let pick = |v: Vec3| [v[rp.kx], v[rp.ky], v[rp.kz]];
+    let a = pick(tri[0] - rp.origin);
+    let b = pick(tri[1] - rp.origin);
+    let c = pick(tri[2] - rp.origin);
+    sheared_edges(rp, a, b, c)
 }
 
 /// Convenience wrapper for a single test.

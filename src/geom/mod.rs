@@ -12,7 +12,7 @@ mod clip;
 mod intersect;
 
 pub use clip::{clip_split, clip_split_on, clip_triangle};
-pub use intersect::{RayPrecomp, intersect_ray_triangle, intersect_triangle};
+pub use intersect::{RayPrecomp, edge_functions, intersect_ray_triangle, intersect_triangle};
 
 use glam::Vec3;
 
