@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::fresh_temp_dir;
+use common::{dir_entries, fresh_temp_dir};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -209,11 +209,7 @@ fn reports_name_their_figures_after_the_output() {
     };
     let a = run("a.md", &["--sweep"]);
     let b = run("b.md", &[]);
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
+    let names = dir_entries(&dir);
     assert_eq!(
         names,
         [

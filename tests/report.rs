@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::fresh_temp_dir;
+use common::{dir_entries, fresh_temp_dir};
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, View};
@@ -407,11 +407,7 @@ fn write_puts_every_file_in_place_atomically() {
     .collect();
     assert_eq!(paths, expected);
     // Nothing else: no temporary file left.
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
+    let names = dir_entries(&dir);
     assert_eq!(
         names,
         [
