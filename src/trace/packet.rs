@@ -281,7 +281,10 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
     /// Uses `level` if this CPU has it ([`SimdLevel::available`]), else
     /// the baseline kernel.
     pub fn with_level(src: &'a S, level: SimdLevel) -> Self {
-        let level = if SimdLevel::available().contains(&level) {
+        // `usable` keeps a level this CPU has; checked without the
+        // allocation of `available`, since the facade makes a tracer per
+        // packet.
+        let level = if SimdLevel::usable(level) == level {
             level
         } else {
             SimdLevel::Baseline
