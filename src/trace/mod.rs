@@ -125,16 +125,32 @@ pub enum LeafTris<'a> {
 }
 
 impl LeafTris<'_> {
-    /// Calls `f` on each triangle until it returns `true`; says whether it
-    /// did (the any-hit query's early exit).
-    #[inline]
-    pub fn any(&self, mut f: impl FnMut(u32) -> bool) -> bool {
+    /// The number of triangles.
+    #[inline(always)]
+    pub fn len(&self) -> usize {
         match *self {
-            LeafTris::Ids(ids) => ids.iter().any(|t| f(t.0)),
-            LeafTris::File(LeafIndices::Idx32(s)) => s.iter().any(|&t| f(t)),
-            LeafTris::File(LeafIndices::Idx16 { upper, low }) => {
-                low.iter().any(|&t| f(upper | u32::from(t)))
-            }
+            LeafTris::Ids(ids) => ids.len(),
+            LeafTris::File(f) => f.len(),
+        }
+    }
+
+    /// Whether the leaf is empty.
+    #[inline(always)]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The `i`-th triangle (`i < len()`). The traversers loop over
+    /// `0..len()` with this rather than pass a closure: a closure's body
+    /// is a function of its own, compiled without the target features of
+    /// the SIMD traversal that inlines it (the packet leaf kernel ran as
+    /// SSE2 code inside the AVX-512 traversal that way).
+    #[inline(always)]
+    pub fn get(&self, i: usize) -> u32 {
+        match *self {
+            LeafTris::Ids(ids) => ids[i].0,
+            LeafTris::File(LeafIndices::Idx32(s)) => s[i],
+            LeafTris::File(LeafIndices::Idx16 { upper, low }) => upper | u32::from(low[i]),
         }
     }
 }
@@ -487,14 +503,13 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                 if COUNT {
                     stats.leaves += 1;
                 }
-                let done = tris.any(|t| {
+                for i in 0..tris.len() {
                     if COUNT {
                         stats.tris += 1;
                     }
-                    test(t, &mut best)
-                });
-                if done {
-                    return best;
+                    if test(tris.get(i), &mut best) {
+                        return best;
+                    }
                 }
             }
         }

@@ -644,21 +644,23 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                     if COUNT {
                         stats.leaves += 1;
                     }
-                    let all_done = tris.any(|t| {
+                    for i in 0..tris.len() {
+                        let t = tris.get(i);
                         if COUNT {
                             stats.tris += u64::from(cur.mask.count_ones());
                         }
                         if ANY {
                             done |= test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
                             cur.mask &= !done;
-                            cur.mask == 0
+                            if cur.mask == 0 {
+                                if mask & !done == 0 {
+                                    return;
+                                }
+                                break;
+                            }
                         } else {
                             test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
-                            false
                         }
-                    });
-                    if ANY && all_done && mask & !done == 0 {
-                        return;
                     }
                 }
             }
