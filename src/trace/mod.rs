@@ -383,6 +383,35 @@ pub fn traverse_counted<S: KdSource>(src: &S, ray: &Ray, any: bool, stats: &mut 
     }
 }
 
+/// Tests triangle `t_src` against `ray`, keeping the better hit in
+/// `best`; under `ANY`, says whether the ray is done. A function rather
+/// than a closure of the walk: a closure's body is compiled on its own,
+/// without the target features of the packet traversal that inlines the
+/// walk for its single-ray octants.
+#[inline(always)]
+fn test_one<'a, W: Walk<'a>, const ANY: bool>(
+    src: W,
+    rp: &RayPrecomp,
+    ray: &Ray,
+    t_src: u32,
+    best: &mut Hit,
+) -> bool {
+    if let Some(t) = intersect_triangle(rp, &src.triangle(t_src), ray.tmin, best.t.min(ray.tmax)) {
+        if ANY {
+            if t < ray.tmax {
+                *best = Hit {
+                    t,
+                    tri: src.input_id(t_src),
+                };
+                return true;
+            }
+        } else {
+            best.offer(t, src.input_id(t_src));
+        }
+    }
+    false
+}
+
 /// One ray, front to back, with a fixed-size stack of pending cells.
 /// `ANY`: stop at the first hit in `(tmin, tmax)`; `COUNT`: add the work
 /// to `stats`.
@@ -411,25 +440,6 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     let org = ray.origin.to_array();
     let dir = ray.dir.to_array();
     let inv = inv_dir.to_array();
-    // Tests one triangle; under ANY, says whether the ray is now done.
-    let test = |t_src: u32, best: &mut Hit| -> bool {
-        if let Some(t) =
-            intersect_triangle(&rp, &src.triangle(t_src), ray.tmin, best.t.min(ray.tmax))
-        {
-            if ANY {
-                if t < ray.tmax {
-                    *best = Hit {
-                        t,
-                        tri: src.input_id(t_src),
-                    };
-                    return true;
-                }
-            } else {
-                best.offer(t, src.input_id(t_src));
-            }
-        }
-        false
-    };
     loop {
         if COUNT {
             stats.nodes += 1;
@@ -448,7 +458,7 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                     if COUNT {
                         stats.hoisted += 1;
                     }
-                    if test(tri, &mut best) {
+                    if test_one::<W, ANY>(src, &rp, ray, tri, &mut best) {
                         return best;
                     }
                 }
@@ -507,7 +517,7 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                     if COUNT {
                         stats.tris += 1;
                     }
-                    if test(tris.get(i), &mut best) {
+                    if test_one::<W, ANY>(src, &rp, ray, tris.get(i), &mut best) {
                         return best;
                     }
                 }

@@ -68,7 +68,10 @@ struct Packet {
     octant: [u8; LANES],
 }
 
+// The methods are inlined into the per-instruction-set traversal; as
+// functions of their own they would run as baseline (SSE2) code.
 impl Packet {
+    #[inline(always)]
     fn new(rays: &[Ray]) -> Packet {
         debug_assert!(!rays.is_empty() && rays.len() <= LANES);
         let mut p = Packet {
@@ -111,6 +114,7 @@ impl Packet {
     }
 
     /// The permutation all lanes of `mask` share, if they do.
+    #[inline(always)]
     fn shared_permutation(&self, mask: u16) -> Option<[usize; 3]> {
         let first = mask.trailing_zeros() as usize;
         let (kx, kz) = (self.kx[first], self.kz[first]);
