@@ -63,7 +63,6 @@ struct Packet {
     sx: Lanes,
     sy: Lanes,
     sz: Lanes,
-    rp: [RayPrecomp; LANES],
     /// Direction octant per lane (bit k: component k is negative).
     octant: [u8; LANES],
 }
@@ -86,7 +85,6 @@ impl Packet {
             sx: [0.0; LANES],
             sy: [0.0; LANES],
             sz: [0.0; LANES],
-            rp: [RayPrecomp::new(&rays[0]); LANES],
             octant: [0; LANES],
         };
         for i in 0..LANES {
@@ -108,9 +106,24 @@ impl Packet {
             p.sx[i] = rp.sx;
             p.sy[i] = rp.sy;
             p.sz[i] = rp.sz;
-            p.rp[i] = rp;
         }
         p
+    }
+
+    /// Lane `i`'s constants of the scalar test, for its fallback; rebuilt
+    /// from the lane arrays rather than stored (16 copies of 48 bytes
+    /// written per packet for a rare path).
+    #[inline(always)]
+    fn precomp(&self, i: usize) -> RayPrecomp {
+        RayPrecomp {
+            origin: Vec3::new(self.o[0][i], self.o[1][i], self.o[2][i]),
+            kx: usize::from(self.kx[i]),
+            ky: usize::from(self.ky[i]),
+            kz: usize::from(self.kz[i]),
+            sx: self.sx[i],
+            sy: self.sy[i],
+            sz: self.sz[i],
+        }
     }
 
     /// The permutation all lanes of `mask` share, if they do.
@@ -544,7 +557,7 @@ fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
         let i = fallback.trailing_zeros() as usize;
         fallback &= fallback - 1;
         let limit = best.t[i].min(p.tmax[i]);
-        if let Some(t) = intersect_triangle(&p.rp[i], &tri, p.tmin[i], limit) {
+        if let Some(t) = intersect_triangle(&p.precomp(i), &tri, p.tmin[i], limit) {
             if ANY {
                 if t < p.tmax[i] {
                     best.t[i] = t;
