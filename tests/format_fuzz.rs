@@ -19,7 +19,7 @@
 //! must still return a real hit of the ray, never closer than brute
 //! force's.
 //!
-//! The normal run makes 3000 cases; for a long run set `PROPTEST_CASES`:
+//! The normal run makes 8000 cases; for a long run set `PROPTEST_CASES`:
 //!
 //! ```text
 //! PROPTEST_CASES=200000 nice -n 19 cargo test --release --test format_fuzz
@@ -872,7 +872,7 @@ fn bump(c: &Cell<usize>) {
 #[test]
 fn mutated_files_are_rejected_or_traced_consistently() {
     let bases = bases();
-    let cases = common::cases(3000).cases;
+    let cases = common::cases(8000).cases;
     let mut runner = TestRunner::new(Config {
         cases,
         // A failing case is shrunk and saved next to this file

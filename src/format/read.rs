@@ -603,7 +603,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                     return Err(FormatError::Node {
                         index: i as u64,
                         message: format!(
-                            "split {pos} on axis {k} outside the node's cell [{}, {}]",
+                            "split {pos:?} on axis {k} outside the node's cell [{:?}, {:?}]",
                             cell.min[k], cell.max[k]
                         ),
                     });

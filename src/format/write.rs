@@ -190,7 +190,7 @@ fn layout(
                     if !(pos >= cell.min[k] && pos <= cell.max[k]) {
                         return Err(bad_node(
                             i,
-                            format!("split {pos} on axis {k} outside the node's cell"),
+                            format!("split {pos:?} on axis {k} outside the node's cell"),
                         ));
                     }
                     let block = words.len();
