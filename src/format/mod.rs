@@ -137,6 +137,8 @@ impl Section {
 pub(crate) const SECTION_TABLE: usize = 192;
 pub(crate) const SECTION_ENTRY: usize = 24;
 pub(crate) const HEADER_CRC: usize = 336;
+/// The reserved header bytes before the section table (zero).
+pub(crate) const RESERVED_HEADER: std::ops::Range<usize> = 160..192;
 
 // The header table must fit before the header checksum.
 const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);

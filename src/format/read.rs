@@ -4,8 +4,8 @@
 use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
 use super::write::{FileConfig, Preset};
 use super::{
-    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
-    SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, RESERVED_HEADER,
+    SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::geom::Aabb;
 use crate::tree::MAX_DEPTH;
@@ -313,12 +313,22 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             )));
         }
         // Every byte outside the checksummed header and sections is zero, so
-        // that no byte of a file goes unchecked.
-        if b[HEADER_CRC + 4..HEADER_SIZE].iter().any(|&x| x != 0) {
-            return Err(FormatError::Header(format!(
-                "reserved bytes {}..{HEADER_SIZE} are not zero",
-                HEADER_CRC + 4
-            )));
+        // that no byte of a file goes unchecked; so are the reserved fields
+        // inside the header, so that a later version can give them a meaning.
+        let reserved = [(RESERVED_HEADER, "header bytes")]
+            .into_iter()
+            .chain(Section::ALL.map(|s| {
+                let e = SECTION_TABLE + s as usize * SECTION_ENTRY + 20;
+                (e..e + 4, "the section table's reserved word, bytes")
+            }))
+            .chain([(HEADER_CRC + 4..HEADER_SIZE, "header bytes")]);
+        for (range, what) in reserved {
+            if b[range.clone()].iter().any(|&x| x != 0) {
+                return Err(FormatError::Header(format!(
+                    "reserved {what} {}..{} are not zero",
+                    range.start, range.end
+                )));
+            }
         }
         for s in Section::ALL {
             let pad_end = match Section::ALL.get(s as usize + 1) {
@@ -503,6 +513,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 "node counts do not match the nodes".into(),
             ));
         }
+        self.check_splits_in_cells()?;
         if let Some(p) = self.idx32().iter().position(|&t| u64::from(t) >= n_tris) {
             return Err(FormatError::Index {
                 section: "idx32",
@@ -522,6 +533,37 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 message: "non-finite coordinate".into(),
             });
         }
+        // The scene bounds are the root cell: a vertex outside it would make
+        // a triangle that brute force hits and no traversal can reach (and
+        // a default camera aimed from the bounds miss the scene). `-0.0`
+        // never leaves the scene's columns (`TriangleColumns` holds none),
+        // so a file holding one was not written from them.
+        let v = self.vertices();
+        let bounds = self.bounds;
+        for (t, tri) in self.triangles().iter().enumerate() {
+            for &i in tri {
+                let p = Vec3::from_array(v[i as usize]);
+                if !(p.cmpge(bounds.min).all() && p.cmple(bounds.max).all()) {
+                    return Err(FormatError::Index {
+                        section: "vertices",
+                        position: u64::from(i),
+                        message: format!(
+                            "vertex {p} of triangle {t} lies outside the header's scene bounds"
+                        ),
+                    });
+                }
+            }
+        }
+        if let Some(p) = v
+            .iter()
+            .position(|v| v.iter().any(|c| c.to_bits() == (-0.0f32).to_bits()))
+        {
+            return Err(FormatError::Index {
+                section: "vertices",
+                position: p as u64,
+                message: "coordinate -0.0 (the scene's columns hold +0.0)".into(),
+            });
+        }
         if let Some(map) = self.tri_map() {
             let mut seen = vec![false; map.len()];
             for (p, &t) in map.iter().enumerate() {
@@ -532,6 +574,44 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                         message: "not a permutation of the triangles".into(),
                     });
                 }
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that every split lies inside its node's cell (the scene
+    /// bounds narrowed by the ancestors' splits), as
+    /// [`TreeIr::validate`](crate::tree::TreeIr::validate) requires of a
+    /// tree: a split outside it leaves one child a cell no ray can enter,
+    /// and its distance along a ray may overflow to ±∞ even for rays that
+    /// are not parallel to the plane. Runs after the pass in index order,
+    /// which proved the nodes a tree of bounded depth, so this walk ends
+    /// and its stack stays below twice [`MAX_DEPTH`].
+    fn check_splits_in_cells(&self) -> Result<(), FormatError> {
+        let words = self.nodes();
+        let mut stack = vec![(0usize, self.bounds)];
+        while let Some((i, cell)) = stack.pop() {
+            if let Ok(NodeWord::Inner {
+                axis,
+                t_ref,
+                block,
+                pos,
+            }) = node::decode(words[i])
+            {
+                let k = usize::from(axis);
+                if !(pos >= cell.min[k] && pos <= cell.max[k]) {
+                    return Err(FormatError::Node {
+                        index: i as u64,
+                        message: format!(
+                            "split {pos:?} on axis {k} outside the node's cell [{:?}, {:?}]",
+                            cell.min[k], cell.max[k]
+                        ),
+                    });
+                }
+                let (left, right) = cell.split(k, pos);
+                let first = block as usize + usize::from(t_ref);
+                stack.push((first + 1, right));
+                stack.push((first, left));
             }
         }
         Ok(())

@@ -131,8 +131,8 @@ struct Layout {
 /// a file the reader would reject, a tree that does not fit the format
 /// (too many nodes, a leaf over [`MAX_LEAF32`] triangles, deeper than
 /// [`MAX_DEPTH`]) or that is malformed (a child or leaf list out of range,
-/// a node reached twice, an axis over 2, a non-finite split, a triangle id
-/// of `n_tris` or more).
+/// a node reached twice, an axis over 2, a split that is not finite or lies
+/// outside its node's cell, a triangle id of `n_tris` or more).
 fn layout(
     tree: &TreeIr,
     n_tris: usize,
@@ -171,90 +171,102 @@ fn layout(
         WalkFault::TooDeep { .. } => too_large(&format!("a node deeper than {MAX_DEPTH}")),
     };
     let mut ids = Vec::new();
-    tree.walk_checked(0usize, walk_fault, |i, &node, depth, slot| {
-        out.max_depth = out.max_depth.max(depth);
-        match node {
-            Node::Inner {
-                axis, pos, t_ref, ..
-            } => {
-                if axis > 2 {
-                    return Err(bad_node(i, format!("axis {axis}")));
-                }
-                if !pos.is_finite() {
-                    return Err(bad_node(i, "split position is not finite".into()));
-                }
-                let block = words.len();
-                let first_child = match t_ref {
-                    Some(t) => {
-                        if t.0 as usize >= n_tris {
-                            return Err(bad_tri(i, t));
-                        }
-                        out.n_t_inner += 1;
-                        words.push(node::encode_tref(new_id(t)))?;
-                        block + 1
+    tree.walk_checked(
+        (0usize, tree.bounds),
+        walk_fault,
+        |i, &node, depth, (slot, cell)| {
+            out.max_depth = out.max_depth.max(depth);
+            match node {
+                Node::Inner {
+                    axis, pos, t_ref, ..
+                } => {
+                    if axis > 2 {
+                        return Err(bad_node(i, format!("axis {axis}")));
                     }
-                    None => {
-                        out.n_inner += 1;
-                        block
+                    if !pos.is_finite() {
+                        return Err(bad_node(i, "split position is not finite".into()));
                     }
-                };
-                words.push(0)?;
-                words.push(0)?;
-                if words.len() as u64 > MAX_NODES {
-                    return Err(too_large(
-                        "more than 2^29 node words (the 4 GiB offset limit)",
-                    ));
-                }
-                words.set(
-                    slot,
-                    node::encode_inner(axis, t_ref.is_some(), block as u32, pos),
-                );
-                Ok(Some((first_child, first_child + 1)))
-            }
-            Node::Leaf { start, count } => {
-                // Checked before the list is read: a leaf this large is
-                // always in 4-byte mode, whose count field has 27 bits.
-                if count > MAX_LEAF32 {
-                    return Err(too_large(&format!(
-                        "a leaf with {count} triangles (at most 2^27 - 1)"
-                    )));
-                }
-                let list = tree
-                    .leaf_tris
-                    .get(start as usize..start as usize + count as usize)
-                    .ok_or_else(|| {
-                        bad_node(
+                    let k = usize::from(axis);
+                    if !(pos >= cell.min[k] && pos <= cell.max[k]) {
+                        return Err(bad_node(
                             i,
-                            format!(
-                                "leaf list {start}+{count} outside the {} listed triangles",
-                                tree.leaf_tris.len()
-                            ),
-                        )
-                    })?;
-                if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
-                    return Err(bad_tri(i, t));
+                            format!("split {pos:?} on axis {k} outside the node's cell"),
+                        ));
+                    }
+                    let block = words.len();
+                    let first_child = match t_ref {
+                        Some(t) => {
+                            if t.0 as usize >= n_tris {
+                                return Err(bad_tri(i, t));
+                            }
+                            out.n_t_inner += 1;
+                            words.push(node::encode_tref(new_id(t)))?;
+                            block + 1
+                        }
+                        None => {
+                            out.n_inner += 1;
+                            block
+                        }
+                    };
+                    words.push(0)?;
+                    words.push(0)?;
+                    if words.len() as u64 > MAX_NODES {
+                        return Err(too_large(
+                            "more than 2^29 node words (the 4 GiB offset limit)",
+                        ));
+                    }
+                    words.set(
+                        slot,
+                        node::encode_inner(axis, t_ref.is_some(), block as u32, pos),
+                    );
+                    let (left, right) = cell.split(k, pos);
+                    Ok(Some(((first_child, left), (first_child + 1, right))))
                 }
-                out.n_leaves += 1;
-                ids.clear();
-                ids.extend(list.iter().map(|&t| new_id(t)));
-                ids.sort_unstable();
-                let word = if node::fits_leaf16(ids.len(), ids.iter().copied()) {
-                    let upper = ids.first().map_or(0, |&t| t >> 16);
-                    let first = u32::try_from(out.idx16.len())
-                        .map_err(|_| too_large("idx16 over 2^32 entries"))?;
-                    out.idx16.extend(ids.iter().map(|&t| t as u16));
-                    node::encode_leaf16(ids.len() as u32, upper as u16, first)
-                } else {
-                    let first = u32::try_from(out.idx32.len())
-                        .map_err(|_| too_large("idx32 over 2^32 entries"))?;
-                    out.idx32.extend_from_slice(&ids);
-                    node::encode_leaf32(ids.len() as u32, first)
-                };
-                words.set(slot, word);
-                Ok(None)
+                Node::Leaf { start, count } => {
+                    // Checked before the list is read: a leaf this large is
+                    // always in 4-byte mode, whose count field has 27 bits.
+                    if count > MAX_LEAF32 {
+                        return Err(too_large(&format!(
+                            "a leaf with {count} triangles (at most 2^27 - 1)"
+                        )));
+                    }
+                    let list = tree
+                        .leaf_tris
+                        .get(start as usize..start as usize + count as usize)
+                        .ok_or_else(|| {
+                            bad_node(
+                                i,
+                                format!(
+                                    "leaf list {start}+{count} outside the {} listed triangles",
+                                    tree.leaf_tris.len()
+                                ),
+                            )
+                        })?;
+                    if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
+                        return Err(bad_tri(i, t));
+                    }
+                    out.n_leaves += 1;
+                    ids.clear();
+                    ids.extend(list.iter().map(|&t| new_id(t)));
+                    ids.sort_unstable();
+                    let word = if node::fits_leaf16(ids.len(), ids.iter().copied()) {
+                        let upper = ids.first().map_or(0, |&t| t >> 16);
+                        let first = u32::try_from(out.idx16.len())
+                            .map_err(|_| too_large("idx16 over 2^32 entries"))?;
+                        out.idx16.extend(ids.iter().map(|&t| t as u16));
+                        node::encode_leaf16(ids.len() as u32, upper as u16, first)
+                    } else {
+                        let first = u32::try_from(out.idx32.len())
+                            .map_err(|_| too_large("idx32 over 2^32 entries"))?;
+                        out.idx32.extend_from_slice(&ids);
+                        node::encode_leaf32(ids.len() as u32, first)
+                    };
+                    words.set(slot, word);
+                    Ok(None)
+                }
             }
-        }
-    })?;
+        },
+    )?;
     out.n_words = words.len() as u64;
     Ok(out)
 }
@@ -287,7 +299,24 @@ fn check_scene(tree: &TreeIr, scene: &TriangleColumns) -> Result<(), FormatError
             message: "non-finite coordinate".into(),
         });
     }
-    super::check_vertex_indices(scene.indices(), scene.positions().len() as u64)
+    super::check_vertex_indices(scene.indices(), scene.positions().len() as u64)?;
+    let p = scene.positions();
+    for (t, tri) in scene.indices().iter().enumerate() {
+        if let Some(&i) = tri
+            .iter()
+            .find(|&&i| !(p[i as usize].cmpge(b.min).all() && p[i as usize].cmple(b.max).all()))
+        {
+            return Err(FormatError::Index {
+                section: "vertices",
+                position: u64::from(i),
+                message: format!(
+                    "vertex {} of triangle {t} lies outside the tree's bounds",
+                    p[i as usize]
+                ),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Bytes encoded per write by [`SectionSink`].
@@ -512,9 +541,10 @@ fn write_kd<W: Read + Write + Seek>(
 /// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
 /// would reject: a tree that does not fit the format
 /// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
-/// range, a node reached twice, an axis over 2, a non-finite split, a
-/// triangle id out of range) or scene (non-finite bounds or vertices, a
-/// vertex index out of range) is an error, never a panic. The tree need not
+/// range, a node reached twice, an axis over 2, a split that is not finite
+/// or lies outside its node's cell, a triangle id out of range) or scene
+/// (non-finite bounds or vertices, a vertex index out of range, a triangle's
+/// vertex outside the tree's bounds) is an error, never a panic. The tree need not
 /// pass [`TreeIr::validate`] otherwise: leaves may repeat a triangle.
 pub fn write_to_vec(
     tree: &TreeIr,

@@ -535,6 +535,9 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
             sp -= 1;
             // SAFETY: entries below the old `sp` were written.
             (node, tmin, tmax) = unsafe { stack[sp].assume_init() };
+            // A cell entered at `tmin` = +∞ (pushed by a ray parallel to
+            // its split plane) gives NaN here and is skipped: the packet
+            // traverser's pop is this expression too.
             if tmin - tmin * MARGIN <= best.t {
                 break;
             }

@@ -700,11 +700,12 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                 break 'outer;
             };
             let mut keep = [false; LANES];
-            // Written as the negation of the cull test, so that a NaN
-            // keeps the lane, as the per-lane branch did.
-            #[allow(clippy::neg_cmp_op_on_partial_ord)]
+            // The scalar pop's expression, literally: an entry at `tmin` =
+            // +∞ (a lane parallel to the split plane, whose distance to it
+            // is ∞) gives NaN, and a NaN drops the lane, as it ends the
+            // scalar traverser's wait for that cell.
             for i in 0..LANES {
-                keep[i] = !(e.tmin[i] - e.tmin[i] * MARGIN > best.t[i]);
+                keep[i] = e.tmin[i] - e.tmin[i] * MARGIN <= best.t[i];
             }
             e.mask &= !done & bits::<M>(keep);
             if e.mask != 0 {
