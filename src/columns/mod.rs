@@ -120,7 +120,11 @@ impl fmt::Display for ColumnsError {
                 write!(f, "too many {what}: at most {limit} are supported")
             }
             ColumnsError::Memory { bytes, source } => {
-                write!(f, "cannot map {bytes} bytes of memory: {source}")
+                write!(
+                    f,
+                    "out of memory: cannot map {bytes} bytes for a column: {source} (a smaller \
+                     --mem-budget, e.g. --mem-budget 64M, keeps the builder's columns in scratch files)"
+                )
             }
         }
     }
