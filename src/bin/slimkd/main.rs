@@ -155,7 +155,9 @@ fn main() -> ExitCode {
         }
     }
     let result = match cli.command {
-        None => main_job::main_job(cli.verbose),
+        // In a pool of its own: rayon's global pool panics where it cannot
+        // start its threads, a pool built here is an error.
+        None => pool(None).and_then(|p| p.install(|| main_job::main_job(cli.verbose))),
         Some(_) if cli.verbose => {
             Err(Usage("-v is a flag of the main job (slimkd without a command)".into()).into())
         }
