@@ -228,5 +228,6 @@ pub(crate) fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
     if let Some(n) = threads {
         b = b.num_threads(n);
     }
-    Ok(b.build()?)
+    b.build()
+        .map_err(|e| format!("cannot start the worker threads: {e}").into())
 }

@@ -33,7 +33,8 @@ pub(crate) fn with_bar<T: Send>(
             let run = || -> Res<T> {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(pool_threads)
-                    .build()?;
+                    .build()
+                    .map_err(|e| format!("{label}: cannot start the worker threads: {e}"))?;
                 pool.install(work)
             };
             // The receiver waits until this is sent (or the worker panics).
