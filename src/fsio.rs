@@ -14,8 +14,16 @@
 //! Ctrl-C, `kill -9` or the OOM killer leaves nothing behind, not even a
 //! hidden temporary file of the size written so far. Where the directory's
 //! filesystem or the kernel cannot do that, or `/proc` is not mounted, the
-//! temporary file is named from the start (`.NAME.tmp.PID.N`) and only a
-//! killed write can leave it.
+//! temporary file is named from the start (`.NAME.tmp.PID.N`).
+//!
+//! A write killed between naming and renaming (or, named from the start,
+//! at any time) leaves `.NAME.tmp.PID.N` behind. The next write of the same
+//! path removes every such file whose writer `PID` no longer runs (a live
+//! writer's, including this process's own concurrent writes, is left
+//! alone), so a leftover lasts only until the path is written again.
+//!
+//! [`open_regular`] is the one way the crate opens an input file: it
+//! refuses what is not a regular file (a FIFO would block `open` forever).
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -72,6 +80,7 @@ impl Staged {
             path: path.to_path_buf(),
             dir,
         };
+        remove_stale_temporaries(&staged.dir, path.file_name().expect("checked"));
         if let Some(f) = unnamed::create(&staged.dir) {
             staged.file = Some(f);
             return Ok(staged);
@@ -128,6 +137,8 @@ impl Staged {
         self.stage()?;
         self.file = None;
         let tmp = self.named.take().expect("staged");
+        #[cfg(test)]
+        tests::fault_before_rename();
         if let Err(e) = std::fs::rename(&tmp, &self.path) {
             // The original error is more useful than a failure to clean up.
             let _ = std::fs::remove_file(&tmp);
@@ -148,6 +159,123 @@ impl Staged {
             std::process::id(),
             TMP_COUNTER.fetch_add(1, Ordering::Relaxed)
         ))
+    }
+}
+
+/// The writer's process id in `entry` if it is a temporary file of `name`
+/// (`.NAME.tmp.PID.N`, as [`Staged::fresh_name`] makes them).
+fn temporary_writer(entry: &str, name: &str) -> Option<u32> {
+    let rest = entry.strip_prefix('.')?.strip_prefix(name)?;
+    let (pid, n) = rest.strip_prefix(".tmp.")?.split_once('.')?;
+    let digits = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit());
+    (digits(pid) && digits(n)).then(|| pid.parse().ok())?
+}
+
+/// Whether process `pid` runs (where that cannot be told: yes, so that
+/// nothing a live writer may still rename is removed).
+fn process_runs(pid: u32) -> bool {
+    if pid == std::process::id() {
+        return true;
+    }
+    #[cfg(target_os = "linux")]
+    {
+        let Ok(pid) = libc::pid_t::try_from(pid) else {
+            return true;
+        };
+        if pid <= 0 {
+            return true;
+        }
+        // SAFETY: signal 0 sends nothing; `kill` only checks that the
+        // process exists and takes no pointers.
+        let rc = unsafe { libc::kill(pid, 0) };
+        rc == 0 || std::io::Error::last_os_error().raw_os_error() != Some(libc::ESRCH)
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        true
+    }
+}
+
+/// Removes the temporary files of `name` in `dir` that writers killed
+/// before their rename left (best effort: a failure to list or remove is
+/// not the new write's failure).
+fn remove_stale_temporaries(dir: &Path, name: &std::ffi::OsStr) {
+    let Some(name) = name.to_str() else {
+        return;
+    };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let file_name = entry.file_name();
+        let Some(entry_name) = file_name.to_str() else {
+            continue;
+        };
+        if let Some(pid) = temporary_writer(entry_name, name)
+            && !process_runs(pid)
+        {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
+/// Opens `path` for reading if it is a regular file (after symbolic
+/// links); anything else is an error that says what it is. The check is
+/// made on the path before opening and again on the open file, which is
+/// opened non-blocking so that a FIFO swapped in between cannot block the
+/// `open` (on a regular file `O_NONBLOCK` changes nothing).
+pub fn open_regular(path: &Path) -> std::io::Result<File> {
+    let not_regular = |m: &std::fs::Metadata| -> std::io::Error {
+        if m.is_dir() {
+            return std::io::ErrorKind::IsADirectory.into();
+        }
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("not a regular file ({})", file_kind(m)),
+        )
+    };
+    let before = std::fs::metadata(path)?;
+    if !before.is_file() {
+        return Err(not_regular(&before));
+    }
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(path)?;
+    let after = file.metadata()?;
+    if !after.is_file() {
+        return Err(not_regular(&after));
+    }
+    Ok(file)
+}
+
+/// What kind of file `m` describes, in words.
+fn file_kind(m: &std::fs::Metadata) -> &'static str {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        let t = m.file_type();
+        if t.is_fifo() {
+            return "a FIFO";
+        }
+        if t.is_socket() {
+            return "a socket";
+        }
+        if t.is_char_device() {
+            return "a character device";
+        }
+        if t.is_block_device() {
+            return "a block device";
+        }
+    }
+    if m.is_dir() {
+        "a directory"
+    } else {
+        "a special file"
     }
 }
 
@@ -251,6 +379,95 @@ pub fn entry_names(dir: &Path) -> std::io::Result<Vec<String>> {
 mod tests {
     use super::*;
     use std::io::Write;
+
+    /// Set in a child process of `a_kill_before_the_rename_is_cleaned_up`
+    /// (from its environment): the write dies between naming its
+    /// temporary file and the rename, as a `kill -9` there would.
+    pub(super) fn fault_before_rename() {
+        if std::env::var_os(KILL_BEFORE_RENAME).is_some() {
+            std::process::abort();
+        }
+    }
+
+    const KILL_BEFORE_RENAME: &str = "SLIMKD_TEST_FSIO_KILL_BEFORE_RENAME";
+
+    /// The child's half of the test below: writes `out.bin` in the
+    /// directory its environment names and dies before the rename.
+    #[test]
+    fn child_killed_before_rename() {
+        let Some(dir) = std::env::var_os(KILL_BEFORE_RENAME) else {
+            return;
+        };
+        let path = Path::new(&dir).join("out.bin");
+        let _ = write_atomically(&path, |e| e, |f| f.write_all(b"complete"));
+        unreachable!("the write dies before its rename");
+    }
+
+    /// A writer killed between naming its temporary file and the rename
+    /// leaves `.out.bin.tmp.PID.N`; the next write of `out.bin` removes it
+    /// (its writer is dead) and leaves a live writer's alone.
+    #[test]
+    fn a_kill_before_the_rename_is_cleaned_up() {
+        let dir = scratch("killed");
+        let status = std::process::Command::new(std::env::current_exe().unwrap())
+            .args([
+                "fsio::tests::child_killed_before_rename",
+                "--exact",
+                "--quiet",
+            ])
+            .env(KILL_BEFORE_RENAME, &dir)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .unwrap();
+        assert!(!status.success());
+        let left = entries(&dir);
+        assert_eq!(left.len(), 1, "{left:?}");
+        assert!(left[0].starts_with(".out.bin.tmp."), "{left:?}");
+        assert_eq!(std::fs::read(dir.join(&left[0])).unwrap(), b"complete");
+        // A live writer's temporary file (this process's) stays.
+        let live = format!(".out.bin.tmp.{}.999999", std::process::id());
+        std::fs::write(dir.join(&live), b"live").unwrap();
+        write_atomically(&dir.join("out.bin"), |e| e, |f| f.write_all(b"again")).unwrap();
+        assert_eq!(entries(&dir), [live.as_str(), "out.bin"]);
+        assert_eq!(std::fs::read(dir.join("out.bin")).unwrap(), b"again");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn temporary_names_are_recognised_exactly() {
+        assert_eq!(temporary_writer(".a.kd.tmp.123.4", "a.kd"), Some(123));
+        for other in [
+            "a.kd",
+            ".a.kd.tmp.123",
+            ".a.kd.tmp.x.4",
+            ".a.kd.tmp.123.4.5",
+            ".b.kd.tmp.123.4",
+            ".a.kd.tmp..4",
+            ".xa.kd.tmp.1.2",
+        ] {
+            assert_eq!(temporary_writer(other, "a.kd"), None, "{other}");
+        }
+    }
+
+    /// A FIFO is refused at once (no `open` that waits for a writer), a
+    /// directory is named as one, a regular file opens.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn open_regular_refuses_a_fifo() {
+        let dir = scratch("fifo");
+        let fifo = dir.join("pipe");
+        let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        // SAFETY: a NUL-terminated path that outlives the call.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let e = open_regular(&fifo).unwrap_err();
+        assert_eq!(e.to_string(), "not a regular file (a FIFO)");
+        let e = open_regular(&dir).unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::IsADirectory);
+        std::fs::write(dir.join("f"), b"x").unwrap();
+        assert!(open_regular(&dir.join("f")).is_ok());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     fn entries(dir: &Path) -> Vec<String> {
         entry_names(dir).unwrap()

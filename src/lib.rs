@@ -72,5 +72,6 @@ pub mod simd;
 pub mod slim;
 pub mod stats;
 pub mod sys;
+pub mod text;
 pub mod trace;
 pub mod tree;

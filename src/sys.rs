@@ -2,9 +2,62 @@
 //! resident memory from `/proc` (the level builder's report samples them;
 //! the CLI prints them; off Linux they read as unknown or zero), and the
 //! wall-clock time of a phase ([`lap`], for the builder's and the slim
-//! pass's phase times).
+//! pass's phase times), and [`try_reserve`], the large allocations that
+//! fail with an error instead of aborting.
 
+use std::cell::Cell;
 use std::time::Instant;
+
+thread_local! {
+    /// How many [`try_reserve`] calls this thread is inside: while it is
+    /// above 0, a failed allocation is an error its caller handles.
+    static FALLIBLE: Cell<u32> = const { Cell::new(0) };
+}
+
+/// Whether an allocation that fails now, on this thread, is one that its
+/// caller handles ([`try_reserve`]). A global allocator that ends the
+/// process on any other failed allocation (the CLI's) asks this first; it
+/// reads a thread-local without a destructor, so it allocates nothing.
+pub fn allocation_failure_is_handled() -> bool {
+    FALLIBLE.try_with(|f| f.get() > 0).unwrap_or(false)
+}
+
+/// A large allocation that did not fit: what it was for and its size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct OutOfMemory {
+    pub what: &'static str,
+    pub bytes: u64,
+}
+
+impl std::fmt::Display for OutOfMemory {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "out of memory: {} ({:.1} MiB) does not fit (a smaller --mem-budget, \
+             e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
+            self.what,
+            self.bytes as f64 / (1 << 20) as f64
+        )
+    }
+}
+
+impl std::error::Error for OutOfMemory {}
+
+/// Reserves room for `additional` more elements of `v` exactly, or says
+/// that `what` did not fit.
+pub fn try_reserve<T>(
+    v: &mut Vec<T>,
+    additional: usize,
+    what: &'static str,
+) -> Result<(), OutOfMemory> {
+    FALLIBLE.with(|f| f.set(f.get() + 1));
+    let result = v.try_reserve_exact(additional);
+    FALLIBLE.with(|f| f.set(f.get() - 1));
+    result.map_err(|_| OutOfMemory {
+        what,
+        bytes: (additional as u64).saturating_mul(std::mem::size_of::<T>() as u64),
+    })
+}
 
 /// The seconds since `clock`, which is moved on to now: the time of the
 /// phase that just ended.

@@ -495,3 +495,144 @@ fn a_closed_output_pipe_ends_quietly() {
     assert!(!err.contains("panicked"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Runs `args`, killing it after `secs` seconds: `None` if it was still
+/// running then.
+fn slimkd_within(args: &[&str], secs: u64) -> Option<Output> {
+    use std::process::Stdio;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_slimkd"))
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the binary runs");
+    let start = std::time::Instant::now();
+    while start.elapsed() < std::time::Duration::from_secs(secs) {
+        if child.try_wait().unwrap().is_some() {
+            return Some(child.wait_with_output().unwrap());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().ok();
+    child.wait().ok();
+    None
+}
+
+/// `verify`, `info` and `build` refuse a FIFO within 2 s (an `open` of it
+/// waits for a writer forever), naming the file and what it is.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_fifo_is_refused_at_once() {
+    let dir = fresh_temp_dir("fifo");
+    let out_kd = dir.join("out.kd");
+    for name in ["pipe.kd", "pipe.obj", "pipe.kds"] {
+        let fifo = dir.join(name);
+        let made = Command::new("mkfifo").arg(&fifo).status();
+        if !made.is_ok_and(|s| s.success()) {
+            eprintln!("skipped: mkfifo is not available");
+            return;
+        }
+        let f = fifo.to_str().unwrap();
+        let runs: Vec<Vec<&str>> = vec![
+            vec!["verify", f],
+            vec!["info", f],
+            vec!["build", f, "-o", out_kd.to_str().unwrap()],
+        ];
+        for args in runs {
+            let out = slimkd_within(&args, 2).unwrap_or_else(|| panic!("{args:?} blocked"));
+            assert_eq!(out.status.code(), Some(1), "{args:?}");
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                err.contains(f) && err.contains("not a regular file (a FIFO)"),
+                "{err}"
+            );
+        }
+    }
+    assert!(!out_kd.exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Under an address-space limit (`ulimit -v`) too small for it, a build
+/// of the embedded scene ends with exit status 1 and a message, never by
+/// a signal (an allocation's abort, status 134) or a panic (101); with
+/// room enough it succeeds.
+#[test]
+fn a_build_out_of_memory_is_an_error() {
+    let probe = Command::new("sh").args(["-c", "ulimit -v 100000"]).status();
+    if !probe.is_ok_and(|s| s.success()) {
+        eprintln!("skipped: this shell has no ulimit -v");
+        return;
+    }
+    let dir = fresh_temp_dir("ulimit");
+    let out = dir.join("out.kd");
+    for kib in [15000, 20000, 30000, 45000, 400000] {
+        let script = format!("ulimit -v {kib} && exec \"$0\" build default -o \"$1\"",);
+        let run = Command::new("sh")
+            .args([
+                "-c",
+                &script,
+                env!("CARGO_BIN_EXE_slimkd"),
+                out.to_str().unwrap(),
+            ])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&run.stderr);
+        match run.status.code() {
+            Some(0) => assert!(out.exists(), "{kib} KiB"),
+            Some(1) => assert!(
+                err.contains("slimkd: error: ") && err.contains("memory"),
+                "{kib} KiB: {err}"
+            ),
+            other => panic!("{kib} KiB: status {other:?} ({})\n{err}", run.status),
+        }
+        assert!(!err.contains("panicked"), "{kib} KiB: {err}");
+        if kib == 400000 {
+            assert_eq!(run.status.code(), Some(0), "{err}");
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `strace` kills the build at its rename, which leaves the complete
+/// temporary file `.out.kd.tmp.PID.N` beside the missing `out.kd`; the next
+/// build of `out.kd` removes it. (Without strace the unit test
+/// `fsio::tests::a_kill_before_the_rename_is_cleaned_up` kills a writer
+/// there itself.)
+#[test]
+fn a_kill_at_the_rename_leaves_nothing_lasting() {
+    let probe = Command::new("strace").arg("-V").output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        eprintln!("skipped: strace is not installed");
+        return;
+    }
+    let dir = fresh_temp_dir("kill-at-rename");
+    let out = dir.join("out.kd");
+    let killed = Command::new("strace")
+        .args([
+            "-f",
+            "-o",
+            "/dev/null",
+            "-e",
+            "inject=rename:signal=SIGKILL:when=1",
+        ])
+        .arg(env!("CARGO_BIN_EXE_slimkd"))
+        .args(["build", "default", "-o", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!killed.status.success());
+    let left = common::dir_entries(&dir);
+    if left.is_empty() {
+        eprintln!("skipped: strace could not inject the kill here");
+        return;
+    }
+    assert_eq!(left.len(), 1, "{left:?}");
+    assert!(left[0].starts_with(".out.kd.tmp."), "{left:?}");
+    let again = slimkd(&["build", "default", "-o", out.to_str().unwrap()]);
+    assert!(
+        again.status.success(),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    assert_eq!(common::dir_entries(&dir), ["out.kd"]);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1208,3 +1208,50 @@ fn load_progress_ends_at_one() {
     assert_eq!(progress.fraction(), 1.0);
     std::fs::remove_file(&cache).unwrap();
 }
+
+/// An error that quotes the line carries none of its control bytes: a
+/// terminal escape sequence (`ESC [31m`) is shown escaped, not sent to
+/// the terminal; so is a quoted word of a views file.
+#[test]
+fn error_messages_escape_control_bytes() {
+    let m = expect_line_error("escape", format!("v 1\x1b[31mX 2 3\n{TAIL}"), 1);
+    assert!(m.contains("1\\u{1b}[31mX"), "{m}");
+    let m = expect_line_error("face-escape", format!("{TAIL}f 1 2 3\x07\x1b]0;t\n"), 5);
+    assert!(m.contains("\\u{7}\\u{1b}]0;t"), "{m}");
+    let views =
+        slimkd::render::parse_views("scene v1 eye=0,0,1 at=0,0,0 up=0,1,0 fov=40 b\x1bc=1\n");
+    let shown = views.unwrap_err().to_string();
+    assert!(shown.contains("b\\u{1b}c"), "{shown}");
+    for m in [m, shown] {
+        assert!(!m.chars().any(char::is_control), "{m:?}");
+    }
+}
+
+/// A FIFO is refused at once, named as one (an `open` of it would wait for
+/// a writer forever).
+#[cfg(target_os = "linux")]
+#[test]
+fn error_reading_a_fifo() {
+    let fifo = temp_dir("scratch").join("a-fifo.obj");
+    let _ = std::fs::remove_file(&fifo);
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    if !made.is_ok_and(|s| s.success()) {
+        eprintln!("skipped: mkfifo is not available");
+        return;
+    }
+    let err = load_obj(&fifo).unwrap_err();
+    assert!(
+        matches!(&err, SceneError::Io { path, .. } if *path == fifo),
+        "{err:?}"
+    );
+    assert!(
+        err.to_string().ends_with("not a regular file (a FIFO)"),
+        "{err}"
+    );
+    let err = slimkd::scene::load_scene_cache(&fifo).unwrap_err();
+    assert!(
+        err.to_string().contains("not a regular file (a FIFO)"),
+        "{err}"
+    );
+    std::fs::remove_file(&fifo).ok();
+}

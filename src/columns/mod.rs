@@ -68,6 +68,9 @@ impl Default for ScratchConfig {
 /// Why a column could not be made.
 #[derive(Debug)]
 pub enum ColumnsError {
+    /// A large allocation of the builder (the tree it assembles) did not
+    /// fit in memory.
+    OutOfMemory(crate::sys::OutOfMemory),
     /// The scratch directory does not exist or is not a directory.
     NoDir { path: PathBuf, source: io::Error },
     /// A scratch file could not be created, sized or mapped (an
@@ -119,8 +122,13 @@ impl fmt::Display for ColumnsError {
             ColumnsError::Capacity { what, limit } => {
                 write!(f, "too many {what}: at most {limit} are supported")
             }
+            ColumnsError::OutOfMemory(e) => write!(f, "{e}"),
             ColumnsError::Memory { bytes, source } => {
-                write!(f, "cannot map {bytes} bytes of memory: {source}")
+                write!(
+                    f,
+                    "out of memory: cannot map {bytes} bytes for a column: {source} (a smaller \
+                     --mem-budget, e.g. --mem-budget 64M, keeps the builder's columns in scratch files)"
+                )
             }
         }
     }

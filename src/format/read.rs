@@ -795,11 +795,9 @@ impl KdFile<Mapped> {
             path: path.to_path_buf(),
             source,
         };
-        let file = std::fs::File::open(path).map_err(io)?;
-        // A directory opens, but its map fails with an obscure `ENODEV`.
-        if file.metadata().map_err(io)?.is_dir() {
-            return Err(io(std::io::ErrorKind::IsADirectory.into()));
-        }
+        // Only a regular file: a directory opens, but its map fails with
+        // an obscure `ENODEV`, and a FIFO's `open` waits for a writer.
+        let file = crate::fsio::open_regular(path).map_err(io)?;
         // SAFETY: the map is read-only and private to this process; the
         // remaining precondition (nobody modifies the file in place while
         // it is mapped) is the caller's, documented above.

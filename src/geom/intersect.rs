@@ -7,6 +7,19 @@
 //! (brute force, scalar and packet traversal) gets the same bits of `t` for
 //! the same ray and triangle. Degenerate (zero-area) triangles have a zero
 //! determinant and are never hit.
+//!
+//! *Range.* The edge functions grow with the square of the scene's scale
+//! and the scaled distance with its cube, so in `f32` they overflow above
+//! about 10^12 and lose their bits below about 10^-13. Where they do (an
+//! edge function zero, subnormal or NaN; the scaled distance zero,
+//! subnormal or not finite; the determinant not finite), the whole test is
+//! redone in `f64` from the input vertices ([`edges_need_f64`],
+//! [`t_needs_f64`], `watertight_f64`), where every finite `f32` scene is in
+//! range. Elsewhere the `f32` result stands, bit for bit; the packet kernel
+//! flags its lanes by the same two functions and hands them to
+//! [`intersect_triangle`], so every caller still gets the same bits. An
+//! exactly zero edge function (the ray through an edge or vertex) takes the
+//! same path, which is the paper's double-precision fallback.
 
 use super::Ray;
 use glam::Vec3;
@@ -83,7 +96,67 @@ fn watertight(
     let a = pick(tri[0] - rp.origin);
     let b = pick(tri[1] - rp.origin);
     let c = pick(tri[2] - rp.origin);
-    let [u, v, w] = sheared_edges(rp, a, b, c);
+    let [u, v, w] = sheared_edges_f32(rp, a, b, c);
+    if edges_need_f64(u, v, w) {
+        return watertight_f64(rp, tri, tmin, tmax);
+    }
+    if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+        return None;
+    }
+    // Not mixed and none below the normal range: `det` is nonzero.
+    let det = u + v + w;
+    let az = rp.sz * a[2];
+    let bz = rp.sz * b[2];
+    let cz = rp.sz * c[2];
+    let t_scaled = u * az + v * bz + w * cz;
+    let t = t_scaled / det;
+    if t_needs_f64(det, t_scaled, t) {
+        return watertight_f64(rp, tri, tmin, tmax);
+    }
+    if t > tmin && t <= tmax { Some(t) } else { None }
+}
+
+/// The smaller of `a` and `b` (`b` where either is NaN): one vector `min`.
+#[inline(always)]
+fn min_of(a: f32, b: f32) -> f32 {
+    if a < b { a } else { b }
+}
+
+/// Whether the `f32` edge functions `u, v, w` cannot decide the test: one
+/// is zero (the ray through an edge or vertex), subnormal (its sign may be
+/// a rounding artefact) or NaN (an overflow of opposite infinities).
+#[inline(always)]
+#[allow(
+    clippy::neg_cmp_op_on_partial_ord,
+    reason = "NaN must count as out of range"
+)]
+pub fn edges_need_f64(u: f32, v: f32, w: f32) -> bool {
+    let m = min_of(min_of(u.abs(), v.abs()), w.abs());
+    !(m >= f32::MIN_POSITIVE)
+}
+
+/// Whether `t = t_scaled / det` of edge functions that decide the test
+/// (not mixed, see [`edges_need_f64`]) cannot stand: the scaled distance
+/// underflowed (zero or subnormal: few or no bits left) or something
+/// overflowed (`det`, `t_scaled` or `t` infinite or NaN; `det + t` is
+/// finite exactly when both are, but for two values near `f32::MAX`).
+#[inline(always)]
+#[allow(
+    clippy::neg_cmp_op_on_partial_ord,
+    reason = "NaN must count as out of range"
+)]
+pub fn t_needs_f64(det: f32, t_scaled: f32, t: f32) -> bool {
+    !(t_scaled.abs() >= f32::MIN_POSITIVE) | !((det + t).abs() <= f32::MAX)
+}
+
+/// The test in `f64` from the input vertices, the origin and the ray's
+/// (`f32`) shear: the same operations in the same order, in a precision
+/// in which no finite `f32` scene overflows or underflows. Both triangles
+/// of an edge compute its edge function from the same two vertices, so
+/// the test stays watertight.
+#[inline(never)]
+fn watertight_f64(rp: &RayPrecomp, tri: &[Vec3; 3], tmin: f32, tmax: f32) -> Option<f32> {
+    let [u, v, w, t_scaled] = sheared_f64(rp, tri);
     if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
         return None;
     }
@@ -91,19 +164,44 @@ fn watertight(
     if det == 0.0 {
         return None;
     }
-    let az = rp.sz * a[2];
-    let bz = rp.sz * b[2];
-    let cz = rp.sz * c[2];
-    let t_scaled = u * az + v * bz + w * cz;
-    let t = t_scaled / det;
-    if t > tmin && t <= tmax { Some(t) } else { None }
+    // A distance beyond the `f32` range is no hit (as in the `f32` test,
+    // whose infinite `t` comes here).
+    let t = (t_scaled / det) as f32;
+    if t > tmin && t <= tmax && t.is_finite() {
+        Some(t)
+    } else {
+        None
+    }
+}
+
+/// The edge functions `[e0, e1, e2]` and the scaled distance of the test,
+/// in `f64` (see [`watertight_f64`]).
+fn sheared_f64(rp: &RayPrecomp, tri: &[Vec3; 3]) -> [f64; 4] {
+    let o = rp.origin.as_dvec3();
+    let pick = |p: Vec3| {
+        let d = p.as_dvec3() - o;
+        [d[rp.kx], d[rp.ky], d[rp.kz]]
+    };
+    let (a, b, c) = (pick(tri[0]), pick(tri[1]), pick(tri[2]));
+    let (sx, sy, sz) = (f64::from(rp.sx), f64::from(rp.sy), f64::from(rp.sz));
+    let ax = a[0] - sx * a[2];
+    let ay = a[1] - sy * a[2];
+    let bx = b[0] - sx * b[2];
+    let by = b[1] - sy * b[2];
+    let cx = c[0] - sx * c[2];
+    let cy = c[1] - sy * c[2];
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    let t_scaled = u * (sz * a[2]) + v * (sz * b[2]) + w * (sz * c[2]);
+    [u, v, w, t_scaled]
 }
 
 /// The edge functions `[e0, e1, e2]` of the sheared, permuted vertices
-/// `a`, `b`, `c` (relative to the origin): `e_i` is opposite vertex `i`,
-/// redone in `f64` when one is zero so that its sign is exact.
+/// `a`, `b`, `c` (relative to the origin), in `f32`: `e_i` is opposite
+/// vertex `i`.
 #[inline(always)]
-fn sheared_edges(rp: &RayPrecomp, a: [f32; 3], b: [f32; 3], c: [f32; 3]) -> [f32; 3] {
+fn sheared_edges_f32(rp: &RayPrecomp, a: [f32; 3], b: [f32; 3], c: [f32; 3]) -> [f32; 3] {
     let ax = a[0] - rp.sx * a[2];
     let ay = a[1] - rp.sy * a[2];
     let bx = b[0] - rp.sx * b[2];
@@ -113,35 +211,31 @@ fn sheared_edges(rp: &RayPrecomp, a: [f32; 3], b: [f32; 3], c: [f32; 3]) -> [f32
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
-    if u == 0.0 || v == 0.0 || w == 0.0 {
-        // Fall back to double precision on edges, as the paper does, so that
-        // the sign of the edge function is exact.
-        let (ax, ay, bx, by, cx, cy) = (
-            f64::from(ax),
-            f64::from(ay),
-            f64::from(bx),
-            f64::from(by),
-            f64::from(cx),
-            f64::from(cy),
-        );
-        return [
-            (cx * by - cy * bx) as f32,
-            (ax * cy - ay * cx) as f32,
-            (bx * ay - by * ax) as f32,
-        ];
-    }
     [u, v, w]
 }
 
 /// The watertight test's edge functions `[e0, e1, e2]` for this ray and
 /// triangle, by its own operations: divided by their sum they are the
 /// barycentric weights of vertices 0, 1, 2 that its `t` was computed with.
+/// Where the test works in `f64`, they are its `f64` edge functions
+/// divided by their sum (rounded to `f32`, which they fit).
 pub fn edge_functions(rp: &RayPrecomp, tri: &[Vec3; 3]) -> [f32; 3] {
     let pick = |v: Vec3| [v[rp.kx], v[rp.ky], v[rp.kz]];
     let a = pick(tri[0] - rp.origin);
     let b = pick(tri[1] - rp.origin);
     let c = pick(tri[2] - rp.origin);
-    sheared_edges(rp, a, b, c)
+    let [u, v, w] = sheared_edges_f32(rp, a, b, c);
+    let det = u + v + w;
+    let az = rp.sz * a[2];
+    let bz = rp.sz * b[2];
+    let cz = rp.sz * c[2];
+    let t_scaled = u * az + v * bz + w * cz;
+    if edges_need_f64(u, v, w) || t_needs_f64(det, t_scaled, t_scaled / det) {
+        let [u, v, w, _] = sheared_f64(rp, tri);
+        let det = u + v + w;
+        return [(u / det) as f32, (v / det) as f32, (w / det) as f32];
+    }
+    [u, v, w]
 }
 
 /// Convenience wrapper for a single test.

@@ -12,7 +12,10 @@ mod clip;
 mod intersect;
 
 pub use clip::{clip_split, clip_split_on, clip_triangle};
-pub use intersect::{RayPrecomp, edge_functions, intersect_ray_triangle, intersect_triangle};
+pub use intersect::{
+    RayPrecomp, edge_functions, edges_need_f64, intersect_ray_triangle, intersect_triangle,
+    t_needs_f64,
+};
 
 use glam::Vec3;
 

@@ -209,7 +209,9 @@ impl std::fmt::Display for ViewProblem {
             ViewProblem::NoViewId => write!(f, "no view id"),
             ViewProblem::NotKeyValue => write!(f, "expected key=value"),
             ViewProblem::Bad(key) => write!(f, "bad {key}"),
-            ViewProblem::UnknownKey(key) => write!(f, "unknown key `{key}`"),
+            ViewProblem::UnknownKey(key) => {
+                write!(f, "unknown key `{}`", crate::text::escape_controls(key))
+            }
             ViewProblem::Missing(key) => write!(f, "missing {key}"),
             ViewProblem::Camera(e) => write!(f, "{e}"),
         }
@@ -218,7 +220,8 @@ impl std::fmt::Display for ViewProblem {
 
 impl std::fmt::Display for ViewsError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "line {}: {}: {}", self.line, self.problem, self.text)
+        let text = crate::text::escape_controls(&self.text);
+        write!(f, "line {}: {}: {text}", self.line, self.problem)
     }
 }
 

@@ -109,7 +109,7 @@ pub fn load_scene_cache(path: &Path) -> Result<(TriangleColumns, LoadSummary), S
         path: path.to_path_buf(),
         message: format!("not a valid scene cache: {message}"),
     };
-    let mut file = std::fs::File::open(path).map_err(io)?;
+    let mut file = crate::fsio::open_regular(path).map_err(io)?;
     let len = file.metadata().map_err(io)?.len();
     let mut header = [0u8; HEADER];
     if len < HEADER as u64 + 4 {
@@ -172,7 +172,10 @@ fn read_triples<T: bytemuck::Pod + Default>(
     n: usize,
     crc: &mut crc32fast::Hasher,
 ) -> std::io::Result<Vec<[T; 3]>> {
-    let mut out = vec![[T::default(); 3]; n];
+    let mut out = Vec::new();
+    crate::sys::try_reserve(&mut out, n, "a column of the scene cache")
+        .map_err(|e| std::io::Error::new(std::io::ErrorKind::OutOfMemory, e.to_string()))?;
+    out.resize(n, [T::default(); 3]);
     for chunk in out.chunks_mut(1 << 16) {
         let bytes: &mut [u8] = bytemuck::cast_slice_mut(chunk);
         r.read_exact(bytes)?;

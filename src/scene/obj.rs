@@ -38,7 +38,7 @@ pub fn load_obj_with_progress(
         path: path.to_path_buf(),
         source,
     };
-    let file = std::fs::File::open(path).map_err(io)?;
+    let file = crate::fsio::open_regular(path).map_err(io)?;
     let size = file.metadata().map_err(io)?.len();
     let counted = Counted {
         inner: file,
@@ -114,12 +114,21 @@ fn load_obj_reader<R: BufRead>(
             return Err(SceneError::Line {
                 path: path.to_path_buf(),
                 line: inspector.line,
-                message: format!("{e}"),
+                message: crate::text::escape_controls(&e.to_string()).into_owned(),
             });
         }
     };
+    let oom = |e: crate::sys::OutOfMemory| SceneError::Invalid {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    };
     let mut positions = Vec::new();
     let mut indices = Vec::new();
+    let n_positions = models.iter().map(|m| m.mesh.positions.len() / 3).sum();
+    let n_tris = models.iter().map(|m| m.mesh.indices.len() / 3).sum();
+    crate::sys::try_reserve(&mut positions, n_positions, "the scene's vertex positions")
+        .map_err(oom)?;
+    crate::sys::try_reserve(&mut indices, n_tris, "the scene's triangles").map_err(oom)?;
     for model in &models {
         let base = positions.len() as u64;
         let mesh = &model.mesh;
@@ -238,7 +247,10 @@ impl<R: BufRead> LineInspector<R> {
         }
     }
 
+    /// Records the problem of line `line`; `message` may quote the line,
+    /// so its control characters are escaped.
     fn stop(&mut self, line: u64, message: String) -> std::io::Error {
+        let message = crate::text::escape_controls(&message).into_owned();
         self.problem = Some(Problem::Line(line, message));
         std::io::Error::other("stopped at a bad line")
     }

@@ -30,7 +30,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, SourceNode, TraceStats, Walk};
-use crate::geom::{Ray, RayPrecomp, intersect_triangle};
+use crate::geom::{Ray, RayPrecomp, edges_need_f64, intersect_triangle, t_needs_f64};
 use crate::tree::TriId;
 use arrayvec::ArrayVec;
 use glam::Vec3;
@@ -144,9 +144,9 @@ struct Best {
     id: [u32; LANES],
 }
 
-/// The lanes a triangle test found: hits to keep, and lanes whose edge
-/// functions hit an exact zero and need the scalar test's
-/// double-precision fallback.
+/// The lanes a triangle test found: hits to keep, and lanes that leave
+/// `f32` (an edge function zero or out of range, or the distance out of
+/// range) and need the scalar test's double-precision fallback.
 struct LaneHits {
     t: Lanes,
     ok: u16,
@@ -234,13 +234,16 @@ fn lane_test(
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
-    let fallback = (u == 0.0) | (v == 0.0) | (w == 0.0);
     let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
     let det = u + v + w;
     let az = sz * a[2];
     let bz = sz * b[2];
     let cz = sz * c[2];
-    let t = (u * az + v * bz + w * cz) / det;
+    let t_scaled = u * az + v * bz + w * cz;
+    let t = t_scaled / det;
+    // Exactly where the scalar test leaves `f32` (`mixed` is only read
+    // where no edge needs `f64`, as there).
+    let fallback = edges_need_f64(u, v, w) | (!mixed & t_needs_f64(det, t_scaled, t));
     let limit = if best.t[i] < p.tmax[i] {
         best.t[i]
     } else {

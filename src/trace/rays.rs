@@ -95,7 +95,13 @@ pub fn parse_rays(bytes: &[u8]) -> Result<Vec<Ray>, (usize, &'static str)> {
 
 /// Reads and checks a ray file.
 pub fn read_rays(path: &Path) -> Result<Vec<Ray>, RayFileError> {
-    let bytes = std::fs::read(path).map_err(|e| RayFileError::Io(path.to_path_buf(), e))?;
+    let io = |e| RayFileError::Io(path.to_path_buf(), e);
+    let mut bytes = Vec::new();
+    std::io::Read::read_to_end(
+        &mut crate::fsio::open_regular(path).map_err(io)?,
+        &mut bytes,
+    )
+    .map_err(io)?;
     if bytes.len() % RECORD != 0 {
         return Err(RayFileError::Size(path.to_path_buf(), bytes.len() as u64));
     }

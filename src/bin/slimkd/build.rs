@@ -328,18 +328,18 @@ impl PeakRss {
         let stop = Arc::new(AtomicBool::new(false));
         let thread = {
             let (peak, stop) = (peak.clone(), stop.clone());
-            std::thread::spawn(move || {
-                while !stop.load(Ordering::Relaxed) {
-                    PeakRss::sample(&peak);
-                    std::thread::sleep(Duration::from_millis(10));
-                }
-            })
+            // Where no thread can be started, the peaks are sampled only
+            // when read.
+            std::thread::Builder::new()
+                .spawn(move || {
+                    while !stop.load(Ordering::Relaxed) {
+                        PeakRss::sample(&peak);
+                        std::thread::sleep(Duration::from_millis(10));
+                    }
+                })
+                .ok()
         };
-        PeakRss {
-            peak,
-            stop,
-            thread: Some(thread),
-        }
+        PeakRss { peak, stop, thread }
     }
 
     pub(crate) fn sample(peak: &[AtomicU64; 2]) {

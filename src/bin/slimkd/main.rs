@@ -33,7 +33,109 @@ pub(crate) const DEFAULT_ARG: &str = "default";
 
 pub(crate) type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
 
+#[cfg(target_os = "linux")]
+#[global_allocator]
+static ALLOCATOR: ExitOnOom = ExitOnOom;
+
+/// The system allocator, except that an allocation that fails where no
+/// caller handles the failure ([`slimkd::sys::try_reserve`] does) ends the
+/// process with exit status 1 and a message, instead of Rust's abort
+/// (`SIGABRT`, status 134). Output files are unaffected: they are renamed
+/// into place only when complete.
+#[cfg(target_os = "linux")]
+struct ExitOnOom;
+
+// SAFETY: every method hands its arguments to `System` unchanged and
+// returns what `System` returned; a null result either goes back to the
+// caller (who handles it) or ends the process.
+#[cfg(target_os = "linux")]
+unsafe impl std::alloc::GlobalAlloc for ExitOnOom {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        // SAFETY: the caller's contract for `layout` is `System`'s.
+        checked(unsafe { std::alloc::System.alloc(layout) }, layout.size())
+    }
+    unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
+        // SAFETY: as for `alloc`.
+        checked(
+            unsafe { std::alloc::System.alloc_zeroed(layout) },
+            layout.size(),
+        )
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new_size: usize) -> *mut u8 {
+        // SAFETY: `ptr` and `layout` come from this allocator, which is
+        // `System`'s; the caller's contract is `System`'s.
+        checked(
+            unsafe { std::alloc::System.realloc(ptr, layout, new_size) },
+            new_size,
+        )
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        // SAFETY: `ptr` and `layout` come from this allocator.
+        unsafe { std::alloc::System.dealloc(ptr, layout) }
+    }
+}
+
+/// `ptr`, unless it is null where the failure is not handled: then the
+/// process ends, with a message written without allocating.
+#[cfg(target_os = "linux")]
+fn checked(ptr: *mut u8, size: usize) -> *mut u8 {
+    if !ptr.is_null() || slimkd::sys::allocation_failure_is_handled() {
+        return ptr;
+    }
+    let mut msg = [0u8; 200];
+    let mut n = 0;
+    let mut put = |bytes: &[u8]| {
+        let k = bytes.len().min(msg.len() - n);
+        msg[n..n + k].copy_from_slice(&bytes[..k]);
+        n += k;
+    };
+    put(b"slimkd: error: out of memory: an allocation of ");
+    let mut digits = [0u8; 20];
+    let mut d = digits.len();
+    let mut v = size;
+    loop {
+        d -= 1;
+        digits[d] = b'0' + (v % 10) as u8;
+        v /= 10;
+        if v == 0 {
+            break;
+        }
+    }
+    put(&digits[d..]);
+    put(b" bytes failed (allow more memory, or give a smaller --mem-budget)\n");
+    // SAFETY: `msg[..n]` is initialised memory that outlives the call;
+    // `_exit` ends the process without running anything that allocates.
+    unsafe {
+        libc::write(2, msg.as_ptr().cast(), n);
+        libc::_exit(1)
+    }
+}
+
+/// Under an address-space limit (`ulimit -v`), every thread shares the
+/// main `malloc` arena. glibc otherwise reserves 64 MiB of address space
+/// for each thread's arena; where the limit refuses that, the thread's
+/// every allocation falls back to an `mmap` of its own (many times slower)
+/// and, with the space gone, glibc aborts in thread start-up.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn share_malloc_arena_under_a_limit() {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: `getrlimit` writes the struct it is given; `mallopt` is
+    // called at start-up, before any thread is spawned.
+    unsafe {
+        if libc::getrlimit(libc::RLIMIT_AS, &mut limit) == 0
+            && limit.rlim_cur != libc::RLIM_INFINITY
+        {
+            libc::mallopt(libc::M_ARENA_MAX, 1);
+        }
+    }
+}
+
 fn main() -> ExitCode {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    share_malloc_arena_under_a_limit();
     // A closed pipe (`slimkd info x.kd | head`) ends the process quietly,
     // as it does other command-line tools, instead of a panic on the next
     // print: the Rust runtime ignores SIGPIPE, so restore its default.
@@ -53,7 +155,9 @@ fn main() -> ExitCode {
         }
     }
     let result = match cli.command {
-        None => main_job::main_job(cli.verbose),
+        // In a pool of its own: rayon's global pool panics where it cannot
+        // start its threads, a pool built here is an error.
+        None => pool(None).and_then(|p| p.install(|| main_job::main_job(cli.verbose))),
         Some(_) if cli.verbose => {
             Err(Usage("-v is a flag of the main job (slimkd without a command)".into()).into())
         }
@@ -124,5 +228,6 @@ pub(crate) fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
     if let Some(n) = threads {
         b = b.num_threads(n);
     }
-    Ok(b.build()?)
+    b.build()
+        .map_err(|e| format!("cannot start the worker threads: {e}").into())
 }

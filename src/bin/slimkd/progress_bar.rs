@@ -18,22 +18,29 @@ pub(crate) fn with_bar<T: Send>(
     work: impl FnOnce() -> Res<T> + Send,
 ) -> Res<T> {
     let start = Instant::now();
-    let pool_threads = rayon::current_num_threads();
+    // Inside a pool, its size; outside, rayon's default, without starting
+    // the global pool (which panics where it cannot start its threads).
+    let pool_threads = match rayon::current_thread_index() {
+        Some(_) => rayon::current_num_threads(),
+        None => 0,
+    };
     std::thread::scope(|s| {
         // The worker sends its result, so that this thread wakes the moment
         // it is done (a plain sleep between polls added up to a poll's
         // interval to every timed build).
         let (done, result) = std::sync::mpsc::channel::<Res<T>>();
-        let worker = s.spawn(move || {
+        let worker = std::thread::Builder::new().spawn_scoped(s, move || {
             let run = || -> Res<T> {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(pool_threads)
-                    .build()?;
+                    .build()
+                    .map_err(|e| format!("{label}: cannot start the worker threads: {e}"))?;
                 pool.install(work)
             };
             // The receiver waits until this is sent (or the worker panics).
             let _ = done.send(run());
         });
+        let worker = worker.map_err(|e| format!("{label}: cannot start a worker thread: {e}"))?;
         let mut bar: Option<ProgressBar> = None;
         let got = loop {
             match result.recv_timeout(Duration::from_millis(50)) {

@@ -18,7 +18,7 @@ pub(crate) fn is_kd_file(path: &Path) -> bool {
     let mut magic = [0u8; 8];
     path.extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("kd"))
-        || std::fs::File::open(path)
+        || slimkd::fsio::open_regular(path)
             .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic))
             .is_ok_and(|()| magic == format::MAGIC)
 }
@@ -45,7 +45,9 @@ pub(crate) fn camera_for(
     if let Some(id) = &args.view {
         let views: Vec<View> = match &args.views {
             Some(file) => {
-                let text = std::fs::read_to_string(file)
+                let mut text = String::new();
+                slimkd::fsio::open_regular(file)
+                    .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
                     .map_err(|e| format!("{}: {e}", file.display()))?;
                 render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
             }

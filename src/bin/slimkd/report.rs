@@ -11,8 +11,10 @@ pub(crate) fn cmd_report(args: &ReportArgs) -> Res<()> {
     check_output_dir(&args.output)?;
     let views = match &args.views {
         Some(file) => {
-            let text =
-                std::fs::read_to_string(file).map_err(|e| format!("{}: {e}", file.display()))?;
+            let mut text = String::new();
+            slimkd::fsio::open_regular(file)
+                .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
+                .map_err(|e| format!("{}: {e}", file.display()))?;
             render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
         }
         None => render::parse_views(DEFAULT_VIEWS)?,

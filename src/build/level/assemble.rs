@@ -213,17 +213,23 @@ impl SubStore {
     }
 }
 
-/// The tree, in pre-order from record 0; consumes the subtrees.
+/// The tree, in pre-order from record 0; consumes the subtrees. Its two
+/// columns are reserved whole up front, so a tree that does not fit in
+/// memory is an error naming them.
 pub fn assemble(
     bounds: crate::geom::Aabb,
     recs: &[Rec],
     tris: &[TriId],
     mut subs: SubStore,
-) -> TreeIr {
+) -> Result<TreeIr, ColumnsError> {
     let n_nodes = recs.iter().filter(|r| !matches!(r, Rec::Sub(_))).count() + subs.nodes;
     let n_tris = tris.len() + subs.tris;
-    let mut nodes = Vec::with_capacity(n_nodes);
-    let mut leaf_tris = Vec::with_capacity(n_tris);
+    let mut nodes = Vec::new();
+    let mut leaf_tris = Vec::new();
+    crate::sys::try_reserve(&mut nodes, n_nodes, "the tree's nodes")
+        .map_err(ColumnsError::OutOfMemory)?;
+    crate::sys::try_reserve(&mut leaf_tris, n_tris, "the tree's leaf triangle lists")
+        .map_err(ColumnsError::OutOfMemory)?;
     // (record, inner node whose right child it is)
     let mut stack = vec![(0u32, None::<usize>)];
     while let Some((r, parent)) = stack.pop() {
@@ -283,9 +289,9 @@ pub fn assemble(
     }
     debug_assert_eq!(nodes.len(), n_nodes);
     debug_assert_eq!(leaf_tris.len(), n_tris);
-    TreeIr {
+    Ok(TreeIr {
         bounds,
         nodes,
         leaf_tris,
-    }
+    })
 }

@@ -160,7 +160,7 @@ pub fn build(
     // The levels' memory kept for reuse is not needed from here.
     scratch.release_pool();
     clock = Instant::now();
-    let tree = assemble(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs));
+    let tree = assemble(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
     b.report.phases.assemble_s = lap(&mut clock);
     b.sample_rss();
     let mut report = b.report;
