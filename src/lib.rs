@@ -3,7 +3,8 @@
 //!
 //! The pipeline:
 //!
-//! 1. [`scene::load_obj`] reads a mesh into [`scene::TriangleColumns`].
+//! 1. [`scene::load`] reads a mesh (OBJ, PLY, glTF/GLB, gzip, or a scene
+//!    cache) into [`scene::TriangleColumns`].
 //! 2. [`build::build`] builds the standard SAH kd-tree (exact SAH, perfect
 //!    splits) as a [`tree::TreeIr`]; [`build::naive`] is the O(N²)
 //!    reference, [`build::sweep`] the O(N log N) builder of Wald & Havran
