@@ -73,10 +73,10 @@ pub mod pipeline;
 pub mod progress;
 pub mod render;
 pub mod scene;
-pub mod simd;
+pub(crate) mod simd;
 pub mod slim;
 pub mod stats;
-pub mod sys;
+pub(crate) mod sys;
 pub mod trace;
 pub mod tree;
 

@@ -57,6 +57,8 @@
 //! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
 //! as `tobj` returns them (no welding).
 
+#![warn(missing_docs)]
+
 mod cache;
 mod gltf;
 mod obj;
@@ -142,10 +144,12 @@ impl TriangleColumns {
         &self.indices
     }
 
+    /// The number of triangles.
     pub fn len(&self) -> usize {
         self.indices.len()
     }
 
+    /// Whether there are no triangles.
     pub fn is_empty(&self) -> bool {
         self.indices.is_empty()
     }
@@ -231,8 +235,17 @@ impl TriangleColumns {
 /// Why [`TriangleColumns::new`] refused its columns.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum InvalidColumns {
-    NonFiniteVertex { vertex: usize },
-    IndexOutOfRange { triangle: usize },
+    /// A position with a NaN or infinite coordinate.
+    NonFiniteVertex {
+        /// Its index in the position column.
+        vertex: usize,
+    },
+    /// A triangle naming a vertex past the position column.
+    IndexOutOfRange {
+        /// Its index in the index column.
+        triangle: usize,
+    },
+    /// `u32::MAX` triangles or more (ids are `u32`, one value reserved).
     TooManyTriangles,
 }
 
@@ -257,10 +270,12 @@ impl std::error::Error for InvalidColumns {}
 pub struct LoadSummary {
     /// Triangles kept (after fan triangulation and dropping).
     pub triangles: usize,
+    /// Vertex positions kept.
     pub vertices: usize,
     /// Triangles dropped because they have zero area or repeat a vertex.
     pub dropped_degenerate: usize,
-    /// Lines read.
+    /// Lines read (of the text formats; 0 for glTF, the header and ASCII
+    /// data lines of PLY).
     pub lines: u64,
 }
 
@@ -277,26 +292,41 @@ impl fmt::Display for LoadSummary {
 /// A scene that could not be loaded. Every variant names the file.
 #[derive(Debug)]
 pub enum SceneError {
+    /// The file (or a file it names, such as a glTF side buffer) could not
+    /// be read, or its compressed stream is corrupt.
     Io {
+        /// The scene file.
         path: PathBuf,
+        /// What the read said.
         source: std::io::Error,
     },
     /// A problem with one line (1-based).
     Line {
+        /// The scene file.
         path: PathBuf,
+        /// The line, 1-based.
         line: u64,
+        /// What is wrong with it.
         message: String,
     },
     /// A problem with one element, record or mesh of a binary or
     /// structured format: `what` names it (`vertex 17`, `mesh 2
     /// primitive 0`).
     Element {
+        /// The scene file.
         path: PathBuf,
+        /// The element, record or mesh part.
         what: String,
+        /// What is wrong with it.
         message: String,
     },
     /// A problem not tied to one line or element.
-    Invalid { path: PathBuf, message: String },
+    Invalid {
+        /// The scene file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
 }
 
 impl fmt::Display for SceneError {
