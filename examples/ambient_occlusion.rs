@@ -1,6 +1,7 @@
 //! A small renderer on the `Accel` facade: primary rays from view 1 of the
 //! embedded scene, 8 cosine-distributed ambient-occlusion rays per hit
-//! pixel traced with `occluded`, rows in parallel with rayon; writes a
+//! pixel traced with `occluded` through one `AccelTracer` (`Accel::tracer`,
+//! the file view taken once), rows in parallel with rayon; writes a
 //! grey `ao.png` to the current directory.
 //!
 //! ```sh
@@ -38,7 +39,7 @@ fn cosine_sample(n: Vec3, r1: f32, r2: f32) -> Vec3 {
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let obj = root.join("scenes/nexuiz_dieselpower.obj");
-    let (scene, _) = slimkd::scene::load_obj(&obj)?;
+    let (scene, _) = slimkd::scene::load(&obj)?;
     let accel = Accel::build(&scene, &BuildOptions::default())?;
     let views = render::parse_views(&std::fs::read_to_string(root.join("scenes/views.txt"))?)?;
     let view = render::find_view(&views, &obj, "1").ok_or("no view 1 for the scene")?;
@@ -49,6 +50,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let radius = 0.05 * diagonal;
     let eps = 1e-5 * diagonal;
 
+    // One tracer for the frame: the file view is taken once, not per ray.
+    let tracer = accel.tracer();
     let start = Instant::now();
     let rows: Vec<Vec<(f32, f32)>> = (0..SIZE)
         .into_par_iter()
@@ -56,7 +59,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             (0..SIZE)
                 .map(|x| {
                     let ray = camera.ray(x, y);
-                    let Some(hit) = accel.intersect(&ray) else {
+                    let Some(hit) = tracer.intersect(&ray) else {
                         return (0.0, f32::INFINITY);
                     };
                     let p = ray.origin + ray.dir * hit.t;
@@ -73,7 +76,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                                 tmin: eps,
                                 tmax: radius,
                             };
-                            !accel.occluded(&ao)
+                            !tracer.occluded(&ao)
                         })
                         .count();
                     (open as f32 / AO_RAYS as f32, hit.t)

@@ -3,7 +3,8 @@
 //!
 //! The pipeline:
 //!
-//! 1. [`scene::load_obj`] reads a mesh into [`scene::TriangleColumns`].
+//! 1. [`scene::load`] reads a mesh (OBJ, PLY, glTF/GLB, gzip, or a scene
+//!    cache) into [`scene::TriangleColumns`].
 //! 2. [`build::build`] builds the standard SAH kd-tree (exact SAH, perfect
 //!    splits) as a [`tree::TreeIr`]; [`build::naive`] is the O(N²)
 //!    reference, [`build::sweep`] the O(N log N) builder of Wald & Havran
@@ -18,10 +19,13 @@
 //! 5. [`render`] shoots camera rays over image tiles in parallel and writes
 //!    PNG or OpenEXR; [`stats`] reports the figures of the papers.
 //!
-//! [`accel`] wraps steps 2–4 for a renderer: [`accel::Accel`] builds from a
+//! [`accel`] wraps steps 2–4 for a renderer: [`Accel`] builds from a
 //! scene or the caller's buffers, writes and maps `.kd` files, and traces
-//! single rays and masked 16-ray packets, with hit records (barycentrics,
-//! geometric normal, input triangle id).
+//! single rays and masked 16-ray packets ([`RayPacket`]), with hit records
+//! ([`HitRecord`]: barycentrics, geometric normal, input triangle id);
+//! [`Accel::tracer`] gives an [`AccelTracer`] that takes the file's view
+//! once for many rays. These, [`BuildOptions`], [`Preset`], [`AccelError`],
+//! [`Ray`] and the scene types are re-exported here.
 //!
 //! ```
 //! use slimkd::{build, scene::TriangleColumns, trace, geom::Ray};
@@ -40,8 +44,7 @@
 //! The same through the facade, round trip through a file included:
 //!
 //! ```
-//! use slimkd::accel::{Accel, BuildOptions};
-//! use slimkd::geom::Ray;
+//! use slimkd::{Accel, BuildOptions, Ray};
 //! use glam::Vec3;
 //!
 //! let vertices = [[0.0, 0.0, 5.0], [2.0, 0.0, 5.0], [0.0, 2.0, 5.0]];
@@ -52,6 +55,8 @@
 //! let hit = accel.intersect(&Ray::new(Vec3::new(0.5, 0.5, 0.0), Vec3::Z)).unwrap();
 //! assert_eq!((hit.t, hit.prim, hit.u, hit.v), (5.0, 0, 0.25, 0.25));
 //! assert_eq!(hit.ng, Vec3::new(0.0, 0.0, 4.0));
+//! let tracer = accel.tracer();
+//! assert_eq!(tracer.intersect(&Ray::new(Vec3::new(0.5, 0.5, 0.0), Vec3::Z)), Some(hit));
 //! std::fs::remove_file(&path).unwrap();
 //! ```
 
@@ -68,10 +73,14 @@ pub mod pipeline;
 pub mod progress;
 pub mod render;
 pub mod scene;
-pub mod simd;
+pub(crate) mod simd;
 pub mod slim;
 pub mod stats;
 pub mod sys;
 pub mod text;
 pub mod trace;
 pub mod tree;
+
+pub use accel::{Accel, AccelError, AccelTracer, BuildOptions, HitRecord, Preset, RayPacket};
+pub use geom::Ray;
+pub use scene::{SceneError, SceneFormat, TriangleColumns};

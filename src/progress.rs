@@ -3,6 +3,8 @@
 //! one; it lives outside [`crate::build`] so that those stages need not
 //! know the builder.
 
+#![warn(missing_docs)]
+
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The progress of a long job, for a progress bar: a fraction from 0 to 1
@@ -21,8 +23,10 @@ pub struct Progress {
 }
 
 impl Progress {
+    /// The weight of a whole job.
     pub const TOTAL: u64 = 1 << 40;
 
+    /// The fraction done, from 0 to 1.
     pub fn fraction(&self) -> f64 {
         self.done.load(Ordering::Relaxed) as f64 / Self::TOTAL as f64
     }

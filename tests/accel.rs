@@ -1,6 +1,7 @@
 //! The `Accel` facade: built in memory, written, mapped back, it traces
 //! exactly as brute force does, in the input's numbering, for single rays
-//! and masked packets; bad files are errors naming the file.
+//! and masked packets, per call or through its borrowing tracer; bad files
+//! are errors naming the file.
 
 mod common;
 
@@ -89,6 +90,32 @@ fn assert_traces_as_brute_force(scene: &TriangleColumns, accel: &Accel, rays: &[
                     "mask {mask:#x} lane {lane}"
                 );
             }
+        }
+    }
+    assert_tracer_matches(accel, rays);
+}
+
+/// The borrowing tracer answers what the per-call methods answer, ray by
+/// ray and packet by packet (so brute force's hits too).
+fn assert_tracer_matches(accel: &Accel, rays: &[Ray]) {
+    let tracer = accel.tracer();
+    for (i, ray) in rays.iter().enumerate() {
+        assert_eq!(tracer.intersect(ray), accel.intersect(ray), "ray {i}");
+        assert_eq!(tracer.occluded(ray), accel.occluded(ray), "ray {i}");
+    }
+    for chunk in rays.chunks(16) {
+        let packet = RayPacket::from_rays(chunk);
+        for mask in [0xFFFFu16, 0x0001, 0x8421, 0x7FFE, 0] {
+            assert_eq!(
+                tracer.intersect_packet(&packet, mask),
+                accel.intersect_packet(&packet, mask),
+                "mask {mask:#x}"
+            );
+            assert_eq!(
+                tracer.occluded_packet(&packet, mask),
+                accel.occluded_packet(&packet, mask),
+                "mask {mask:#x}"
+            );
         }
     }
 }

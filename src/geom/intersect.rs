@@ -28,16 +28,25 @@ use glam::Vec3;
 /// `kz` the dominant direction axis, and the shear `(sx, sy, sz)`.
 #[derive(Clone, Copy, Debug)]
 pub struct RayPrecomp {
+    /// The ray's origin, subtracted from the vertices first.
     pub origin: Vec3,
+    /// The first of the two other axes (swapped with `ky` when the
+    /// dominant component is negative, so the winding is kept).
     pub kx: usize,
+    /// The second of the two other axes.
     pub ky: usize,
+    /// The axis of the direction's largest component.
     pub kz: usize,
+    /// Shear of x: `dir[kx] / dir[kz]`.
     pub sx: f32,
+    /// Shear of y: `dir[ky] / dir[kz]`.
     pub sy: f32,
+    /// Scale of z: `1 / dir[kz]`.
     pub sz: f32,
 }
 
 impl RayPrecomp {
+    /// The constants of `ray`.
     pub fn new(ray: &Ray) -> RayPrecomp {
         let d = ray.dir;
         let a = d.abs();

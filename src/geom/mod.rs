@@ -8,6 +8,8 @@
 //! packet, brute force) computes bit-identical hit distances for the same
 //! ray and triangle.
 
+#![warn(missing_docs)]
+
 mod clip;
 mod intersect;
 
@@ -25,7 +27,9 @@ use glam::Vec3;
 /// of a cell cut off by a split plane lying on the node's face.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Aabb {
+    /// The low corner.
     pub min: Vec3,
+    /// The high corner.
     pub max: Vec3,
 }
 
@@ -36,6 +40,7 @@ impl Aabb {
         max: Vec3::splat(f32::NEG_INFINITY),
     };
 
+    /// The box from `min` to `max` (not checked: an inverted box is empty).
     pub fn new(min: Vec3, max: Vec3) -> Aabb {
         Aabb { min, max }
     }
@@ -48,10 +53,12 @@ impl Aabb {
         }
     }
 
+    /// Whether the box holds no point (some `min > max`, or a NaN).
     pub fn is_empty(&self) -> bool {
         !(self.min.x <= self.max.x && self.min.y <= self.max.y && self.min.z <= self.max.z)
     }
 
+    /// The smallest box holding both.
     pub fn union(&self, o: &Aabb) -> Aabb {
         Aabb {
             min: self.min.min(o.min),
@@ -77,10 +84,12 @@ impl Aabb {
         self.min.cmple(o.max).all() && o.min.cmple(self.max).all()
     }
 
+    /// `max - min`, per axis.
     pub fn extent(&self) -> Vec3 {
         self.max - self.min
     }
 
+    /// The midpoint of the box.
     pub fn center(&self) -> Vec3 {
         (self.min + self.max) * 0.5
     }
@@ -109,13 +118,19 @@ impl Aabb {
 /// A ray `origin + t·dir`, valid for `t` in `(tmin, tmax]`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ray {
+    /// Where the ray starts.
     pub origin: Vec3,
+    /// Its direction (any length but zero; `t` is in units of it).
     pub dir: Vec3,
+    /// Start of the interval, exclusive.
     pub tmin: f32,
+    /// End of the interval, inclusive for closest hits (any-hit queries
+    /// exclude it).
     pub tmax: f32,
 }
 
 impl Ray {
+    /// The ray from `origin` along `dir` for `t` in `(0, ∞]`.
     pub fn new(origin: Vec3, dir: Vec3) -> Ray {
         Ray {
             origin,

@@ -39,7 +39,7 @@ use std::path::Path;
 
 /// The file name extension of scene caches.
 pub const EXTENSION: &str = "kds";
-const MAGIC: [u8; 8] = *b"SLIMKDS\0";
+pub(crate) const MAGIC: [u8; 8] = *b"SLIMKDS\0";
 const VERSION: u32 = 1;
 const HEADER: usize = 48;
 

@@ -1,12 +1,26 @@
 //! Scenes: loading triangle meshes into structure-of-arrays columns.
 //!
-//! Consumes Wavefront OBJ files (through `tobj`), or the binary scene cache
-//! (`.kds`, `cache`) that `slimkd convert` makes of one so that a huge
-//! scene is parsed once ([`load`] picks by the file name). Produces
+//! Consumes Wavefront OBJ files (through `tobj`), PLY files, ASCII or
+//! binary of either byte order (`ply`, through `ply-rs-bw`), glTF 2.0
+//! files, `.gltf` with embedded or side buffers or `.glb` (`gltf`, through
+//! the `gltf` crate), OBJ and PLY compressed with gzip (`.obj.gz`,
+//! `.ply.gz`, through `flate2`), or the binary scene cache (`.kds`,
+//! `cache`) that `slimkd convert` makes of any of them so that a huge scene
+//! is parsed once. [`load`] picks the format by the file name
+//! ([`SceneFormat::of_path`]); a name it does not know is an error that
+//! lists the ones it does, and a slimkd `.kd` tree file given as a scene
+//! is recognised (by its magic bytes or name) and named as such. Produces
 //! [`TriangleColumns`]: one column of vertex positions and one column of
 //! vertex-index triples, in file order.
 //!
-//! **What is read.**
+//! The rules below are those of OBJ; the other formats' modules say how
+//! each maps onto them. What every format shares: bad input is an error
+//! naming the file and the line (text formats) or the element, record or
+//! mesh (binary ones); a NaN or infinite coordinate is an error; degenerate
+//! triangles are dropped and counted; a scene without triangles is an
+//! error; loading never panics.
+//!
+//! **What is read (OBJ).**
 //! - `v x y z`, optionally followed by a weight `w` (the position is
 //!   `(x/w, y/w, z/w)`, computed in `f32`) or by a colour `r g b` (ignored).
 //! - `f` with every index form `v`, `v/vt`, `v//vn`, `v/vt/vn`, mixed
@@ -43,18 +57,25 @@
 //! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
 //! as `tobj` returns them (no welding).
 
-mod cache;
-mod obj;
+#![warn(missing_docs)]
 
+mod cache;
+mod gltf;
+mod obj;
+mod ply;
+
+pub use self::gltf::{load_gltf, load_gltf_bytes};
 pub use cache::{is_scene_cache, load_scene_cache, write_scene_cache};
 pub use obj::{embedded_name, load_obj, load_obj_bytes, load_obj_with_progress};
+pub use ply::{load_ply, load_ply_bytes};
 
 use crate::geom::{Aabb, double_area};
 use crate::progress::Progress;
 use glam::Vec3;
 use rayon::prelude::*;
 use std::fmt;
-use std::path::PathBuf;
+use std::io::{BufReader, Read};
+use std::path::{Path, PathBuf};
 
 /// Triangles as columns.
 ///
@@ -123,10 +144,12 @@ impl TriangleColumns {
         &self.indices
     }
 
+    /// The number of triangles.
     pub fn len(&self) -> usize {
         self.indices.len()
     }
 
+    /// Whether there are no triangles.
     pub fn is_empty(&self) -> bool {
         self.indices.is_empty()
     }
@@ -212,8 +235,17 @@ impl TriangleColumns {
 /// Why [`TriangleColumns::new`] refused its columns.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum InvalidColumns {
-    NonFiniteVertex { vertex: usize },
-    IndexOutOfRange { triangle: usize },
+    /// A position with a NaN or infinite coordinate.
+    NonFiniteVertex {
+        /// Its index in the position column.
+        vertex: usize,
+    },
+    /// A triangle naming a vertex past the position column.
+    IndexOutOfRange {
+        /// Its index in the index column.
+        triangle: usize,
+    },
+    /// `u32::MAX` triangles or more (ids are `u32`, one value reserved).
     TooManyTriangles,
 }
 
@@ -238,10 +270,12 @@ impl std::error::Error for InvalidColumns {}
 pub struct LoadSummary {
     /// Triangles kept (after fan triangulation and dropping).
     pub triangles: usize,
+    /// Vertex positions kept.
     pub vertices: usize,
     /// Triangles dropped because they have zero area or repeat a vertex.
     pub dropped_degenerate: usize,
-    /// Lines read.
+    /// Lines read (of the text formats; 0 for glTF, the header and ASCII
+    /// data lines of PLY).
     pub lines: u64,
 }
 
@@ -258,18 +292,41 @@ impl fmt::Display for LoadSummary {
 /// A scene that could not be loaded. Every variant names the file.
 #[derive(Debug)]
 pub enum SceneError {
+    /// The file (or a file it names, such as a glTF side buffer) could not
+    /// be read, or its compressed stream is corrupt.
     Io {
+        /// The scene file.
         path: PathBuf,
+        /// What the read said.
         source: std::io::Error,
     },
     /// A problem with one line (1-based).
     Line {
+        /// The scene file.
         path: PathBuf,
+        /// The line, 1-based.
         line: u64,
+        /// What is wrong with it.
         message: String,
     },
-    /// A problem not tied to one line.
-    Invalid { path: PathBuf, message: String },
+    /// A problem with one element, record or mesh of a binary or
+    /// structured format: `what` names it (`vertex 17`, `mesh 2
+    /// primitive 0`).
+    Element {
+        /// The scene file.
+        path: PathBuf,
+        /// The element, record or mesh part.
+        what: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// A problem not tied to one line or element.
+    Invalid {
+        /// The scene file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
 }
 
 impl fmt::Display for SceneError {
@@ -283,30 +340,224 @@ impl fmt::Display for SceneError {
             } => {
                 write!(f, "{}:{line}: {message}", path.display())
             }
+            SceneError::Element {
+                path,
+                what,
+                message,
+            } => write!(f, "{}: {what}: {message}", path.display()),
             SceneError::Invalid { path, message } => write!(f, "{}: {message}", path.display()),
         }
     }
 }
 
-/// Loads a scene file: a scene cache when its name ends in `.kds`
-/// ([`load_scene_cache`]), else an OBJ file ([`load_obj`]).
-pub fn load(path: &std::path::Path) -> Result<(TriangleColumns, LoadSummary), SceneError> {
+/// The scene formats [`load`] reads, told apart by the file name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SceneFormat {
+    /// Wavefront OBJ (`.obj`).
+    Obj,
+    /// OBJ compressed with gzip (`.obj.gz`).
+    ObjGz,
+    /// PLY, ASCII or binary (`.ply`).
+    Ply,
+    /// PLY compressed with gzip (`.ply.gz`).
+    PlyGz,
+    /// glTF 2.0 JSON (`.gltf`), its buffers embedded or beside it.
+    Gltf,
+    /// Binary glTF 2.0 (`.glb`).
+    Glb,
+    /// The binary scene cache `slimkd convert` writes (`.kds`).
+    Cache,
+}
+
+impl SceneFormat {
+    /// The names [`load`] recognises, for error messages.
+    pub const SUPPORTED: &'static str = ".obj, .obj.gz, .ply, .ply.gz, .gltf, .glb or .kds";
+
+    /// The format a file name says (its extension, case-insensitive), or
+    /// `None` for one [`load`] does not read.
+    pub fn of_path(path: &Path) -> Option<SceneFormat> {
+        let name = path.file_name()?.to_str()?.to_ascii_lowercase();
+        let format = if name.ends_with(".obj.gz") {
+            SceneFormat::ObjGz
+        } else if name.ends_with(".ply.gz") {
+            SceneFormat::PlyGz
+        } else {
+            match path.extension()?.to_str()?.to_ascii_lowercase().as_str() {
+                "obj" => SceneFormat::Obj,
+                "ply" => SceneFormat::Ply,
+                "gltf" => SceneFormat::Gltf,
+                "glb" => SceneFormat::Glb,
+                cache::EXTENSION => SceneFormat::Cache,
+                _ => return None,
+            }
+        };
+        Some(format)
+    }
+
+    /// The format of the file at `path`: a scene cache by its magic bytes
+    /// (whatever its name), else as [`SceneFormat::of_path`] says.
+    pub fn detect(path: &Path) -> Option<SceneFormat> {
+        if starts_with(path, &cache::MAGIC) {
+            return Some(SceneFormat::Cache);
+        }
+        SceneFormat::of_path(path)
+    }
+
+    /// What a file of this format is, for messages.
+    pub fn describe(self) -> &'static str {
+        match self {
+            SceneFormat::Obj => "an OBJ scene",
+            SceneFormat::ObjGz => "a gzip-compressed OBJ scene",
+            SceneFormat::Ply => "a PLY scene",
+            SceneFormat::PlyGz => "a gzip-compressed PLY scene",
+            SceneFormat::Gltf => "a glTF scene",
+            SceneFormat::Glb => "a binary glTF (GLB) scene",
+            SceneFormat::Cache => "a slimkd scene cache (.kds)",
+        }
+    }
+}
+
+/// Whether `path` looks like a slimkd `.kd` tree file: its name ends in
+/// `.kd`, or it starts with the `.kd` magic bytes.
+pub fn is_kd_file(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("kd"))
+        || starts_with(path, &crate::format::MAGIC)
+}
+
+/// Whether the file at `path` starts with `magic` (false if it cannot be
+/// read).
+pub(crate) fn starts_with(path: &Path, magic: &[u8]) -> bool {
+    let mut head = vec![0u8; magic.len()];
+    crate::fsio::open_regular(path)
+        .and_then(|mut f| f.read_exact(&mut head))
+        .is_ok_and(|()| head == magic)
+}
+
+/// Loads a scene file in the format its name says ([`SceneFormat`]).
+pub fn load(path: &Path) -> Result<(TriangleColumns, LoadSummary), SceneError> {
     load_with_progress(path, None)
 }
 
-/// [`load`], advancing `progress` to 1 as the file is read (an OBJ file by
-/// its bytes; a scene cache, read in a fraction of the time, at once).
+/// [`load`], advancing `progress` to 1 as the file is read (a text or
+/// compressed file by its bytes; the others at once when read).
 pub fn load_with_progress(
-    path: &std::path::Path,
+    path: &Path,
     progress: Option<&Progress>,
 ) -> Result<(TriangleColumns, LoadSummary), SceneError> {
-    if is_scene_cache(path) {
-        let loaded = load_scene_cache(path)?;
-        Progress::add_all(progress);
-        Ok(loaded)
-    } else {
-        load_obj_with_progress(path, progress)
+    let invalid = |message: String| SceneError::Invalid {
+        path: path.to_path_buf(),
+        message,
+    };
+    if is_kd_file(path) {
+        return Err(invalid(format!(
+            "this is a slimkd tree file (.kd), but a scene was expected ({})",
+            SceneFormat::SUPPORTED
+        )));
     }
+    let Some(format) = SceneFormat::of_path(path) else {
+        return Err(invalid(format!(
+            "unknown scene format (by its name); supported: {}",
+            SceneFormat::SUPPORTED
+        )));
+    };
+    let loaded = match format {
+        SceneFormat::Obj => return load_obj_with_progress(path, progress),
+        SceneFormat::ObjGz => obj::load_obj_reader(path, BufReader::new(gunzip(path, progress)?)),
+        SceneFormat::Ply => ply::load_ply_reader(path, counted_file(path, progress)?),
+        SceneFormat::PlyGz => ply::load_ply_reader(path, BufReader::new(gunzip(path, progress)?)),
+        SceneFormat::Gltf | SceneFormat::Glb => load_gltf(path),
+        SceneFormat::Cache => load_scene_cache(path),
+    };
+    Progress::add_all(progress);
+    loaded
+}
+
+/// The file at `path`, buffered, advancing `progress` with its bytes read.
+pub(crate) fn counted_file<'a>(
+    path: &Path,
+    progress: Option<&'a Progress>,
+) -> Result<BufReader<Counted<'a, std::fs::File>>, SceneError> {
+    let io = |source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = crate::fsio::open_regular(path).map_err(io)?;
+    let size = file.metadata().map_err(io)?.len();
+    let counted = Counted {
+        inner: file,
+        read: 0,
+        size,
+        progress,
+    };
+    Ok(BufReader::with_capacity(1 << 20, counted))
+}
+
+/// The decompressed bytes of the gzip file at `path` (every member, as
+/// `gzip -d` does), advancing `progress` with the compressed bytes read.
+/// A corrupt stream is an I/O error naming the file when read.
+fn gunzip<'a>(
+    path: &Path,
+    progress: Option<&'a Progress>,
+) -> Result<flate2::bufread::MultiGzDecoder<BufReader<Counted<'a, std::fs::File>>>, SceneError> {
+    Ok(flate2::bufread::MultiGzDecoder::new(counted_file(
+        path, progress,
+    )?))
+}
+
+/// A reader that advances a [`Progress`] with the share of `size` bytes
+/// read (a file that grows while read stops advancing at its old size).
+pub(crate) struct Counted<'a, R> {
+    inner: R,
+    read: u64,
+    size: u64,
+    progress: Option<&'a Progress>,
+}
+
+impl<R: Read> Read for Counted<'_, R> {
+    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(out)?;
+        let after = (self.read + n as u64).min(self.size);
+        if self.size > 0 {
+            Progress::advance(self.progress, self.read, after, self.size);
+        }
+        self.read = after;
+        Ok(n)
+    }
+}
+
+/// Columns from a loader's positions and triangles, by the rules every
+/// format shares: the invariant checked, degenerate triangles dropped and
+/// counted, and no triangles left an error (`none` says why there were
+/// none to begin with).
+pub(crate) fn finish(
+    path: &Path,
+    positions: Vec<Vec3>,
+    indices: Vec<[u32; 3]>,
+    lines: u64,
+    none: &str,
+) -> Result<(TriangleColumns, LoadSummary), SceneError> {
+    let invalid = |message: String| SceneError::Invalid {
+        path: path.to_path_buf(),
+        message,
+    };
+    let mut columns =
+        TriangleColumns::new(positions, indices).map_err(|e| invalid(e.to_string()))?;
+    let dropped = columns.drop_degenerate();
+    if columns.is_empty() {
+        return Err(invalid(if dropped > 0 {
+            format!("no triangles: all {dropped} triangles are degenerate")
+        } else {
+            format!("no triangles ({none})")
+        }));
+    }
+    let summary = LoadSummary {
+        triangles: columns.len(),
+        vertices: columns.positions.len(),
+        dropped_degenerate: dropped,
+        lines,
+    };
+    Ok((columns, summary))
 }
 
 impl std::error::Error for SceneError {

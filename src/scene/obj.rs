@@ -20,7 +20,7 @@
 use super::{LoadSummary, SceneError, TriangleColumns};
 use crate::progress::Progress;
 use glam::Vec3;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// Loads an OBJ file. See the module docs of [`crate::scene`] for the rules.
@@ -34,40 +34,7 @@ pub fn load_obj_with_progress(
     path: &Path,
     progress: Option<&Progress>,
 ) -> Result<(TriangleColumns, LoadSummary), SceneError> {
-    let io = |source| SceneError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let file = crate::fsio::open_regular(path).map_err(io)?;
-    let size = file.metadata().map_err(io)?.len();
-    let counted = Counted {
-        inner: file,
-        read: 0,
-        size,
-        progress,
-    };
-    load_obj_reader(path, BufReader::with_capacity(1 << 20, counted))
-}
-
-/// A reader that advances a [`Progress`] with the share of `size` bytes
-/// read (a file that grows while read stops advancing at its old size).
-struct Counted<'a, R> {
-    inner: R,
-    read: u64,
-    size: u64,
-    progress: Option<&'a Progress>,
-}
-
-impl<R: Read> Read for Counted<'_, R> {
-    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
-        let n = self.inner.read(out)?;
-        let after = (self.read + n as u64).min(self.size);
-        if self.size > 0 {
-            Progress::advance(self.progress, self.read, after, self.size);
-        }
-        self.read = after;
-        Ok(n)
-    }
+    load_obj_reader(path, super::counted_file(path, progress)?)
 }
 
 /// Loads OBJ text held in memory; `name` is used in error messages.
@@ -78,7 +45,7 @@ pub fn load_obj_bytes(
     load_obj_reader(name, bytes)
 }
 
-fn load_obj_reader<R: BufRead>(
+pub(crate) fn load_obj_reader<R: BufRead>(
     path: &Path,
     reader: R,
 ) -> Result<(TriangleColumns, LoadSummary), SceneError> {
@@ -148,30 +115,13 @@ fn load_obj_reader<R: BufRead>(
             indices.push(tri.map(|i| i as u32));
         }
     }
-    let mut columns =
-        TriangleColumns::new(positions, indices).map_err(|e| SceneError::Invalid {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
-    let dropped = columns.drop_degenerate();
-    if columns.is_empty() {
-        let message = if dropped > 0 {
-            format!("no triangles: all {dropped} triangles are degenerate")
-        } else {
-            "no triangles (no `f` line with three or more vertices)".to_string()
-        };
-        return Err(SceneError::Invalid {
-            path: path.to_path_buf(),
-            message,
-        });
-    }
-    let summary = LoadSummary {
-        triangles: columns.len(),
-        vertices: columns.positions.len(),
-        dropped_degenerate: dropped,
-        lines: inspector.line,
-    };
-    Ok((columns, summary))
+    super::finish(
+        path,
+        positions,
+        indices,
+        inspector.line,
+        "no `f` line with three or more vertices",
+    )
 }
 
 enum Problem {

@@ -24,6 +24,19 @@ pub struct FileWalk<'a> {
     bounds: Aabb,
 }
 
+/// A walk is its own source, so a caller that took one once (the facade's
+/// `AccelTracer`) hands it to a traverser without taking it again.
+impl super::KdSource for FileWalk<'_> {
+    type Walk<'a>
+        = FileWalk<'a>
+    where
+        Self: 'a;
+
+    fn walk(&self) -> FileWalk<'_> {
+        *self
+    }
+}
+
 impl<'a> FileWalk<'a> {
     pub fn new<D: AsRef<[u8]>>(file: &'a KdFile<D>) -> FileWalk<'a> {
         FileWalk {

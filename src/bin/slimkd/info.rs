@@ -34,6 +34,7 @@ pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
 }
 
 pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
+    expect_kd(path, "info")?;
     let start = Instant::now();
     let file = open_kd(path, false)?;
     let open_ms = start.elapsed().as_secs_f64() * 1e3;
@@ -161,6 +162,7 @@ pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
 }
 
 pub(crate) fn cmd_verify(path: &Path) -> Res<()> {
+    expect_kd(path, "verify")?;
     let file = open_kd(path, true)?;
     let f = file.figures();
     println!(

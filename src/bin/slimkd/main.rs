@@ -210,6 +210,7 @@ fn cmd_trace(args: &trace::TraceArgs) -> Res<()> {
     if let Some(d) = &args.dump {
         check_output_dir(d)?;
     }
+    render::expect_kd(&args.file, "trace")?;
     let pool = pool(args.threads)?;
     trace::cmd_trace(args, pool).map_err(|e| match e.downcast::<slimkd::format::FormatError>() {
         // Opening the .kd file is the only source of a format error; all

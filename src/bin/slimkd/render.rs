@@ -15,12 +15,25 @@ use std::path::Path;
 use std::time::Instant;
 
 pub(crate) fn is_kd_file(path: &Path) -> bool {
-    let mut magic = [0u8; 8];
-    path.extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("kd"))
-        || slimkd::fsio::open_regular(path)
-            .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic))
-            .is_ok_and(|()| magic == format::MAGIC)
+    slimkd::scene::is_kd_file(path)
+}
+
+/// Refuses a scene given to `command`, which reads a `.kd` tree file,
+/// saying what it is (by its magic bytes or name) rather than what its
+/// first bytes are not.
+pub(crate) fn expect_kd(path: &Path, command: &str) -> Res<()> {
+    if is_kd_file(path) {
+        return Ok(());
+    }
+    match slimkd::scene::SceneFormat::detect(path) {
+        Some(scene) => Err(format!(
+            "{}: this is {}, {command} expects a .kd tree file (`slimkd build SCENE -o FILE.kd` makes one)",
+            path.display(),
+            scene.describe()
+        )
+        .into()),
+        None => Ok(()),
+    }
 }
 
 /// Maps and validates a `.kd` file (`verify`: its checksums too); every
