@@ -394,8 +394,8 @@ fn main_job_compares_the_three_trees() {
         assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0, "left behind");
         std::fs::remove_file(dir.join("slimkd.png")).unwrap();
     }
-    // -v belongs to the main job.
-    let out = slimkd_in(Some(&dir), &["-v", "info", "x.kd"]);
-    exits(&out, 2, "-v with a command");
+    // -q and -v contradict each other.
+    let out = slimkd_in(Some(&dir), &["-q", "-v"]);
+    exits(&out, 2, "-q with -v");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -2,7 +2,7 @@
 //! the accessors hand out typed slices of the bytes without copying.
 
 use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
-use super::write::{FileConfig, Preset};
+use super::write::{FileConfig, Preset, SceneTag};
 use super::{
     ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
     SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
@@ -212,6 +212,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             tau_occu: f32::from_bits(u32_at(b, 56)),
             tau_freq: f32::from_bits(u32_at(b, 60)),
             max_t2rn: u32_at(b, 64),
+            scene: SceneTag::from_header(b)?,
         };
         let max_depth = u32_at(b, 68);
         let counts = TreeFigures {
@@ -553,6 +554,16 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             }
         }
         Ok(())
+    }
+
+    /// A section's byte range in the file and its stored CRC-32 (what
+    /// [`KdFile::verify`] checks).
+    pub fn section_range(&self, s: Section) -> (Range<usize>, u32) {
+        let e = SECTION_TABLE + s as usize * SECTION_ENTRY;
+        (
+            self.ranges[s as usize].clone(),
+            u32_at(self.data.as_ref(), e + 16),
+        )
     }
 
     fn section<T: bytemuck::Pod>(&self, s: Section) -> &[T] {

@@ -27,10 +27,34 @@ use crate::Res;
 pub(crate) struct Cli {
     #[command(subcommand)]
     pub(crate) command: Option<Command>,
-    /// The main job only: also print the build's phase times, memory and
-    /// the slim passes' phases.
-    #[arg(short, long)]
+    #[command(flatten)]
+    pub(crate) out: Out,
+}
+
+/// What a command prints: the flags every command takes.
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+pub(crate) struct Out {
+    /// Print errors only (and, with --json, the JSON object): no summary,
+    /// no progress bars.
+    #[arg(short, long, global = true, conflicts_with = "verbose")]
+    pub(crate) quiet: bool,
+    /// Print more: the build's phase times, processor time and memory, the
+    /// slim passes' phases, the camera of a render, the sections of a
+    /// verified file, the Markdown of a report.
+    #[arg(short, long, global = true)]
     pub(crate) verbose: bool,
+    /// Print one JSON object instead of text (`"schema": 1`; every key is
+    /// listed in docs/json-schema.md).
+    #[arg(long, global = true)]
+    pub(crate) json: bool,
+}
+
+impl Out {
+    /// Whether progress bars are off: with -q, and with --json (whose
+    /// output is for programs).
+    pub(crate) fn bars_off(self) -> bool {
+        self.quiet || self.json
+    }
 }
 
 #[derive(Subcommand)]
@@ -49,9 +73,6 @@ pub(crate) enum Command {
         /// leaves fit 2-byte mode.
         #[arg(long)]
         reorder: bool,
-        /// Print one JSON object instead of text.
-        #[arg(long)]
-        json: bool,
     },
     /// Render a scene (built on the fly) or a .kd file.
     Render(Box<RenderArgs>),
@@ -59,9 +80,6 @@ pub(crate) enum Command {
     Info {
         /// A .kd file written by `slimkd build -o`.
         file: PathBuf,
-        /// Print one JSON object instead of text.
-        #[arg(long)]
-        json: bool,
     },
     /// Check a .kd file completely, checksums included; exit 0 if valid.
     Verify {
@@ -405,9 +423,6 @@ pub(crate) struct RenderArgs {
     /// mapped from [-1, 1] to [0, 1] as RGB).
     #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
     pub(crate) shading: ShadingArg,
-    /// Print one JSON object instead of text.
-    #[arg(long)]
-    pub(crate) json: bool,
 }
 
 /// A usage error: the command line asks for something impossible or

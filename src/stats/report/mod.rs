@@ -43,13 +43,14 @@ mod markdown;
 mod run;
 mod tables;
 
-pub use run::run;
+pub use run::{run, run_with_progress};
 pub use tables::duplication;
 
 use super::plot::{self, LabelledPoint, LinePanel, LineSeries, ScatterSeries};
 use crate::build::{self, BuildConfig, Builder};
 use crate::format::{
-    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, TreeFigures, WriteOptions,
+    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
+    WriteOptions,
 };
 use crate::geom::Aabb;
 use crate::render::{self, Camera, View};
@@ -81,8 +82,10 @@ pub const VIEW_IDS: [&str; 3] = ["1", "2", "3"];
 /// What to report on.
 #[derive(Clone, Debug)]
 pub struct ReportOptions {
-    /// `(name, geometry, load seconds)`; the name is matched against the
-    /// views file by [`render::find_view`] (a file name or path works).
+    /// `(name, geometry, load seconds)`: the scene's name (its file's stem,
+    /// as tables and legends show it and `.kd` headers record it) is
+    /// matched against the views file by [`render::find_view_named`] (or,
+    /// for a file name or path, by its stem).
     pub scenes: Vec<(String, TriangleColumns, f64)>,
     pub views: Vec<View>,
     /// Image size `(width, height)` of every traced frame.

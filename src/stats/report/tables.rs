@@ -162,7 +162,10 @@ pub(super) fn sweep_point(
         .install(|| slim::slim(std_tree, scene, config, &params));
     let slim_s = start.elapsed().as_secs_f64();
     let label = format!("τ_occu {} τ_freq {}", params.tau_occu, params.tau_freq);
-    let cfg = file_config(config, scene.len(), Preset::Custom, Some(&params));
+    let cfg = FileConfig {
+        scene: SceneTag::new(name, scene),
+        ..file_config(config, scene.len(), Preset::Custom, Some(&params))
+    };
     let written = write_tree(name, &label, &tree, scene, cfg)?;
     drop(tree);
     let std_tracer = PacketTracer::new(std_file);
