@@ -14,6 +14,7 @@ impl Report {
     pub fn json(&self) -> Value {
         let scenes: Vec<Value> = self.scenes.iter().map(scene_json).collect();
         json!({
+            "schema": crate::pipeline::JSON_SCHEMA,
             "machine": {
                 "all_threads": self.all_threads,
                 "width": self.size.0,
@@ -87,6 +88,17 @@ fn scene_json(s: &SceneReport) -> Value {
             "trees": TreeKind::ALL.iter().map(|&k| {
                 let r = &v.rates[k as usize];
                 let l = v.loss_pct(k);
+                let spread = |i: usize| {
+                    let s = &v.loss[k as usize][i];
+                    json!({
+                        "median": jnum(s.median),
+                        "q1": jnum(s.q1),
+                        "q3": jnum(s.q3),
+                        "min": jnum(s.min),
+                        "max": jnum(s.max),
+                        "within_noise": s.includes_zero(),
+                    })
+                };
                 json!({
                     "tree": k.name(),
                     "scalar_1t": jnum(r.scalar_1t),
@@ -98,6 +110,12 @@ fn scene_json(s: &SceneReport) -> Value {
                         "scalar_all": jnum(l[1]),
                         "packet_1t": jnum(l[2]),
                         "packet_all": jnum(l[3]),
+                    },
+                    "loss_spread_pct": {
+                        "scalar_1t": spread(0),
+                        "scalar_all": spread(1),
+                        "packet_1t": spread(2),
+                        "packet_all": spread(3),
                     },
                 })
             }).collect::<Vec<_>>(),
@@ -123,6 +141,9 @@ fn scene_json(s: &SceneReport) -> Value {
             "hoisted": p.hoisted,
             "reduction_pct": jnum(p.reduction_pct),
             "loss_pct": jnum(p.loss_pct),
+            "loss_q1_pct": jnum(p.loss_spread.q1),
+            "loss_q3_pct": jnum(p.loss_spread.q3),
+            "within_noise": p.loss_spread.includes_zero(),
             "view_loss_pct": p.view_loss_pct.iter().map(|&x| jnum(x)).collect::<Vec<_>>(),
             "slim_s": p.slim_s,
         })).collect::<Vec<_>>(),
