@@ -270,15 +270,19 @@ pub(crate) struct FrameJson {
 #[derive(Serialize)]
 #[serde(untagged)]
 pub(crate) enum RenderSourceJson {
-    Built {
-        #[serde(flatten)]
-        scene: SceneJson,
-        #[serde(flatten)]
-        tree: TreeJson,
-        #[serde(flatten)]
-        build: BuildJson,
-    },
+    Built(Box<BuiltJson>),
     File(FileJson),
+}
+
+/// A tree `render` built: the scene, the tree and the build.
+#[derive(Serialize)]
+pub(crate) struct BuiltJson {
+    #[serde(flatten)]
+    pub(crate) scene: SceneJson,
+    #[serde(flatten)]
+    pub(crate) tree: TreeJson,
+    #[serde(flatten)]
+    pub(crate) build: BuildJson,
 }
 
 /// `slimkd render --json`.

@@ -219,11 +219,13 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
         let threads = pool.current_num_threads();
         if ui.json {
             let source = match &source {
-                Source::Built { loaded, built, stats } => RenderSourceJson::Built {
-                    scene: SceneJson::of(loaded),
-                    tree: TreeJson::of(stats),
-                    build: BuildJson::of(built),
-                },
+                Source::Built { loaded, built, stats } => {
+                    RenderSourceJson::Built(Box::new(BuiltJson {
+                        scene: SceneJson::of(loaded),
+                        tree: TreeJson::of(stats),
+                        build: BuildJson::of(built),
+                    }))
+                }
                 Source::File { file, open_ms, .. } => {
                     RenderSourceJson::File(FileJson::of(&args.scene, file, *open_ms))
                 }

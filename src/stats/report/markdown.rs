@@ -434,6 +434,27 @@ impl Report {
     }
 }
 
+/// A loss with its interquartile range, `≈` when the range includes 0.
+fn loss_cell(s: &Spread) -> String {
+    if !s.median.is_finite() {
+        return num(s.median, 1);
+    }
+    format!("{} {}", num(s.median, 1), loss_range(s))
+}
+
+/// An interquartile range, `(q1…q3)`, followed by `≈` when it includes 0.
+fn loss_range(s: &Spread) -> String {
+    if !(s.q1.is_finite() && s.q3.is_finite()) {
+        return String::new();
+    }
+    format!(
+        "({}…{}){}",
+        num(s.q1, 1),
+        num(s.q3, 1),
+        if s.includes_zero() { " ≈" } else { "" }
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -457,25 +478,4 @@ mod tests {
             "{t}"
         );
     }
-}
-
-/// A loss with its interquartile range, `≈` when the range includes 0.
-fn loss_cell(s: &Spread) -> String {
-    if !s.median.is_finite() {
-        return num(s.median, 1);
-    }
-    format!("{} {}", num(s.median, 1), loss_range(s))
-}
-
-/// An interquartile range, `(q1…q3)`, followed by `≈` when it includes 0.
-fn loss_range(s: &Spread) -> String {
-    if !(s.q1.is_finite() && s.q3.is_finite()) {
-        return String::new();
-    }
-    format!(
-        "({}…{}){}",
-        num(s.q1, 1),
-        num(s.q3, 1),
-        if s.includes_zero() { " ≈" } else { "" }
-    )
 }
