@@ -109,19 +109,9 @@ pub(crate) fn build_tree(
         options.scratch_dir = d.clone();
     }
     let start = Instant::now();
-    let level_message = || {
-        use std::sync::atomic::Ordering::Relaxed;
-        let small = si(status.small_nodes.load(Relaxed));
-        match (args.builder, status.open_nodes.load(Relaxed)) {
-            (BuilderArg::Level, 0) => format!("depth-first: {small} subtrees"),
-            (BuilderArg::Level, open) => format!(
-                "level {}: {} open, {} refs, {small} depth-first",
-                status.level.load(Relaxed),
-                si(open),
-                si(status.refs.load(Relaxed))
-            ),
-            _ => String::new(),
-        }
+    let level_message = || match args.builder {
+        BuilderArg::Level => level_message(&status),
+        _ => String::new(),
     };
     let built = with_bar(
         quiet,
@@ -177,6 +167,23 @@ pub(crate) fn build_tree(
             BuilderArg::Naive => "naive",
         },
     })
+}
+
+/// The build bar's message for the level builder: the level, its open
+/// nodes and references while nodes are open; once none is, the
+/// depth-first finisher's subtrees (most of a build's time).
+pub(crate) fn level_message(status: &level::LevelStatus) -> String {
+    use std::sync::atomic::Ordering::Relaxed;
+    let small = si(status.small_nodes.load(Relaxed));
+    match status.open_nodes.load(Relaxed) {
+        0 => format!("depth-first: {small} subtrees"),
+        open => format!(
+            "level {}: {} open, {} refs, {small} depth-first",
+            status.level.load(Relaxed),
+            si(open),
+            si(status.refs.load(Relaxed))
+        ),
+    }
 }
 
 /// The summary's first line: the scene and its load.
@@ -402,4 +409,37 @@ pub(crate) fn cmd_build(
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// At the end of a build no node is open and the finisher has had
+    /// subtrees: the message names the depth-first finisher and their
+    /// count, not the last level with 0 open nodes.
+    #[test]
+    fn the_bar_names_the_depth_first_finisher() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+        let (scene, _) = scene::load_obj(&path).unwrap();
+        let status = Arc::new(level::LevelStatus::default());
+        let options = level::LevelOptions {
+            status: Some(status.clone()),
+            ..level::LevelOptions::default()
+        };
+        level::build(&scene, &BuildConfig::default(), None, &options).unwrap();
+        let small = status.small_nodes.load(Ordering::Relaxed);
+        assert!(small > 0);
+        assert_eq!(status.open_nodes.load(Ordering::Relaxed), 0);
+        let message = level_message(&status);
+        assert_eq!(message, format!("depth-first: {} subtrees", si(small)));
+        status.open_nodes.store(1234, Ordering::Relaxed);
+        status.level.store(9, Ordering::Relaxed);
+        status.refs.store(45_600_000, Ordering::Relaxed);
+        let message = level_message(&status);
+        assert!(
+            message.starts_with("level 9: 1.23k open, 45.6M refs"),
+            "{message}"
+        );
+    }
 }
