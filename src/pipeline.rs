@@ -7,7 +7,6 @@ use crate::format::{FileConfig, Preset, TreeFigures};
 use crate::slim::SlimParams;
 use crate::stats::TreeStats;
 use serde::Serialize;
-use serde_json::Value;
 
 /// The version of the JSON that `--json` prints and the report writes
 /// (the `schema` key; docs/json-schema.md). It changes when a key changes
@@ -121,19 +120,6 @@ pub fn file_config(
         tau_freq,
         max_t2rn,
         scene: Default::default(),
-    }
-}
-
-/// A tree's figures (Table 3(a) and its bytes) as JSON: [`FiguresJson`].
-pub fn figures_json(f: &TreeFigures) -> Value {
-    serde_json::to_value(FiguresJson::of(f)).expect("plain numbers serialise")
-}
-
-/// Adds the keys of the object `extra` to the object `into` (replacing
-/// those it has); nothing if either is not an object.
-pub fn merge_json(into: &mut Value, extra: Value) {
-    if let (Some(a), Value::Object(b)) = (into.as_object_mut(), extra) {
-        a.extend(b);
     }
 }
 
