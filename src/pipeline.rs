@@ -5,7 +5,85 @@
 use crate::build::BuildConfig;
 use crate::format::{FileConfig, Preset, TreeFigures};
 use crate::slim::SlimParams;
-use serde_json::{Value, json};
+use crate::stats::TreeStats;
+use serde::Serialize;
+
+/// The version of the JSON that `--json` prints and the report writes
+/// (the `schema` key; docs/json-schema.md). It changes when a key changes
+/// meaning or goes away, not when one is added.
+pub const JSON_SCHEMA: u32 = 1;
+
+/// A tree's node counts as the paper's Table 3(a) counts them, with the
+/// same keys wherever they appear (`build`, `render`, `info`, `verify`, the
+/// main job and the report).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct NodeCounts {
+    /// Inner, t-inner and leaf nodes (T-references are not nodes).
+    pub nodes_total: u64,
+    /// Inner nodes without a hoisted triangle (type I).
+    pub nodes_inner: u64,
+    /// Inner nodes holding a hoisted triangle (type II).
+    pub nodes_t_inner: u64,
+    /// Leaves, empty ones included.
+    pub nodes_leaf: u64,
+}
+
+impl NodeCounts {
+    pub fn of_figures(f: &TreeFigures) -> NodeCounts {
+        NodeCounts {
+            nodes_total: f.nodes(),
+            nodes_inner: f.inner,
+            nodes_t_inner: f.t_inner,
+            nodes_leaf: f.leaves,
+        }
+    }
+
+    pub fn of_stats(s: &TreeStats) -> NodeCounts {
+        NodeCounts {
+            nodes_total: s.nodes as u64,
+            nodes_inner: s.inner as u64,
+            nodes_t_inner: s.t_inner as u64,
+            nodes_leaf: s.leaves as u64,
+        }
+    }
+}
+
+/// What a stored tree takes: its leaf indices and bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct StorageJson {
+    /// 4-byte leaf index entries.
+    pub idx32: u64,
+    /// 2-byte leaf index entries.
+    pub idx16: u64,
+    /// Bytes of the node words and leaf indices.
+    pub tree_bytes: u64,
+    /// Bytes of the vertices and triangles (and the triangle map).
+    pub geometry_bytes: u64,
+}
+
+/// A stored tree's figures: [`NodeCounts`] and [`StorageJson`] in one
+/// object.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct FiguresJson {
+    #[serde(flatten)]
+    pub nodes: NodeCounts,
+    #[serde(flatten)]
+    pub storage: StorageJson,
+}
+
+impl FiguresJson {
+    pub fn of(f: &TreeFigures) -> FiguresJson {
+        FiguresJson {
+            nodes: NodeCounts::of_figures(f),
+            storage: StorageJson {
+                idx32: f.idx32,
+                idx16: f.idx16,
+                tree_bytes: f.tree_bytes(),
+                geometry_bytes: f.geometry_bytes(),
+            },
+        }
+    }
+}
 
 /// The median (the mean of the middle two for an even count; NaN for
 /// none).
@@ -41,29 +119,7 @@ pub fn file_config(
         tau_occu,
         tau_freq,
         max_t2rn,
-    }
-}
-
-/// A tree's figures (Table 3(a) and its bytes) as JSON, with the keys of
-/// `slimkd build --json` and `info --json` (see README.md).
-pub fn figures_json(f: &TreeFigures) -> Value {
-    json!({
-        "nodes_inner": f.inner,
-        "nodes_t_inner": f.t_inner,
-        "nodes_leaf": f.leaves,
-        "nodes_total": f.nodes(),
-        "idx32": f.idx32,
-        "idx16": f.idx16,
-        "tree_bytes": f.tree_bytes(),
-        "geometry_bytes": f.geometry_bytes(),
-    })
-}
-
-/// Adds the keys of the object `extra` to the object `into` (replacing
-/// those it has); nothing if either is not an object.
-pub fn merge_json(into: &mut Value, extra: Value) {
-    if let (Some(a), Value::Object(b)) = (into.as_object_mut(), extra) {
-        a.extend(b);
+        scene: Default::default(),
     }
 }
 

@@ -394,8 +394,200 @@ fn main_job_compares_the_three_trees() {
         assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0, "left behind");
         std::fs::remove_file(dir.join("slimkd.png")).unwrap();
     }
-    // -v belongs to the main job.
-    let out = slimkd_in(Some(&dir), &["-v", "info", "x.kd"]);
-    exits(&out, 2, "-v with a command");
+    // -q and -v contradict each other.
+    let out = slimkd_in(Some(&dir), &["-q", "-v"]);
+    exits(&out, 2, "-q with -v");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A small ray file: rays from the views' eye of the bunny's view 1
+/// towards its body.
+fn write_rays(path: &Path) {
+    let mut bytes = Vec::new();
+    for k in 0..8 {
+        let d = [-1.4f32, 0.4 + 0.01 * k as f32, -7.8];
+        for v in [1.349f32, 2.95, 6.446, 0.0, d[0], d[1], d[2], f32::INFINITY] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// Every command prints one JSON object with `--json`, with `"schema": 1`
+/// and its name as `command`; the node counts have one key set
+/// (`nodes_total`, `nodes_inner`, `nodes_t_inner`, `nodes_leaf`) wherever
+/// they appear, and build's old keys are gone.
+#[test]
+fn every_command_prints_json_with_one_schema() {
+    let dir = fresh_temp_dir("json_schema");
+    let scene = bunny();
+    let kd = dir.join("bunny_npm.kd");
+    let kds = dir.join("bunny_npm.kds");
+    let rays = dir.join("rays.bin");
+    write_rays(&rays);
+    let md = dir.join("r.md");
+    let runs: Vec<(&str, Vec<&str>)> = vec![
+        (
+            "build",
+            vec!["build", &scene, "-o", s(&kd), "--preset", "small", "--json"],
+        ),
+        ("info", vec!["info", s(&kd), "--json"]),
+        ("verify", vec!["verify", s(&kd), "--json"]),
+        ("convert", vec!["convert", &scene, "-o", s(&kds), "--json"]),
+        (
+            "render",
+            vec!["render", s(&kd), "--size", "16x16", "--json"],
+        ),
+        (
+            "render",
+            vec!["render", s(&kds), "--size", "16x16", "--json"],
+        ),
+        (
+            "trace",
+            vec!["trace", s(&kd), s(&rays), "--reps", "1", "--json"],
+        ),
+        (
+            "report",
+            vec![
+                "report",
+                &scene,
+                "--size",
+                "16x16",
+                "--reps",
+                "1",
+                "-o",
+                s(&md),
+                "--json",
+            ],
+        ),
+        ("main", vec!["--json"]),
+    ];
+    let mut objects = Vec::new();
+    for (command, args) in &runs {
+        let out = slimkd_in(Some(&dir), args);
+        let j = json(&out);
+        assert_eq!(j["schema"], 1, "{args:?}: {j}");
+        assert_eq!(j["command"], *command, "{args:?}: {j}");
+        objects.push(j);
+    }
+    let node_keys = ["nodes_total", "nodes_inner", "nodes_t_inner", "nodes_leaf"];
+    // build, info, verify, render of the file: the same counts.
+    for j in [&objects[1], &objects[2], &objects[3 + 1]] {
+        for key in node_keys {
+            assert_eq!(j[key], objects[0][key], "{key}: {j}");
+        }
+    }
+    for key in node_keys {
+        assert!(objects[5][key].is_u64(), "render of a scene lacks {key}");
+        assert!(
+            objects[8]["trees"][0][key].is_u64(),
+            "the main job lacks {key}"
+        );
+    }
+    for old in ["nodes", "inner", "t_inner", "leaves", "empty_leaves"] {
+        assert!(
+            objects[0].get(old).is_none(),
+            "build --json still has {old}"
+        );
+    }
+    assert_eq!(objects[1]["scene_name"], "bunny_npm");
+    assert_eq!(objects[7]["scenes"][0], "bunny_npm");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `-q` prints errors only, `-v` adds detail, on every command; the two
+/// together are a usage error.
+#[test]
+fn quiet_prints_only_errors_and_verbose_adds_detail() {
+    let dir = fresh_temp_dir("quiet_verbose");
+    let scene = bunny();
+    let kd = dir.join("b.kd");
+    let out = slimkd(&["build", &scene, "-o", s(&kd), "-q"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!((stdout(&out), stderr(&out)), (String::new(), String::new()));
+    for args in [
+        vec!["info", s(&kd), "-q"],
+        vec!["verify", s(&kd), "-q"],
+        vec!["render", s(&kd), "--size", "8x8", "-q"],
+    ] {
+        let out = slimkd(&args);
+        assert!(out.status.success(), "{args:?}: {}", stderr(&out));
+        assert_eq!(stdout(&out), "", "{args:?}");
+    }
+    let missing = dir.join("missing.obj");
+    let out = slimkd(&["build", s(&missing), "-q"]);
+    let err = exits(&out, 1, "a missing scene with -q");
+    assert!(err.contains("missing.obj"), "{err}");
+    let plain = stdout(&slimkd(&["build", &scene]));
+    let verbose = stdout(&slimkd(&["build", &scene, "-v"]));
+    assert!(
+        !plain.contains("phases:") && verbose.contains("phases:"),
+        "{verbose}"
+    );
+    let v = stdout(&slimkd(&["verify", s(&kd), "-v"]));
+    assert!(v.contains("section") && v.contains("CRC-32"), "{v}");
+    let r = stdout(&slimkd(&["render", s(&kd), "--size", "8x8", "-v"]));
+    assert!(r.contains("camera     eye"), "{r}");
+    exits(&slimkd(&["build", &scene, "-q", "-v"]), 2, "-q with -v");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `--help` states the default camera and ends with examples; the flags a
+/// user needs come before the measurement knobs.
+#[test]
+fn help_states_the_default_camera_and_examples() {
+    for args in [vec!["--help"], vec!["render", "--help"]] {
+        let text = stdout(&slimkd(&args));
+        assert!(
+            text.contains("normalize(0.6, 0.4, 1.0)"),
+            "{args:?}: {text}"
+        );
+        assert!(text.contains("Examples:"), "{args:?}: {text}");
+    }
+    let text = stdout(&slimkd(&["build", "--help"]));
+    let at = |flag: &str| {
+        text.find(flag)
+            .unwrap_or_else(|| panic!("{flag} in {text}"))
+    };
+    for needed in ["--output", "--preset", "--threads"] {
+        assert!(
+            at(needed) < at("--tiny") && at(needed) < at("--new-events"),
+            "{text}"
+        );
+    }
+    assert!(at("Measurement knobs") < at("--tiny"), "{text}");
+}
+
+/// The report names scenes by their file stems in its tables, never by the
+/// path given, and warns when a scene has no views (it is timed from the
+/// default camera).
+#[test]
+fn report_names_scenes_by_stem_and_warns_without_views() {
+    let dir = fresh_temp_dir("report_stems");
+    let rabbit = dir.join("rabbit.obj");
+    std::fs::copy(bunny(), &rabbit).unwrap();
+    let md = dir.join("r.md");
+    let out = slimkd(&[
+        "report",
+        &bunny(),
+        s(&rabbit),
+        "--size",
+        "16x16",
+        "--reps",
+        "1",
+        "-o",
+        s(&md),
+    ]);
+    let err = exits(&out, 0, "report");
+    assert!(err.contains("warning: rabbit has no views"), "{err}");
+    assert!(!err.contains("warning: bunny_npm"), "{err}");
+    let text = std::fs::read_to_string(&md).unwrap();
+    assert!(
+        text.contains("| bunny_npm") && text.contains("| rabbit"),
+        "{text}"
+    );
+    let scenes_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+    assert!(!text.contains(scenes_dir.to_str().unwrap()), "{text}");
+    assert!(!text.contains(dir.to_str().unwrap()), "{text}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

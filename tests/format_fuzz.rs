@@ -1250,8 +1250,9 @@ fn bounds_not_containing_a_vertex_are_rejected() {
     ));
 }
 
-/// Reserved fields are documented as zero (header bytes 160..192 and the
-/// reserved word of each section-table entry) but were accepted non-zero.
+/// Reserved fields are documented as zero (header bytes 340..384 after the
+/// header checksum, and the reserved word of each section-table entry) but
+/// were accepted non-zero.
 #[test]
 fn reserved_header_bytes_and_section_words_must_be_zero() {
     let (_, _, bytes) = grid_file();
@@ -1259,7 +1260,9 @@ fn reserved_header_bytes_and_section_words_must_be_zero() {
         let e = H_TABLE + s * H_ENTRY + 20;
         e..e + 4
     });
-    for at in (160..192).chain(section_words) {
+    // Header bytes 160..192 are the scene tag; 340..384 follow the header
+    // checksum.
+    for at in (340..384).chain(section_words) {
         let mut b = bytes.clone();
         b[at] = 0x40;
         fix_header_crc(&mut b);

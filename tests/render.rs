@@ -200,7 +200,7 @@ fn cli_build_json_has_the_figures() {
     );
     let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(j["triangles"], 34973);
-    assert!(j["nodes"].as_u64().unwrap() > 1000);
+    assert!(j["nodes_total"].as_u64().unwrap() > 1000);
     assert!(j["refs"].as_u64().unwrap() >= 34973);
     assert!(j["build_s"].as_f64().unwrap() > 0.0);
 }

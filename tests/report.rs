@@ -528,3 +528,62 @@ fn bad_options_are_errors() {
     assert!(r.markdown().contains("# slimkd report"));
     assert!(r.figure6_svg().unwrap().starts_with("<svg"));
 }
+
+/// Table 3(b) shows the spread of the per-repetition losses: each loss is
+/// the median of the pairs' losses within its interquartile range, std's
+/// is zero, and the Markdown gives the ranges and marks with ≈ those that
+/// include 0. A scene without views is timed from the default camera with
+/// a warning line (which starts no step), and the report's progress ends at
+/// exactly 1 over all its steps.
+#[test]
+fn losses_have_their_spread_and_viewless_scenes_warn() {
+    let options = ReportOptions {
+        scenes: vec![("rabbit".into(), bunny().clone(), 0.0)],
+        views: views(),
+        size: SIZE,
+        reps: 5,
+        sweep: false,
+        all_threads: 2,
+        sweep_grid: None,
+        rule: SlimParams::FAST.rule,
+    };
+    let progress = slimkd::progress::Progress::default();
+    let mut lines = Vec::new();
+    let r = report::run_with_progress(&options, Some(&progress), &mut |l| {
+        lines.push(l.to_string())
+    })
+    .unwrap();
+    assert_eq!(progress.fraction(), 1.0);
+    let warnings: Vec<&String> = lines.iter().filter(|l| l.starts_with("warning:")).collect();
+    assert_eq!(warnings.len(), 1, "{lines:?}");
+    assert!(warnings[0].contains("rabbit") && warnings[0].contains("default camera"));
+    let s = &r.scenes[0];
+    assert_eq!(s.table3b.len(), 1);
+    let v = &s.table3b[0];
+    assert_eq!(v.view, "default");
+    for k in TreeKind::ALL {
+        for (i, sp) in v.loss[k as usize].iter().enumerate() {
+            assert!(sp.min <= sp.q1 && sp.q1 <= sp.median, "{sp:?}");
+            assert!(sp.median <= sp.q3 && sp.q3 <= sp.max, "{sp:?}");
+            assert_eq!(v.loss_pct(k)[i], sp.median);
+        }
+    }
+    assert!(
+        v.loss[0]
+            .iter()
+            .all(|sp| (sp.min, sp.max) == (0.0, 0.0) && sp.includes_zero())
+    );
+    let md = r.markdown();
+    assert!(md.contains("interquartile range"), "{md}");
+    for k in [TreeKind::Fast, TreeKind::Small] {
+        let sp = &v.loss[k as usize][3];
+        let cell = format!("{:.1} ({:.1}…{:.1})", sp.median, sp.q1, sp.q3);
+        assert!(md.contains(&cell), "{cell} in {md}");
+    }
+    let marked = v.loss[1..].iter().flatten().any(|sp| sp.includes_zero());
+    assert_eq!(md.contains(") ≈"), marked, "{md}");
+    let j = r.json();
+    let spread = &j["scenes"][0]["table3b"][0]["trees"][1]["loss_spread_pct"]["packet_all"];
+    assert_eq!(spread["q1"].as_f64().unwrap(), v.loss[1][3].q1);
+    assert_eq!(j["schema"], 1);
+}

@@ -48,7 +48,8 @@
 //! | 120 | 8 | triangles |
 //! | 128 | 8 | vertices |
 //! | 136 | 24 | scene bounds: min xyz, max xyz (f32) |
-//! | 160 | 32 | reserved (zero) |
+//! | 160 | 8 | geometry hash ([`SceneTag`]; 0: not recorded) |
+//! | 168 | 24 | scene name ([`SceneTag`]): UTF-8, padded with zero bytes (all zero: not recorded) |
 //! | 192 | 6 × 24 | section table: per section, byte offset (u64), byte length (u64), CRC-32 (u32), reserved (u32) |
 //! | 336 | 4 | CRC-32 of bytes 0..336 |
 //! | 340 | 44 | reserved (zero) |
@@ -62,13 +63,19 @@
 //! larger trees rather than wrap.
 //!
 //! Hit ids reported by traversal are always input ids (through `tri_map`).
+//!
+//! Bytes 160..192 were reserved (zero) before they held the scene tag, so a
+//! file written without one reads as having no tag: its name falls back to
+//! the file's stem where a name is needed (views).
 
 pub mod node;
 mod read;
 mod write;
 
 pub use read::{AlignedBytes, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
-pub use write::{FileConfig, Preset, WriteOptions, write_file, write_to_vec};
+pub use write::{
+    FileConfig, Preset, SCENE_NAME_LEN, SceneTag, WriteOptions, write_file, write_to_vec,
+};
 
 use std::fmt;
 use std::path::PathBuf;
@@ -137,13 +144,18 @@ impl Section {
 pub(crate) const SECTION_TABLE: usize = 192;
 pub(crate) const SECTION_ENTRY: usize = 24;
 pub(crate) const HEADER_CRC: usize = 336;
-/// The reserved header bytes before the section table (zero).
-pub(crate) const RESERVED_HEADER: std::ops::Range<usize> = 160..192;
+/// Where the header's scene tag lies: the geometry hash (u64), then the
+/// name ([`SCENE_NAME_LEN`] bytes).
+pub(crate) const SCENE_HASH_AT: usize = 160;
+pub(crate) const SCENE_NAME_AT: usize = 168;
 
 // The header table must fit before the header checksum.
 const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);
 const _: () = assert!(HEADER_CRC + 4 <= HEADER_SIZE && HEADER_SIZE.is_multiple_of(SECTION_ALIGN));
 const _: () = assert!(std::mem::size_of::<u64>() == 8);
+// The scene tag fills the bytes between the bounds and the section table.
+const _: () = assert!(SCENE_HASH_AT == 136 + 24 && SCENE_NAME_AT == SCENE_HASH_AT + 8);
+const _: () = assert!(SCENE_NAME_AT + SCENE_NAME_LEN == SECTION_TABLE);
 
 /// Why a file could not be written or opened. Every variant says what is
 /// wrong; `Io` names the file.

@@ -2,10 +2,10 @@
 //! the accessors hand out typed slices of the bytes without copying.
 
 use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
-use super::write::{FileConfig, Preset};
+use super::write::{FileConfig, Preset, SceneTag};
 use super::{
-    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, RESERVED_HEADER,
-    SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
+    SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::geom::Aabb;
 use crate::tree::MAX_DEPTH;
@@ -212,6 +212,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             tau_occu: f32::from_bits(u32_at(b, 56)),
             tau_freq: f32::from_bits(u32_at(b, 60)),
             max_t2rn: u32_at(b, 64),
+            scene: SceneTag::from_header(b)?,
         };
         let max_depth = u32_at(b, 68);
         let counts = TreeFigures {
@@ -315,12 +316,13 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         // Every byte outside the checksummed header and sections is zero, so
         // that no byte of a file goes unchecked; so are the reserved fields
         // inside the header, so that a later version can give them a meaning.
-        let reserved = [(RESERVED_HEADER, "header bytes")]
-            .into_iter()
-            .chain(Section::ALL.map(|s| {
+        // (Header bytes 160..192 are the scene tag, read by `SceneTag`.)
+        let reserved = Section::ALL
+            .map(|s| {
                 let e = SECTION_TABLE + s as usize * SECTION_ENTRY + 20;
                 (e..e + 4, "the section table's reserved word, bytes")
-            }))
+            })
+            .into_iter()
             .chain([(HEADER_CRC + 4..HEADER_SIZE, "header bytes")]);
         for (range, what) in reserved {
             if b[range.clone()].iter().any(|&x| x != 0) {
@@ -633,6 +635,16 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             }
         }
         Ok(())
+    }
+
+    /// A section's byte range in the file and its stored CRC-32 (what
+    /// [`KdFile::verify`] checks).
+    pub fn section_range(&self, s: Section) -> (Range<usize>, u32) {
+        let e = SECTION_TABLE + s as usize * SECTION_ENTRY;
+        (
+            self.ranges[s as usize].clone(),
+            u32_at(self.data.as_ref(), e + 16),
+        )
     }
 
     fn section<T: bytemuck::Pod>(&self, s: Section) -> &[T] {

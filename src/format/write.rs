@@ -2,8 +2,8 @@
 
 use super::node::{self, MAX_LEAF32, MAX_NODES};
 use super::{
-    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
-    SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SCENE_HASH_AT,
+    SCENE_NAME_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId, WalkFault};
@@ -31,8 +31,101 @@ impl Preset {
     }
 }
 
+/// Bytes of the header's scene-name field.
+pub const SCENE_NAME_LEN: usize = 24;
+
+/// The scene a file was built from, as its header records it: the scene's
+/// name (what a views file calls it, so that a renamed file keeps its
+/// views) and a hash of its geometry (to tell whether two files, or a file
+/// and a scene, hold the same triangles). The default records neither.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SceneTag {
+    /// UTF-8, padded with zero bytes; all zero when not recorded.
+    name: [u8; SCENE_NAME_LEN],
+    /// [`SceneTag::geometry_hash_of`] of the scene; 0 when not recorded.
+    pub geometry_hash: u64,
+}
+
+impl SceneTag {
+    /// The tag of `scene` under `name`. A name that does not fit the field
+    /// (over [`SCENE_NAME_LEN`] bytes) or holds a zero byte is not
+    /// recorded, rather than cut to a name no views file uses.
+    pub fn new(name: &str, scene: &TriangleColumns) -> SceneTag {
+        let mut tag = SceneTag {
+            geometry_hash: SceneTag::geometry_hash_of(scene),
+            ..SceneTag::default()
+        };
+        if name.len() <= SCENE_NAME_LEN && !name.as_bytes().contains(&0) {
+            tag.name[..name.len()].copy_from_slice(name.as_bytes());
+        }
+        tag
+    }
+
+    /// The recorded name, if any.
+    pub fn name(&self) -> Option<&str> {
+        let len = self
+            .name
+            .iter()
+            .position(|&b| b == 0)
+            .unwrap_or(SCENE_NAME_LEN);
+        // Both constructors hold the field to UTF-8.
+        std::str::from_utf8(&self.name[..len])
+            .ok()
+            .filter(|n| !n.is_empty())
+    }
+
+    /// The geometry hash: the CRC-32 of the vertex positions (x, y, z as
+    /// little-endian `f32`, in input order) in the high 32 bits, the CRC-32
+    /// of the triangles' vertex indices (little-endian `u32`, in input
+    /// order) in the low 32 bits. It does not depend on the tree or on the
+    /// file's triangle numbering.
+    pub fn geometry_hash_of(scene: &TriangleColumns) -> u64 {
+        let mut pos = crc32fast::Hasher::new();
+        for p in scene.positions() {
+            for v in [p.x, p.y, p.z] {
+                pos.update(&v.to_le_bytes());
+            }
+        }
+        let mut idx = crc32fast::Hasher::new();
+        for t in scene.indices() {
+            for v in t {
+                idx.update(&v.to_le_bytes());
+            }
+        }
+        (u64::from(pos.finalize()) << 32) | u64::from(idx.finalize())
+    }
+
+    /// Reads the tag from its header bytes; an error unless the name is
+    /// UTF-8 followed by zero bytes only.
+    pub(crate) fn from_header(header: &[u8]) -> Result<SceneTag, FormatError> {
+        let mut name = [0u8; SCENE_NAME_LEN];
+        name.copy_from_slice(&header[SCENE_NAME_AT..SCENE_NAME_AT + SCENE_NAME_LEN]);
+        let len = name.iter().position(|&b| b == 0).unwrap_or(SCENE_NAME_LEN);
+        if name[len..].iter().any(|&b| b != 0) || std::str::from_utf8(&name[..len]).is_err() {
+            return Err(FormatError::Header(format!(
+                "the scene name (bytes {SCENE_NAME_AT}..{}) is not UTF-8 padded with zero bytes",
+                SCENE_NAME_AT + SCENE_NAME_LEN
+            )));
+        }
+        let hash = u64::from_le_bytes(
+            header[SCENE_HASH_AT..SCENE_HASH_AT + 8]
+                .try_into()
+                .expect("8 bytes"),
+        );
+        Ok(SceneTag {
+            name,
+            geometry_hash: hash,
+        })
+    }
+
+    fn put(&self, header: &mut [u8]) {
+        put_u64(header, SCENE_HASH_AT, self.geometry_hash);
+        header[SCENE_NAME_AT..SCENE_NAME_AT + SCENE_NAME_LEN].copy_from_slice(&self.name);
+    }
+}
+
 /// The build configuration recorded in the header (for the record only:
-/// traversal does not depend on it).
+/// traversal does not depend on it), and the scene's tag.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FileConfig {
     pub k_t: f64,
@@ -43,6 +136,7 @@ pub struct FileConfig {
     pub tau_occu: f32,
     pub tau_freq: f32,
     pub max_t2rn: u32,
+    pub scene: SceneTag,
 }
 
 impl Default for FileConfig {
@@ -56,6 +150,7 @@ impl Default for FileConfig {
             tau_occu: 0.0,
             tau_freq: 0.0,
             max_t2rn: 0,
+            scene: SceneTag::default(),
         }
     }
 }
@@ -515,6 +610,7 @@ fn write_kd<W: Read + Write + Seek>(
     {
         put_u32(&mut header, 136 + 4 * k, v.to_bits());
     }
+    c.scene.put(&mut header);
     let mut offset = HEADER_SIZE as u64;
     for s in 0..6 {
         let entry = SECTION_TABLE + s * SECTION_ENTRY;

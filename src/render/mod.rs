@@ -313,21 +313,26 @@ pub fn parse_vec3(s: &str) -> Option<DVec3> {
 }
 
 /// Finds the view of a scene and id. The scene is matched by the file's
-/// stem, or else by the longest scene name that the stem starts with,
-/// followed by `.`, `_` or `-` (so `stk_all.small.kd` and `stk_all_fast.kd`
-/// find the views of `stk_all`).
+/// stem, as [`find_view_named`] matches a name (so `stk_all.small.kd` and
+/// `stk_all_fast.kd` find the views of `stk_all`).
 pub fn find_view<'a>(views: &'a [View], scene_path: &Path, id: &str) -> Option<&'a View> {
-    let stem = scene_path.file_stem()?.to_str()?;
-    if let Some(v) = views.iter().find(|v| v.scene == stem && v.id == id) {
+    find_view_named(views, scene_path.file_stem()?.to_str()?, id)
+}
+
+/// Finds the view of the scene called `name` and id: the view of that
+/// scene, or else of the longest scene name that `name` starts with,
+/// followed by `.`, `_` or `-`.
+pub fn find_view_named<'a>(views: &'a [View], name: &str, id: &str) -> Option<&'a View> {
+    if let Some(v) = views.iter().find(|v| v.scene == name && v.id == id) {
         return Some(v);
     }
     views
         .iter()
         .filter(|v| {
             v.id == id
-                && stem.len() > v.scene.len()
-                && stem.starts_with(v.scene.as_str())
-                && matches!(stem.as_bytes()[v.scene.len()], b'.' | b'_' | b'-')
+                && name.len() > v.scene.len()
+                && name.starts_with(v.scene.as_str())
+                && matches!(name.as_bytes()[v.scene.len()], b'.' | b'_' | b'-')
         })
         .max_by_key(|v| v.scene.len())
 }

@@ -69,6 +69,8 @@ pub struct LabelledPoint {
     pub x: f64,
     pub y: f64,
     pub label: String,
+    /// A vertical error bar from the first to the second `y`, if any.
+    pub y_range: Option<(f64, f64)>,
 }
 
 /// A named set of points drawn in one colour.
@@ -147,11 +149,17 @@ pub fn scatter_svg(
 ) -> Result<String, PlotError> {
     let finite = |p: &&LabelledPoint| p.x.is_finite() && p.y.is_finite();
     // The range of one coordinate over every series, zero included.
-    let range = |coord: fn(&LabelledPoint) -> f64| {
+    let range = |coord: fn(&LabelledPoint) -> [f64; 3]| {
         let values = series.iter().flat_map(|s| s.points.iter().filter(finite));
-        padded_range(values.map(coord).chain([0.0]), 0.12)
+        padded_range(values.flat_map(coord).chain([0.0]), 0.12)
     };
-    let (xs, ys) = (range(|p| p.x), range(|p| p.y));
+    let (xs, ys) = (
+        range(|p| [p.x; 3]),
+        range(|p| {
+            let (lo, hi) = p.y_range.unwrap_or((p.y, p.y));
+            [p.y, lo, hi]
+        }),
+    );
     let (xd, yd) = (tick_decimals(&xs), tick_decimals(&ys));
     let (x0, x1, y0, y1) = (xs.start, xs.end, ys.start, ys.end);
     let mut svg = String::new();
@@ -175,6 +183,12 @@ pub fn scatter_svg(
             .map_err(plot_err)?;
         for (i, s) in series.iter().enumerate() {
             let c = colour(i);
+            let bars = s.points.iter().filter(finite).filter_map(|p| {
+                let (lo, hi) = p.y_range?;
+                (lo.is_finite() && hi.is_finite())
+                    .then(|| PathElement::new(vec![(p.x, lo), (p.x, hi)], c.stroke_width(1)))
+            });
+            chart.draw_series(bars).map_err(plot_err)?;
             chart
                 .draw_series(s.points.iter().filter(finite).map(|p| {
                     EmptyElement::at((p.x, p.y))
@@ -193,7 +207,22 @@ pub fn scatter_svg(
     Ok(svg)
 }
 
-/// Draws one line panel into `area`.
+/// The width of the legend strip right of a line panel.
+const LEGEND_WIDTH: u32 = 120;
+
+/// The stroke width and marker radius of line series `i`: the first series
+/// widest and drawn first, so that where later ones lie on it, it still
+/// shows around them.
+fn line_style(i: usize) -> (u32, u32) {
+    match i {
+        0 => (7, 5),
+        1 => (4, 3),
+        _ => (1, 2),
+    }
+}
+
+/// Draws one line panel into `area`: the chart, and its legend in a strip
+/// to the right of it (outside the curves).
 fn line_panel(
     area: &DrawingArea<SVGBackend<'_>, Shift>,
     panel: &LinePanel,
@@ -214,7 +243,10 @@ fn line_panel(
     let y_hi = range(|p| p.1, 0.05).end.max(1.0);
     let xd = tick_decimals(&xs);
     let yd = tick_decimals(&(0.0..y_hi));
-    let mut chart = ChartBuilder::on(area)
+    let (plot_area, legend_area) = area.split_horizontally(
+        i32::try_from(area.dim_in_pixel().0.saturating_sub(LEGEND_WIDTH)).unwrap_or(0),
+    );
+    let mut chart = ChartBuilder::on(&plot_area)
         .caption(panel.title.as_str(), ("sans-serif", 16))
         .margin(12)
         .x_label_area_size(40)
@@ -224,21 +256,35 @@ fn line_panel(
     draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
     for (i, s) in panel.series.iter().enumerate() {
         let c = colour(i);
+        let (width, radius) = line_style(i);
         let pts: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
         chart
             .draw_series(plotters::series::LineSeries::new(
                 pts.iter().copied(),
-                c.stroke_width(2),
+                c.stroke_width(width),
             ))
-            .map_err(plot_err)?
-            .label(s.name.as_str())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+            .map_err(plot_err)?;
         chart
-            .draw_series(pts.iter().map(|&p| Circle::new(p, 2, c.filled())))
+            .draw_series(pts.iter().map(|&p| Circle::new(p, radius, c.filled())))
             .map_err(plot_err)?;
     }
-    if !panel.series.is_empty() {
-        draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
+    for (i, s) in panel.series.iter().enumerate() {
+        let c = colour(i);
+        let (width, _) = line_style(i);
+        let y = 48 + 22 * i as i32;
+        legend_area
+            .draw(&PathElement::new(
+                vec![(8, y), (36, y)],
+                c.stroke_width(width),
+            ))
+            .map_err(plot_err)?;
+        legend_area
+            .draw(&Text::new(
+                s.name.clone(),
+                (42, y - 7),
+                ("sans-serif", 13).into_font(),
+            ))
+            .map_err(plot_err)?;
     }
     Ok(())
 }
@@ -278,11 +324,13 @@ mod tests {
                     x: 10.0,
                     y: 1.0,
                     label: "0.5/0.4".into(),
+                    y_range: Some((-1.0, 3.0)),
                 },
                 LabelledPoint {
                     x: f64::NAN,
                     y: 1.0,
                     label: "left out".into(),
+                    y_range: None,
                 },
             ],
         };
@@ -290,6 +338,65 @@ mod tests {
         assert!(svg.starts_with("<svg"));
         assert!(svg.contains("0.5/0.4") && svg.contains("scene a"));
         assert!(!svg.contains("left out"));
+    }
+
+    /// Figure 6's legend lies in a strip right of the chart, outside the
+    /// curves, and the first series is drawn widest, so that it shows where
+    /// a later series lies on it.
+    #[test]
+    fn line_legend_is_outside_and_equal_series_stay_visible() {
+        let same: Vec<(f64, f64)> = (0..10).map(|d| (d as f64, (d * d) as f64)).collect();
+        let panel = LinePanel {
+            title: "t".into(),
+            series: ["std", "fast", "small"]
+                .iter()
+                .map(|n| LineSeries {
+                    name: n.to_string(),
+                    points: same.clone(),
+                })
+                .collect(),
+        };
+        let svg = line_panels_svg(&[panel], "depth", "leaves", (600, 300)).unwrap();
+        // Each text element: its x attribute and its text.
+        let texts: Vec<(f64, &str)> = svg
+            .split("<text")
+            .skip(1)
+            .filter_map(|t| {
+                let x = t.split("x=\"").nth(1)?.split('"').next()?.parse().ok()?;
+                let body = t.split_once('>')?.1.split("</text>").next()?.trim();
+                Some((x, body))
+            })
+            .collect();
+        // The rightmost point of any curve (the series' coloured
+        // polylines, not the black axes).
+        let curves_end = svg
+            .split("<polyline")
+            .skip(1)
+            .filter(|p| !p.contains("stroke=\"#000000\""))
+            .flat_map(|p| {
+                let points = p.split("points=\"").nth(1).unwrap_or("").split('"').next();
+                points
+                    .unwrap_or("")
+                    .split_whitespace()
+                    .filter_map(|xy| xy.split(',').next()?.parse::<f64>().ok())
+                    .collect::<Vec<_>>()
+            })
+            .fold(f64::NEG_INFINITY, f64::max);
+        assert!(curves_end.is_finite(), "no curve drawn");
+        for name in ["std", "fast", "small"] {
+            let (x, _) = texts
+                .iter()
+                .find(|(_, t)| *t == name)
+                .expect("a legend entry");
+            assert!(
+                *x > curves_end,
+                "{name} at x {x}, left of the curves' end at {curves_end}"
+            );
+        }
+        let (std_width, _) = line_style(0);
+        let (fast_width, _) = line_style(1);
+        assert!(std_width > fast_width);
+        assert!(svg.contains(&format!("stroke-width=\"{std_width}\"")));
     }
 
     #[test]

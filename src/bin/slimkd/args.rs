@@ -22,26 +22,76 @@ use crate::Res;
         are the std tree's); then writes slimkd.png into the current directory. -v adds phase \
         times and memory.\n\n\
         SCENE is an OBJ file, a scene cache (.kds, made by `slimkd convert`), or `default` \
-        for the embedded scene."
+        for the embedded scene.\n\n\
+        Without --view or camera flags, `render` uses the default camera: it looks at the centre \
+        C of the scene's box from C + normalize(0.6, 0.4, 1.0) * 1.2 * (the box's diagonal), \
+        up +y, 60 degrees vertical field of view.",
+    after_help = EXAMPLES
 )]
 pub(crate) struct Cli {
     #[command(subcommand)]
     pub(crate) command: Option<Command>,
-    /// The main job only: also print the build's phase times, memory and
-    /// the slim passes' phases.
-    #[arg(short, long)]
-    pub(crate) verbose: bool,
+    #[command(flatten)]
+    pub(crate) out: Out,
 }
+
+/// What a command prints: the flags every command takes.
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+pub(crate) struct Out {
+    /// Print errors only (and, with --json, the JSON object): no summary,
+    /// no progress bars.
+    #[arg(
+        short,
+        long,
+        global = true,
+        conflicts_with = "verbose",
+        display_order = 900
+    )]
+    pub(crate) quiet: bool,
+    /// Print more: the build's phase times, processor time and memory, the
+    /// slim passes' phases, the camera of a render, the sections of a
+    /// verified file, the Markdown of a report.
+    #[arg(short, long, global = true, display_order = 901)]
+    pub(crate) verbose: bool,
+    /// Print one JSON object instead of text (`"schema": 1`; every key is
+    /// listed in docs/json-schema.md).
+    #[arg(long, global = true, display_order = 902)]
+    pub(crate) json: bool,
+}
+
+impl Out {
+    /// Whether progress bars are off: with -q, and with --json (whose
+    /// output is for programs).
+    pub(crate) fn bars_off(self) -> bool {
+        self.quiet || self.json
+    }
+}
+
+/// The examples at the end of `--help`.
+const EXAMPLES: &str = "Examples:
+  slimkd                                     the main job: std, small and fast trees of the embedded scene
+  slimkd build scene.obj -o scene.kd --reorder --preset small
+  slimkd render scene.kd --views views.txt --view 1 -o frame.png
+  slimkd render default --eye 0,2,5 --at 0,0,0 --size 640x480 -o frame.exr
+  slimkd info scene.kd --json
+  slimkd verify scene.kd
+  slimkd convert huge.obj -o huge.kds        parse once; later commands read huge.kds
+  slimkd report a.obj b.kds --views views.txt --reps 9 -o report.md
+  slimkd trace scene.kd rays.bin --occluded";
+
+/// The camera `render` uses without a view or camera flags.
+const DEFAULT_CAMERA: &str = "Without --view and camera flags the camera is the default one: it \
+    looks at the centre C of the scene's box from C + normalize(0.6, 0.4, 1.0) * 1.2 * (the box's \
+    diagonal), up +y, fov 60 degrees. Camera flags override the view's (or the default's) values.";
 
 #[derive(Subcommand)]
 pub(crate) enum Command {
     /// Build the standard SAH kd-tree of a scene; print its figures and
     /// optionally write it as a .kd file.
+    #[command(after_help = EXAMPLES)]
     Build {
         /// OBJ file, scene cache (.kds, see `convert`), or `default`.
         scene: PathBuf,
-        #[command(flatten)]
-        build: BuildArgs,
         /// Write the tree and its geometry to this .kd file (atomically).
         #[arg(short = 'o', long)]
         output: Option<PathBuf>,
@@ -49,19 +99,18 @@ pub(crate) enum Command {
         /// leaves fit 2-byte mode.
         #[arg(long)]
         reorder: bool,
-        /// Print one JSON object instead of text.
-        #[arg(long)]
-        json: bool,
+        #[command(flatten)]
+        build: BuildArgs,
     },
     /// Render a scene (built on the fly) or a .kd file.
+    #[command(after_help = EXAMPLES, long_about = format!(
+        "Render a scene (built on the fly) or a .kd file.\n\n{DEFAULT_CAMERA}"
+    ))]
     Render(Box<RenderArgs>),
     /// Print the header and figures of a .kd file.
     Info {
         /// A .kd file written by `slimkd build -o`.
         file: PathBuf,
-        /// Print one JSON object instead of text.
-        #[arg(long)]
-        json: bool,
     },
     /// Check a .kd file completely, checksums included; exit 0 if valid.
     Verify {
@@ -92,16 +141,18 @@ pub(crate) struct ReportArgs {
     /// OBJ files or scene caches (.kds), or `default`.
     #[arg(required = true)]
     pub(crate) scenes: Vec<PathBuf>,
-    /// Views file; each scene is matched by its file stem. Without it the
-    /// embedded views are used (and scenes without views get the default
-    /// camera).
+    /// Views file; each scene is matched by its name, the file's stem.
+    /// Without it the embedded views are used. A scene without views is
+    /// timed from the default camera (with a warning).
     #[arg(long)]
     pub(crate) views: Option<PathBuf>,
     /// Image size WxH of the timed frames.
     #[arg(long, value_parser = parse_size, default_value = "512x512")]
     pub(crate) size: (u32, u32),
-    /// Frames per measurement (median; at least 1).
-    #[arg(long, default_value_t = 3, value_parser = parse_positive)]
+    /// Timed frames per measurement, after a warm-up (at least 1): the
+    /// median is reported with the interquartile range of the losses;
+    /// fewer than 5 leave the range meaningless.
+    #[arg(long, default_value_t = 9, value_parser = parse_positive)]
     pub(crate) reps: usize,
     /// Threads for the "all threads" columns (at least 1; default: all
     /// cores).
@@ -121,43 +172,6 @@ pub(crate) struct ReportArgs {
 
 #[derive(clap::Args, Clone)]
 pub(crate) struct BuildArgs {
-    /// Which builder to run (all produce the same tree).
-    #[arg(long, value_enum, default_value_t = BuilderArg::Level)]
-    pub(crate) builder: BuilderArg,
-    /// Level builder: bytes of per-level columns kept in RAM (e.g. 1G,
-    /// 512M); above it they go to mapped scratch files. Default: no limit.
-    #[arg(long, value_parser = parse_bytes)]
-    pub(crate) mem_budget: Option<u64>,
-    /// Level builder: directory for scratch files (default: the system
-    /// temporary directory).
-    #[arg(long)]
-    pub(crate) scratch: Option<PathBuf>,
-    /// Level builder: how the events of clipped references join their
-    /// child's sorted list (the same tree either way; for measurements).
-    #[arg(long, value_enum, default_value_t = NewEventsArg::Merge)]
-    pub(crate) new_events: NewEventsArg,
-    /// Level builder: the depth-first finisher sweeps nodes of at most this
-    /// many references without event lists (0 to 64; the same tree either
-    /// way; for measurements).
-    #[arg(long, default_value_t = level::DEFAULT_TINY_THRESHOLD as u8,
-          value_parser = clap::value_parser!(u8).range(0..=64))]
-    pub(crate) tiny: u8,
-    /// Worker threads (default, or 0: all cores).
-    #[arg(short = 'j', long)]
-    pub(crate) threads: Option<usize>,
-    /// Depth limit (default: 8 + 1.3·log2 N).
-    #[arg(long)]
-    pub(crate) max_depth: Option<u32>,
-    /// SAH cost of a traversal step (the file records it).
-    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_t)]
-    pub(crate) kt: f64,
-    /// SAH cost of a ray–triangle test (the file records it).
-    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
-    pub(crate) ki: f64,
-    /// SAH factor in (0, 1] on the intersection cost of a split that cuts
-    /// off empty space (the file records it).
-    #[arg(long, value_parser = parse_lambda, default_value_t = slimkd::build::sah::SahParams::default().lambda_empty)]
-    pub(crate) lambda: f64,
     /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
     /// `small` (τ_occu 0.5, τ_freq 0.4); both with max_t2rn 4 (Choi et al.
     /// 2013) and the hoist rule of --hoist-rule (default `bytes`). The
@@ -190,6 +204,43 @@ pub(crate) struct BuildArgs {
     /// with `--preset std` it needs --tau-occu and --tau-freq).
     #[arg(long)]
     pub(crate) max_t2rn: Option<u32>,
+    /// Worker threads (default, or 0: all cores).
+    #[arg(short = 'j', long)]
+    pub(crate) threads: Option<usize>,
+    /// Depth limit (default: 8 + 1.3·log2 N).
+    #[arg(long)]
+    pub(crate) max_depth: Option<u32>,
+    /// SAH cost of a traversal step (the file records it).
+    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_t)]
+    pub(crate) kt: f64,
+    /// SAH cost of a ray–triangle test (the file records it).
+    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
+    pub(crate) ki: f64,
+    /// SAH factor in (0, 1] on the intersection cost of a split that cuts
+    /// off empty space (the file records it).
+    #[arg(long, value_parser = parse_lambda, default_value_t = slimkd::build::sah::SahParams::default().lambda_empty)]
+    pub(crate) lambda: f64,
+    /// Which builder to run (all produce the same tree).
+    #[arg(long, value_enum, default_value_t = BuilderArg::Level)]
+    pub(crate) builder: BuilderArg,
+    /// Level builder: bytes of per-level columns kept in RAM (e.g. 1G,
+    /// 512M); above it they go to mapped scratch files. Default: no limit.
+    #[arg(long, value_parser = parse_bytes)]
+    pub(crate) mem_budget: Option<u64>,
+    /// Level builder: directory for scratch files (default: the system
+    /// temporary directory).
+    #[arg(long)]
+    pub(crate) scratch: Option<PathBuf>,
+    /// Level builder: how the events of clipped references join their
+    /// child's sorted list (the same tree either way; for measurements).
+    #[arg(help_heading = "Measurement knobs (the same tree either way)", long, value_enum, default_value_t = NewEventsArg::Merge)]
+    pub(crate) new_events: NewEventsArg,
+    /// Level builder: the depth-first finisher sweeps nodes of at most this
+    /// many references without event lists (0 to 64; the same tree either
+    /// way; for measurements).
+    #[arg(help_heading = "Measurement knobs (the same tree either way)", long, default_value_t = level::DEFAULT_TINY_THRESHOLD as u8,
+          value_parser = clap::value_parser!(u8).range(0..=64))]
+    pub(crate) tiny: u8,
     /// The build flags given on the command line (their long names, e.g.
     /// `--preset`), filled in after parsing; `--threads` is not one.
     #[arg(skip)]
@@ -363,8 +414,21 @@ pub(crate) struct RenderArgs {
     /// OBJ file, scene cache (.kds), `default`, or a .kd file written by
     /// `slimkd build -o`.
     pub(crate) scene: PathBuf,
-    #[command(flatten)]
-    pub(crate) build: BuildArgs,
+    /// Output image (.png, or .exr with a depth channel).
+    #[arg(short = 'o', long)]
+    pub(crate) output: Option<PathBuf>,
+    /// Image size WxH.
+    #[arg(long, value_parser = parse_size, default_value = "1024x1024")]
+    pub(crate) size: (u32, u32),
+    /// Views file (`SCENE VIEW_ID eye=… at=… up=… fov=…`), with --view;
+    /// the embedded scene's views are used when omitted.
+    #[arg(long, requires = "view")]
+    pub(crate) views: Option<PathBuf>,
+    /// View id in the views file, of the scene whose name a .kd file
+    /// records, else of the file's stem (or the longest scene name either
+    /// starts with, followed by `.`, `_` or `-`).
+    #[arg(long)]
+    pub(crate) view: Option<String>,
     /// Camera position x,y,z.
     #[arg(long, value_parser = parse_dvec3, allow_hyphen_values = true)]
     pub(crate) eye: Option<glam::DVec3>,
@@ -377,16 +441,11 @@ pub(crate) struct RenderArgs {
     /// Vertical field of view in degrees, in (0, 180).
     #[arg(long, value_parser = parse_fov)]
     pub(crate) fov: Option<f64>,
-    /// Image size WxH.
-    #[arg(long, value_parser = parse_size, default_value = "1024x1024")]
-    pub(crate) size: (u32, u32),
-    /// Views file (`SCENE VIEW_ID eye=… at=… up=… fov=…`), with --view;
-    /// the embedded scene's views are used when omitted.
-    #[arg(long, requires = "view")]
-    pub(crate) views: Option<PathBuf>,
-    /// View id in the views file, matched with the scene file's stem.
-    #[arg(long)]
-    pub(crate) view: Option<String>,
+    /// Image colours: `eye-light` (grey, lit from the eye by the cosine
+    /// to the surface) or `normals` (the geometric normal facing the eye,
+    /// mapped from [-1, 1] to [0, 1] as RGB).
+    #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
+    pub(crate) shading: ShadingArg,
     /// Traversal mode: 4×4 packets (the default, as the main job), single
     /// rays, or brute force (the reference).
     #[arg(long, value_enum, default_value_t = ModeArg::Packet)]
@@ -394,20 +453,14 @@ pub(crate) struct RenderArgs {
     /// Frames to trace (at least 1); Mrays/s is the median.
     #[arg(long, default_value_t = 1, value_parser = parse_positive)]
     pub(crate) reps: usize,
-    /// Output image (.png, or .exr with a depth channel).
-    #[arg(short = 'o', long)]
-    pub(crate) output: Option<PathBuf>,
     /// Write W·H little-endian f32 hit distances (+inf for a miss).
     #[arg(long)]
     pub(crate) dump_t: Option<PathBuf>,
-    /// Image colours: `eye-light` (grey, lit from the eye by the cosine
-    /// to the surface) or `normals` (the geometric normal facing the eye,
-    /// mapped from [-1, 1] to [0, 1] as RGB).
-    #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
-    pub(crate) shading: ShadingArg,
-    /// Print one JSON object instead of text.
-    #[arg(long)]
-    pub(crate) json: bool,
+    #[command(
+        flatten,
+        next_help_heading = "Build (of a scene; a .kd file is built already)"
+    )]
+    pub(crate) build: BuildArgs,
 }
 
 /// A usage error: the command line asks for something impossible or

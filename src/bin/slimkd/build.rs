@@ -3,10 +3,9 @@
 //! summary and JSON, and the peak memory of the command.
 
 use crate::*;
-use serde_json::json;
 use slimkd::build::{self, BuildConfig, Builder, level};
-use slimkd::format::{self, Preset, WriteOptions};
-use slimkd::pipeline::{self, figures_json, merge_json};
+use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
+use slimkd::pipeline::{self, FiguresJson};
 use slimkd::progress::Progress;
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::slim::{self, SlimParams, SlimPhases, SlimReport};
@@ -22,6 +21,23 @@ pub(crate) struct Loaded {
     pub(crate) scene: TriangleColumns,
     pub(crate) summary: LoadSummary,
     pub(crate) seconds: f64,
+}
+
+impl Loaded {
+    /// The scene's name: its file's stem (what views files, tables and
+    /// the `.kd` header call it).
+    pub(crate) fn name(&self) -> String {
+        scene_name(&self.path)
+    }
+}
+
+/// A scene's name: the stem of its file (`scenes/bunny_npm.obj`:
+/// `bunny_npm`).
+pub(crate) fn scene_name(path: &Path) -> String {
+    path.file_stem()
+        .unwrap_or(path.as_os_str())
+        .to_string_lossy()
+        .into_owned()
 }
 
 /// Loads a scene; a progress bar shows the bytes read once loading has
@@ -93,17 +109,9 @@ pub(crate) fn build_tree(
         options.scratch_dir = d.clone();
     }
     let start = Instant::now();
-    let level_message = || {
-        use std::sync::atomic::Ordering::Relaxed;
-        match args.builder {
-            BuilderArg::Level => format!(
-                "level {}, {} open nodes, {} refs",
-                status.level.load(Relaxed),
-                status.open_nodes.load(Relaxed),
-                status.refs.load(Relaxed)
-            ),
-            _ => String::new(),
-        }
+    let level_message = || match args.builder {
+        BuilderArg::Level => level_message(&status),
+        _ => String::new(),
     };
     let built = with_bar(
         quiet,
@@ -161,6 +169,23 @@ pub(crate) fn build_tree(
     })
 }
 
+/// The build bar's message for the level builder: the level, its open
+/// nodes and references while nodes are open; once none is, the
+/// depth-first finisher's subtrees (most of a build's time).
+pub(crate) fn level_message(status: &level::LevelStatus) -> String {
+    use std::sync::atomic::Ordering::Relaxed;
+    let small = si(status.small_nodes.load(Relaxed));
+    match status.open_nodes.load(Relaxed) {
+        0 => format!("depth-first: {small} subtrees"),
+        open => format!(
+            "level {}: {} open, {} refs, {small} depth-first",
+            status.level.load(Relaxed),
+            si(open),
+            si(status.refs.load(Relaxed))
+        ),
+    }
+}
+
 /// The summary's first line: the scene and its load.
 pub(crate) fn print_scene_line(loaded: &Loaded) {
     println!(
@@ -171,7 +196,9 @@ pub(crate) fn print_scene_line(loaded: &Loaded) {
     );
 }
 
-pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
+/// The summary of a build; `verbose` adds the phases, processor time and
+/// memory of the builder and the slim pass.
+pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats, verbose: bool) {
     print_scene_line(loaded);
     println!(
         "tree       {} nodes ({} inner, {} leaves, {} empty), {} triangle references ({:.2} per triangle)",
@@ -193,7 +220,7 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
         rayon::current_num_threads(),
         loaded.scene.len() as f64 / built.std_seconds / 1e6
     );
-    if let Some(r) = &built.level {
+    if let Some(r) = built.level.as_ref().filter(|_| verbose) {
         let p = &r.phases;
         println!(
             "           phases: SAH {:.3} s, classify+clip {:.3} s, events {:.3} s, leaves {:.3} s, small nodes {:.3} s, setup+assembly {:.3} s",
@@ -235,83 +262,13 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats) {
             built.seconds - built.std_seconds,
             built.seconds / built.std_seconds
         );
-        println!(
-            "           phases: {} passes; analysis {:.3} s, rebuilds {:.3} s, apply {:.3} s, assembly {:.3} s",
-            ph.passes, ph.analysis_s, ph.rebuild_s, ph.apply_s, ph.assemble_s
-        );
+        if verbose {
+            println!(
+                "           phases: {} passes; analysis {:.3} s, rebuilds {:.3} s, apply {:.3} s, assembly {:.3} s",
+                ph.passes, ph.analysis_s, ph.rebuild_s, ph.apply_s, ph.assemble_s
+            );
+        }
     }
-}
-
-pub(crate) fn build_json(
-    loaded: &Loaded,
-    built: &Built,
-    stats: &TreeStats,
-    threads: usize,
-) -> serde_json::Value {
-    json!({
-        "scene": loaded.path.display().to_string(),
-        "triangles": loaded.scene.len(),
-        "vertices": loaded.scene.positions().len(),
-        "dropped_degenerate": loaded.summary.dropped_degenerate,
-        "load_s": loaded.seconds,
-        "build_s": built.seconds,
-        "threads": threads,
-        "nodes": stats.nodes,
-        "inner": stats.inner,
-        "t_inner": stats.t_inner,
-        "leaves": stats.leaves,
-        "empty_leaves": stats.empty_leaves,
-        "refs": stats.refs,
-        "max_depth": stats.max_depth,
-        "mean_leaf_depth": stats.mean_leaf_depth,
-        "sah_cost": stats.sah_cost,
-        "leaf_depth_histogram": stats.leaf_depths,
-        "k_t": built.config.sah.k_t,
-        "k_i": built.config.sah.k_i,
-        "preset": built.preset.name(),
-        "builder": built.builder,
-        "std_build_s": built.std_seconds,
-        "level": built.level.as_ref().map(|r| json!({
-            "sah_s": r.phases.sah_s,
-            "classify_clip_s": r.phases.classify_clip_s,
-            "events_s": r.phases.events_s,
-            "leaves_s": r.phases.leaves_s,
-            "small_nodes_s": r.phases.small_s,
-            "setup_s": r.phases.setup_s,
-            "assemble_s": r.phases.assemble_s,
-            "levels": r.levels,
-            "small_nodes": r.small_nodes,
-            "start_rss_anon_bytes": r.start_rss_anon_bytes,
-            "peak_rss_anon_bytes": r.peak_rss_anon_bytes,
-            "peak_rss_file_bytes": r.peak_rss_file_bytes,
-            "scratch_bytes_written": r.scratch.file_bytes_total,
-            "cpu_s": r.cpu_s,
-        })),
-        // The builder's figure; `build` replaces it with the whole command's.
-        "peak_rss_anon_bytes": built.level.as_ref().map_or_else(rss_anon_bytes, |r| r.peak_rss_anon_bytes),
-        "hoisted": built.slim.as_ref().map_or(0, |(_, r, _)| r.hoisted),
-        "tau_occu": built.slim.as_ref().map(|(p, _, _)| p.tau_occu),
-        "tau_freq": built.slim.as_ref().map(|(p, _, _)| p.tau_freq),
-        "max_t2rn": built.slim.as_ref().map(|(p, _, _)| p.max_t2rn),
-        "hoist_rule": built.slim.as_ref().map(|(p, _, _)| report::rule_name(p.rule)),
-        "slim": built.slim.as_ref().map(|(_, r, ph)| json!({
-            "hoisted": r.hoisted,
-            "cancelled": r.cancelled,
-            "rejected": r.rejected,
-            "rebuilds": r.rebuilds,
-            "rebuilt_refs": r.rebuilt_refs,
-            "passes": ph.passes,
-            "analysis_s": ph.analysis_s,
-            "rebuild_s": ph.rebuild_s,
-            "apply_s": ph.apply_s,
-            "assemble_s": ph.assemble_s,
-        })),
-    })
-}
-
-/// The current `RssAnon` of this process (0 where /proc is missing).
-pub(crate) fn rss_anon_bytes() -> u64 {
-    level::rss().0
 }
 
 /// The peak `RssAnon` and `RssFile` of this process from its creation on:
@@ -372,7 +329,7 @@ pub(crate) fn cmd_build(
     args: &BuildArgs,
     output: Option<&Path>,
     reorder: bool,
-    json: bool,
+    ui: Out,
 ) -> Res<()> {
     args.check()?;
     if let Some(out) = output {
@@ -381,20 +338,23 @@ pub(crate) fn cmd_build(
     let pool = pool(args.threads)?;
     let watch = PeakRss::start();
     pool.install(|| {
-        let loaded = load(path, json)?;
-        let mut built = build_tree(&loaded.scene, args, json, reorder)?;
+        let loaded = load(path, ui.bars_off())?;
+        let mut built = build_tree(&loaded.scene, args, ui.bars_off(), reorder)?;
         let stats = TreeStats::of(&built.tree, &built.config.sah);
         let mut written = None;
         if let Some(out) = output {
             let start = Instant::now();
             let options = WriteOptions {
                 reorder,
-                config: pipeline::file_config(
-                    &built.config,
-                    loaded.scene.len(),
-                    built.preset,
-                    built.slim.as_ref().map(|(p, _, _)| p),
-                ),
+                config: FileConfig {
+                    scene: SceneTag::new(&loaded.name(), &loaded.scene),
+                    ..pipeline::file_config(
+                        &built.config,
+                        loaded.scene.len(),
+                        built.preset,
+                        built.slim.as_ref().map(|(p, _, _)| p),
+                    )
+                },
             };
             format::write_file(out, &built.tree, &loaded.scene, &options)?;
             let secs = start.elapsed().as_secs_f64();
@@ -408,22 +368,28 @@ pub(crate) fn cmd_build(
         // The whole command: loading, building, writing.
         let (peak_anon, peak_file) = watch.peaks();
         let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
-        if json {
-            let mut j = build_json(&loaded, &built, &stats, pool.current_num_threads());
-            if let Some((out, fig, secs)) = &written {
-                merge_json(&mut j, figures_json(fig));
-                merge_json(
-                    &mut j,
-                    json!({"output": out.display().to_string(), "write_s": secs, "reorder": reorder}),
-                );
-            }
-            merge_json(
-                &mut j,
-                json!({"peak_rss_anon_bytes": peak_anon, "peak_rss_file_bytes": peak_file}),
-            );
-            println!("{j}");
-        } else {
-            print_summary(&loaded, &built, &stats);
+        if ui.json {
+            print_json(
+                "build",
+                BuildCmdJson {
+                    scene: SceneJson::of(&loaded),
+                    tree: TreeJson::of(&stats),
+                    build: BuildJson::of(&built),
+                    threads: pool.current_num_threads(),
+                    written: written.as_ref().map(|(out, fig, secs)| WrittenJson {
+                        output: out.display().to_string(),
+                        write_s: *secs,
+                        reorder,
+                        storage: FiguresJson::of(fig).storage,
+                    }),
+                    memory: MemoryJson {
+                        peak_rss_anon_bytes: peak_anon,
+                        peak_rss_file_bytes: peak_file,
+                    },
+                },
+            )?;
+        } else if !ui.quiet {
+            print_summary(&loaded, &built, &stats, ui.verbose);
             if let Some((out, fig, secs)) = &written {
                 println!(
                     "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
@@ -443,4 +409,37 @@ pub(crate) fn cmd_build(
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// At the end of a build no node is open and the finisher has had
+    /// subtrees: the message names the depth-first finisher and their
+    /// count, not the last level with 0 open nodes.
+    #[test]
+    fn the_bar_names_the_depth_first_finisher() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
+        let (scene, _) = scene::load_obj(&path).unwrap();
+        let status = Arc::new(level::LevelStatus::default());
+        let options = level::LevelOptions {
+            status: Some(status.clone()),
+            ..level::LevelOptions::default()
+        };
+        level::build(&scene, &BuildConfig::default(), None, &options).unwrap();
+        let small = status.small_nodes.load(Ordering::Relaxed);
+        assert!(small > 0);
+        assert_eq!(status.open_nodes.load(Ordering::Relaxed), 0);
+        let message = level_message(&status);
+        assert_eq!(message, format!("depth-first: {} subtrees", si(small)));
+        status.open_nodes.store(1234, Ordering::Relaxed);
+        status.level.store(9, Ordering::Relaxed);
+        status.refs.store(45_600_000, Ordering::Relaxed);
+        let message = level_message(&status);
+        assert!(
+            message.starts_with("level 9: 1.23k open, 45.6M refs"),
+            "{message}"
+        );
+    }
 }

@@ -1,15 +1,77 @@
 //! `slimkd info`, `verify` and `convert`.
 
 use crate::*;
-use serde_json::json;
-use slimkd::format;
-use slimkd::pipeline::{figures_json, merge_json};
+use serde::Serialize;
+use slimkd::format::{self, Section};
 use slimkd::scene::{self};
 use slimkd::stats::bytes::ByteSplit;
 use std::path::Path;
 use std::time::Instant;
 
-pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
+/// `slimkd convert --json`.
+#[derive(Serialize)]
+struct ConvertJson {
+    #[serde(flatten)]
+    scene: SceneJson,
+    output: String,
+    output_bytes: u64,
+    write_s: f64,
+}
+
+/// Where a `.kd` file's tree bytes go ([`ByteSplit`]).
+#[derive(Serialize)]
+struct BytesJson {
+    inner: u64,
+    t_inner: u64,
+    leaves: u64,
+    empty_leaves: u64,
+    idx32: u64,
+    idx16: u64,
+    duplicates: u64,
+    hoist_bound: u64,
+}
+
+/// `slimkd info --json`.
+#[derive(Serialize)]
+struct InfoJson {
+    #[serde(flatten)]
+    file: FileJson,
+    file_bytes: usize,
+    version: u32,
+    preset: &'static str,
+    k_t: f64,
+    k_i: f64,
+    lambda_empty: f64,
+    depth_limit: u32,
+    tau_occu: f32,
+    tau_freq: f32,
+    max_t2rn: u32,
+    reordered: bool,
+    tree_bytes_per_triangle: f64,
+    max_depth: u32,
+    leaf_depth_histogram: Vec<u64>,
+    bytes: BytesJson,
+}
+
+/// One section of a verified file.
+#[derive(Serialize)]
+struct SectionJson {
+    name: &'static str,
+    offset: usize,
+    bytes: usize,
+    crc32: String,
+}
+
+/// `slimkd verify --json` (of a valid file; an invalid one is an error).
+#[derive(Serialize)]
+struct VerifyJson {
+    #[serde(flatten)]
+    file: FileJson,
+    valid: bool,
+    sections: Vec<SectionJson>,
+}
+
+pub(crate) fn cmd_convert(scene: &Path, output: &Path, ui: Out) -> Res<()> {
     if !scene::is_scene_cache(output) {
         return Err(Usage(format!(
             "{}: a scene cache's name must end in .kds (that is how commands recognise it)",
@@ -18,11 +80,25 @@ pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
         .into());
     }
     check_output_dir(output)?;
-    let loaded = load(scene, false)?;
+    let loaded = load(scene, ui.bars_off())?;
     let start = Instant::now();
     scene::write_scene_cache(output, &loaded.scene, &loaded.summary)?;
     let write_s = start.elapsed().as_secs_f64();
     let bytes = std::fs::metadata(output).map(|m| m.len()).unwrap_or(0);
+    if ui.json {
+        return print_json(
+            "convert",
+            ConvertJson {
+                scene: SceneJson::of(&loaded),
+                output: output.display().to_string(),
+                output_bytes: bytes,
+                write_s,
+            },
+        );
+    }
+    if ui.quiet {
+        return Ok(());
+    }
     println!("scene:   {} ({})", loaded.path.display(), loaded.summary);
     println!("load:    {:.3} s", loaded.seconds);
     println!(
@@ -30,10 +106,20 @@ pub(crate) fn cmd_convert(scene: &Path, output: &Path) -> Res<()> {
         output.display(),
         bytes as f64 / (1 << 20) as f64
     );
+    if ui.verbose {
+        println!(
+            "columns: {} positions ({} bytes), {} index triples ({} bytes), {} lines read",
+            loaded.scene.positions().len(),
+            12 * loaded.scene.positions().len(),
+            loaded.scene.len(),
+            12 * loaded.scene.len(),
+            loaded.summary.lines
+        );
+    }
     Ok(())
 }
 
-pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
+pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
     expect_kd(path, "info")?;
     let start = Instant::now();
     let file = open_kd(path, false)?;
@@ -44,38 +130,39 @@ pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
     let split = ByteSplit::of(&file);
     let mib = |b: u64| b as f64 / (1 << 20) as f64;
     let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
-    if json {
-        let mut j = figures_json(&f);
-        merge_json(
-            &mut j,
-            json!({
-                "file": path.display().to_string(),
-                "file_bytes": file.as_bytes().len(),
-                "version": format::VERSION,
-                "preset": c.preset.name(),
-                "k_t": c.k_t, "k_i": c.k_i, "lambda_empty": c.lambda_empty,
-                "depth_limit": c.depth_limit,
-                "tau_occu": c.tau_occu, "tau_freq": c.tau_freq, "max_t2rn": c.max_t2rn,
-                "reordered": file.is_reordered(),
-                "triangles": f.triangles,
-                "vertices": f.vertices,
-                "tree_bytes_per_triangle": per_tri(f.tree_bytes()),
-                "max_depth": file.max_depth(),
-                "leaf_depth_histogram": hist,
-                "bytes": json!({
-                    "inner": split.inner_bytes,
-                    "t_inner": split.t_inner_bytes,
-                    "leaves": split.leaf_bytes,
-                    "empty_leaves": split.empty_leaf_bytes,
-                    "idx32": split.idx32_bytes,
-                    "idx16": split.idx16_bytes,
-                    "duplicates": split.duplicate_bytes,
-                    "hoist_bound": split.hoist_bound_bytes,
-                }),
-                "open_ms": open_ms,
-            }),
+    if ui.json {
+        return print_json(
+            "info",
+            InfoJson {
+                file: FileJson::of(path, &file, open_ms),
+                file_bytes: file.as_bytes().len(),
+                version: format::VERSION,
+                preset: c.preset.name(),
+                k_t: c.k_t,
+                k_i: c.k_i,
+                lambda_empty: c.lambda_empty,
+                depth_limit: c.depth_limit,
+                tau_occu: c.tau_occu,
+                tau_freq: c.tau_freq,
+                max_t2rn: c.max_t2rn,
+                reordered: file.is_reordered(),
+                tree_bytes_per_triangle: per_tri(f.tree_bytes()),
+                max_depth: file.max_depth(),
+                leaf_depth_histogram: hist,
+                bytes: BytesJson {
+                    inner: split.inner_bytes,
+                    t_inner: split.t_inner_bytes,
+                    leaves: split.leaf_bytes,
+                    empty_leaves: split.empty_leaf_bytes,
+                    idx32: split.idx32_bytes,
+                    idx16: split.idx16_bytes,
+                    duplicates: split.duplicate_bytes,
+                    hoist_bound: split.hoist_bound_bytes,
+                },
+            },
         );
-        println!("{j}");
+    }
+    if ui.quiet {
         return Ok(());
     }
     let b = file.bounds();
@@ -97,7 +184,11 @@ pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
         c.max_t2rn
     );
     println!(
-        "scene       {} triangles{}, {} vertices, bounds ({}, {}, {}) – ({}, {}, {})",
+        "scene       {} (geometry hash {:016x}): {} triangles{}, {} vertices, bounds ({}, {}, {}) – ({}, {}, {})",
+        c.scene
+            .name()
+            .map_or_else(|| "name not recorded".to_string(), |n| format!("`{n}`")),
+        c.scene.geometry_hash,
         f.triangles,
         if file.is_reordered() {
             " (Morton-reordered)"
@@ -157,19 +248,64 @@ pub(crate) fn cmd_info(path: &Path, json: bool) -> Res<()> {
             println!("            {d:>3} {n:>10} {bar}");
         }
     }
+    if ui.verbose {
+        print_sections(&file);
+    }
     println!("open        {open_ms:.3} ms (mmap + validation)");
     Ok(())
 }
 
-pub(crate) fn cmd_verify(path: &Path) -> Res<()> {
+/// The section table: each section's offset, length and stored CRC-32.
+fn print_sections<D: AsRef<[u8]>>(file: &format::KdFile<D>) {
+    for s in Section::ALL {
+        let (range, crc) = file.section_range(s);
+        println!(
+            "section     {:<9} at {:>10}, {:>10} bytes, CRC-32 {crc:08x}",
+            s.name(),
+            range.start,
+            range.len()
+        );
+    }
+}
+
+pub(crate) fn cmd_verify(path: &Path, ui: Out) -> Res<()> {
     expect_kd(path, "verify")?;
+    let start = Instant::now();
     let file = open_kd(path, true)?;
+    let open_ms = start.elapsed().as_secs_f64() * 1e3;
     let f = file.figures();
+    if ui.json {
+        return print_json(
+            "verify",
+            VerifyJson {
+                file: FileJson::of(path, &file, open_ms),
+                valid: true,
+                sections: Section::ALL
+                    .iter()
+                    .map(|&s| {
+                        let (range, crc) = file.section_range(s);
+                        SectionJson {
+                            name: s.name(),
+                            offset: range.start,
+                            bytes: range.len(),
+                            crc32: format!("{crc:08x}"),
+                        }
+                    })
+                    .collect(),
+            },
+        );
+    }
+    if ui.quiet {
+        return Ok(());
+    }
     println!(
         "{}: ok ({} nodes, {} triangles, all checksums match)",
         path.display(),
         f.nodes(),
         f.triangles
     );
+    if ui.verbose {
+        print_sections(&file);
+    }
     Ok(())
 }

@@ -7,6 +7,7 @@
 mod args;
 mod build;
 mod info;
+mod json;
 mod main_job;
 mod progress_bar;
 mod render;
@@ -20,6 +21,7 @@ use std::process::ExitCode;
 use args::*;
 use build::*;
 use info::*;
+use json::*;
 use progress_bar::*;
 use render::*;
 use report::*;
@@ -154,26 +156,23 @@ fn main() -> ExitCode {
             _ => {}
         }
     }
+    let ui = cli.out;
     let result = match cli.command {
         // In a pool of its own: rayon's global pool panics where it cannot
         // start its threads, a pool built here is an error.
-        None => pool(None).and_then(|p| p.install(|| main_job::main_job(cli.verbose))),
-        Some(_) if cli.verbose => {
-            Err(Usage("-v is a flag of the main job (slimkd without a command)".into()).into())
-        }
+        None => pool(None).and_then(|p| p.install(|| main_job::main_job(ui))),
         Some(Command::Build {
             scene,
             build,
             output,
             reorder,
-            json,
-        }) => cmd_build(&scene, &build, output.as_deref(), reorder, json),
-        Some(Command::Render(args)) => cmd_render(&args),
-        Some(Command::Info { file, json }) => cmd_info(&file, json),
-        Some(Command::Verify { file }) => cmd_verify(&file),
-        Some(Command::Convert { scene, output }) => cmd_convert(&scene, &output),
-        Some(Command::Report(args)) => cmd_report(&args),
-        Some(Command::Trace(args)) => cmd_trace(&args),
+        }) => cmd_build(&scene, &build, output.as_deref(), reorder, ui),
+        Some(Command::Render(args)) => cmd_render(&args, ui),
+        Some(Command::Info { file }) => cmd_info(&file, ui),
+        Some(Command::Verify { file }) => cmd_verify(&file, ui),
+        Some(Command::Convert { scene, output }) => cmd_convert(&scene, &output, ui),
+        Some(Command::Report(args)) => cmd_report(&args, ui),
+        Some(Command::Trace(args)) => cmd_trace(&args, ui),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -200,7 +199,7 @@ fn given_build_flags(sub: &clap::ArgMatches) -> Vec<String> {
 }
 
 /// `slimkd trace`, its usage checked first.
-fn cmd_trace(args: &trace::TraceArgs) -> Res<()> {
+fn cmd_trace(args: &trace::TraceArgs, ui: Out) -> Res<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
@@ -212,14 +211,16 @@ fn cmd_trace(args: &trace::TraceArgs) -> Res<()> {
     }
     render::expect_kd(&args.file, "trace")?;
     let pool = pool(args.threads)?;
-    trace::cmd_trace(args, pool).map_err(|e| match e.downcast::<slimkd::format::FormatError>() {
-        // Opening the .kd file is the only source of a format error; all
-        // but an I/O error leave the file to the caller to name.
-        Ok(fe) => match *fe {
-            slimkd::format::FormatError::Io { .. } => fe.to_string().into(),
-            _ => format!("{}: {fe}", args.file.display()).into(),
-        },
-        Err(e) => e,
+    trace::cmd_trace(args, ui, pool).map_err(|e| {
+        match e.downcast::<slimkd::format::FormatError>() {
+            // Opening the .kd file is the only source of a format error; all
+            // but an I/O error leave the file to the caller to name.
+            Ok(fe) => match *fe {
+                slimkd::format::FormatError::Io { .. } => fe.to_string().into(),
+                _ => format!("{}: {fe}", args.file.display()).into(),
+            },
+            Err(e) => e,
+        }
     })
 }
 

@@ -5,8 +5,8 @@
 
 use crate::*;
 use slimkd::build::BuildConfig;
-use slimkd::format::{self, Preset, WriteOptions};
-use slimkd::pipeline;
+use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
+use slimkd::pipeline::{self, FiguresJson};
 use slimkd::render::{self, Camera, HitBuffer, Shading};
 use slimkd::slim::{self, SlimParams};
 use slimkd::stats::TreeStats;
@@ -44,6 +44,36 @@ impl Drop for TempDir {
 }
 
 /// One row of the table.
+/// `slimkd --json`: the main job's table.
+#[derive(serde::Serialize)]
+struct MainJson {
+    #[serde(flatten)]
+    scene: SceneJson,
+    std_build_s: f64,
+    threads: usize,
+    width: u32,
+    height: u32,
+    reps: usize,
+    simd: &'static str,
+    trees: Vec<MainTreeJson>,
+    image: &'static str,
+}
+
+/// One row of the main job's table.
+#[derive(serde::Serialize)]
+struct MainTreeJson {
+    tree: &'static str,
+    #[serde(flatten)]
+    figures: FiguresJson,
+    bytes_per_triangle: f64,
+    refs_per_triangle: f64,
+    mrays_per_s: f64,
+    hits: u64,
+    checksum: f64,
+    same_hits_as_std: bool,
+    write_s: f64,
+}
+
 struct Row {
     name: &'static str,
     figures: format::TreeFigures,
@@ -90,7 +120,10 @@ fn write_and_trace(
     let start = Instant::now();
     let options = WriteOptions {
         reorder: true,
-        config: pipeline::file_config(config, loaded.scene.len(), preset, params),
+        config: FileConfig {
+            scene: SceneTag::new(&loaded.name(), &loaded.scene),
+            ..pipeline::file_config(config, loaded.scene.len(), preset, params)
+        },
     };
     format::write_file(&path, tree, &loaded.scene, &options)?;
     let write_s = start.elapsed().as_secs_f64();
@@ -113,8 +146,18 @@ fn write_and_trace(
     })
 }
 
-/// The main job; `verbose` adds the build's phase times and memory.
-pub(crate) fn main_job(verbose: bool) -> Res<()> {
+/// The main job; `-v` adds the build's phase times and memory.
+pub(crate) fn main_job(ui: Out) -> Res<()> {
+    let verbose = ui.verbose;
+    let text = !(ui.quiet || ui.json);
+    // The text lines, which -q and --json leave out.
+    macro_rules! say {
+        ($($t:tt)*) => {
+            if text {
+                println!($($t)*);
+            }
+        };
+    }
     let args = BuildArgs {
         builder: BuilderArg::Level,
         mem_budget: None,
@@ -134,14 +177,15 @@ pub(crate) fn main_job(verbose: bool) -> Res<()> {
         given: Vec::new(),
     };
     let dir = TempDir::new()?;
-    let loaded = load(Path::new(DEFAULT_ARG), false)?;
-    let built = build_tree(&loaded.scene, &args, false, true)?;
+    let loaded = load(Path::new(DEFAULT_ARG), ui.bars_off())?;
+    let built = build_tree(&loaded.scene, &args, ui.bars_off(), true)?;
     let stats = TreeStats::of(&built.tree, &built.config.sah);
-    if verbose {
-        print_summary(&loaded, &built, &stats);
+    if !text {
+    } else if verbose {
+        print_summary(&loaded, &built, &stats, true);
     } else {
         print_scene_line(&loaded);
-        println!(
+        say!(
             "build      std tree in {:.3} s with the {} builder on {} threads",
             built.std_seconds,
             built.builder,
@@ -167,12 +211,15 @@ pub(crate) fn main_job(verbose: bool) -> Res<()> {
         let (tree, report, phases) =
             slim::slim_with_phases(&built.tree, &loaded.scene, &built.config, &params);
         let slim_s = start.elapsed().as_secs_f64();
-        println!(
+        say!(
             "slim       {name} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted in {slim_s:.3} s",
-            params.tau_occu, params.tau_freq, params.max_t2rn, report.hoisted
+            params.tau_occu,
+            params.tau_freq,
+            params.max_t2rn,
+            report.hoisted
         );
         if verbose {
-            println!(
+            say!(
                 "           phases: {} passes; analysis {:.3} s, rebuilds {:.3} s, apply {:.3} s, assembly {:.3} s",
                 phases.passes,
                 phases.analysis_s,
@@ -193,22 +240,27 @@ pub(crate) fn main_job(verbose: bool) -> Res<()> {
         )?);
     }
     let n = loaded.scene.len().max(1) as f64;
-    println!(
+    say!(
         "render     {}x{} packets ({}), {} threads, median of {REPS} frames after a warm-up, from each tree's .kd file (reordered):",
         camera.width,
         camera.height,
         SimdLevel::detect().name(),
         rayon::current_num_threads()
     );
-    println!(
+    say!(
         "           {:<6} {:>11} {:>9} {:>8} {:>9} {:>8}  same hits as std",
-        "tree", "tree bytes", "bytes/tri", "nodes", "refs/tri", "Mrays/s"
+        "tree",
+        "tree bytes",
+        "bytes/tri",
+        "nodes",
+        "refs/tri",
+        "Mrays/s"
     );
     for row in &rows {
         let f = &row.figures;
         // Leaf indices plus the T-references of hoisted triangles.
         let refs = f.idx32 + f.idx16 + f.t_inner;
-        println!(
+        say!(
             "           {:<6} {:>11} {:>9.2} {:>8} {:>9.2} {:>8.2}  {}",
             row.name,
             f.tree_bytes(),
@@ -225,7 +277,7 @@ pub(crate) fn main_job(verbose: bool) -> Res<()> {
     }
     if verbose {
         for row in &rows {
-            println!(
+            say!(
                 "           wrote {}.kd in {:.3} s ({} hits, checksum {:.6})",
                 row.name,
                 row.write_s,
@@ -236,7 +288,40 @@ pub(crate) fn main_job(verbose: bool) -> Res<()> {
     }
     let frame = render::shade(&rows[0].frame, &camera, &loaded.scene, Shading::EyeLight);
     render::write_image(Path::new(IMAGE), &frame)?;
-    println!("wrote      {IMAGE}");
+    say!("wrote      {IMAGE}");
+    if ui.json {
+        print_json(
+            "main",
+            MainJson {
+                scene: SceneJson::of(&loaded),
+                std_build_s: built.std_seconds,
+                threads: rayon::current_num_threads(),
+                width: camera.width,
+                height: camera.height,
+                reps: REPS,
+                simd: SimdLevel::detect().name(),
+                trees: rows
+                    .iter()
+                    .map(|row| {
+                        let f = &row.figures;
+                        let refs = f.idx32 + f.idx16 + f.t_inner;
+                        MainTreeJson {
+                            tree: row.name,
+                            figures: FiguresJson::of(f),
+                            bytes_per_triangle: f.tree_bytes() as f64 / n,
+                            refs_per_triangle: refs as f64 / n,
+                            mrays_per_s: row.mrays,
+                            hits: row.frame.n_hits(),
+                            checksum: row.frame.checksum(),
+                            same_hits_as_std: same_hits(&row.frame, &rows[0].frame),
+                            write_s: row.write_s,
+                        }
+                    })
+                    .collect(),
+                image: IMAGE,
+            },
+        )?;
+    }
     if rows.iter().any(|r| !same_hits(&r.frame, &rows[0].frame)) {
         return Err("a slim tree's hits differ from the std tree's (a bug)".into());
     }

@@ -2,9 +2,8 @@
 //! the tree (built or a mapped file), frames and their figures.
 
 use crate::*;
-use serde_json::json;
 use slimkd::format::{self, KdFile, Mapped};
-use slimkd::pipeline::{self, figures_json, merge_json};
+use slimkd::pipeline;
 use slimkd::progress::Progress;
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
 use slimkd::scene::TriangleColumns;
@@ -47,31 +46,51 @@ pub(crate) fn open_kd(path: &Path, verify: bool) -> Res<KdFile<Mapped>> {
 }
 
 /// The camera: explicit flags override a view, a view overrides the
-/// default camera of the scene box.
+/// default camera of the scene box. `recorded`: the scene name a `.kd`
+/// file's header records, which views are matched by before the file's
+/// stem (so a renamed file keeps its views).
 pub(crate) fn camera_for(
     args: &RenderArgs,
     scene_path: &Path,
+    recorded: Option<&str>,
     bounds: &slimkd::geom::Aabb,
 ) -> Res<Camera> {
     let (w, h) = args.size;
     let mut cam = Camera::default_for(bounds, w, h);
     if let Some(id) = &args.view {
-        let views: Vec<View> = match &args.views {
+        let (views, from): (Vec<View>, String) = match &args.views {
             Some(file) => {
                 let mut text = String::new();
                 slimkd::fsio::open_regular(file)
                     .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
                     .map_err(|e| format!("{}: {e}", file.display()))?;
-                render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
+                let views =
+                    render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?;
+                (views, format!("the views file {}", file.display()))
             }
-            None => render::parse_views(DEFAULT_VIEWS)?,
+            None => (
+                render::parse_views(DEFAULT_VIEWS)?,
+                "the embedded views".into(),
+            ),
         };
-        let view = render::find_view(&views, scene_path, id).ok_or_else(|| {
-            format!(
-                "no view `{id}` for scene `{}` in the views file",
-                scene_path.file_stem().unwrap_or_default().to_string_lossy()
-            )
-        })?;
+        let stem = scene_path.file_stem().unwrap_or_default().to_string_lossy();
+        let view = recorded
+            .and_then(|name| render::find_view_named(&views, name, id))
+            .or_else(|| render::find_view_named(&views, &stem, id))
+            .ok_or_else(|| {
+                let names = match recorded {
+                    Some(name) if name != stem => format!(
+                        "scene `{name}` (the name {} records) or `{stem}` (its file stem)",
+                        scene_path.display()
+                    ),
+                    _ => format!("scene `{stem}`"),
+                };
+                format!(
+                    "no view `{id}` for {names} in {from}: a view is matched by the scene name \
+                     a .kd file records, else by the file's stem, or by the longest scene name \
+                     either starts with, followed by `.`, `_` or `-`"
+                )
+            })?;
         cam = Camera::from_view(view, w, h);
     } else if args.views.is_some() {
         return Err(Usage("--views needs --view ID".into()).into());
@@ -109,7 +128,7 @@ pub(crate) enum Source {
     },
 }
 
-pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
+pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
@@ -145,9 +164,9 @@ pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
             let columns = file.to_columns();
             Source::File { file, columns, open_ms }
         } else {
-            let loaded = load(&args.scene, args.json)?;
+            let loaded = load(&args.scene, ui.bars_off())?;
             // Not written: bytes are counted as in a reordered file.
-            let built = build_tree(&loaded.scene, &args.build, args.json, true)?;
+            let built = build_tree(&loaded.scene, &args.build, ui.bars_off(), true)?;
             let stats = TreeStats::of(&built.tree, &built.config.sah);
             Source::Built {
                 loaded,
@@ -155,11 +174,13 @@ pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
                 stats,
             }
         };
-        let (scene_path, columns, bounds) = match &source {
-            Source::Built { loaded, built, .. } => (loaded.path.clone(), &loaded.scene, built.tree.bounds),
-            Source::File { file, columns, .. } => (args.scene.clone(), columns, file.bounds()),
+        let (scene_path, recorded, columns, bounds) = match &source {
+            Source::Built { loaded, built, .. } => (loaded.path.clone(), None, &loaded.scene, built.tree.bounds),
+            Source::File { file, columns, .. } => {
+                (args.scene.clone(), file.config().scene.name(), columns, file.bounds())
+            }
         };
-        let camera = camera_for(args, &scene_path, &bounds)?;
+        let camera = camera_for(args, &scene_path, recorded, &bounds)?;
         let tree_tracer = match &source {
             Source::Built { loaded, built, .. } => Some(TreeTracer {
                 tree: &built.tree,
@@ -181,7 +202,7 @@ pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
         for rep in 0..args.reps {
             let progress = Progress::default();
             let rep_message = || format!("frame {} of {}", rep + 1, args.reps);
-            let buf = with_bar(args.json, "rendering", &progress, &rep_message, || {
+            let buf = with_bar(ui.bars_off(), "rendering", &progress, &rep_message, || {
                 Ok(render::trace_frame_with_progress(
                     tracer.as_ref(),
                     &camera,
@@ -211,40 +232,45 @@ pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
             "scalar"
         };
         let threads = pool.current_num_threads();
-        if args.json {
-            let mut j = match &source {
-                Source::Built { loaded, built, stats } => build_json(loaded, built, stats, threads),
+        if ui.json {
+            let source = match &source {
+                Source::Built { loaded, built, stats } => {
+                    RenderSourceJson::Built(Box::new(BuiltJson {
+                        scene: SceneJson::of(loaded),
+                        tree: TreeJson::of(stats),
+                        build: BuildJson::of(built),
+                    }))
+                }
                 Source::File { file, open_ms, .. } => {
-                    let mut j = figures_json(&file.figures());
-                    merge_json(
-                        &mut j,
-                        json!({"file": args.scene.display().to_string(), "open_ms": open_ms,
-                               "triangles": file.figures().triangles, "threads": threads}),
-                    );
-                    j
+                    RenderSourceJson::File(FileJson::of(&args.scene, file, *open_ms))
                 }
             };
-            merge_json(
-                &mut j,
-                json!({
-                    "mode": mode,
-                    "simd": simd,
-                    "width": camera.width,
-                    "height": camera.height,
-                    "reps": args.reps,
-                    "mrays_per_s": mrays,
-                    "hits": buf.n_hits(),
-                    "checksum": buf.checksum(),
-                    "eye": [camera.eye.x, camera.eye.y, camera.eye.z],
-                    "at": [camera.at.x, camera.at.y, camera.at.z],
-                    "up": [camera.up.x, camera.up.y, camera.up.z],
-                    "fov": camera.fov_deg,
-                }),
-            );
-            println!("{j}");
-        } else {
+            print_json(
+                "render",
+                RenderCmdJson {
+                    source,
+                    frame: FrameJson {
+                        mode,
+                        simd,
+                        threads,
+                        width: camera.width,
+                        height: camera.height,
+                        reps: args.reps,
+                        mrays_per_s: mrays,
+                        hits: buf.n_hits(),
+                        checksum: buf.checksum(),
+                        eye: camera.eye.to_array(),
+                        at: camera.at.to_array(),
+                        up: camera.up.to_array(),
+                        fov: camera.fov_deg,
+                    },
+                },
+            )?;
+        } else if !ui.quiet {
             match &source {
-                Source::Built { loaded, built, stats } => print_summary(loaded, built, stats),
+                Source::Built { loaded, built, stats } => {
+                    print_summary(loaded, built, stats, ui.verbose)
+                }
                 Source::File { file, open_ms, .. } => println!(
                     "file       {} ({} triangles), opened in {open_ms:.3} ms",
                     args.scene.display(),
@@ -260,6 +286,21 @@ pub(crate) fn cmd_render(args: &RenderArgs) -> Res<()> {
                 buf.n_hits(),
                 buf.checksum()
             );
+            if ui.verbose {
+                println!(
+                    "camera     eye {},{},{} at {},{},{} up {},{},{} fov {}",
+                    camera.eye.x,
+                    camera.eye.y,
+                    camera.eye.z,
+                    camera.at.x,
+                    camera.at.y,
+                    camera.at.z,
+                    camera.up.x,
+                    camera.up.y,
+                    camera.up.z,
+                    camera.fov_deg
+                );
+            }
             if let Some(out) = &args.output {
                 println!("wrote      {}", out.display());
             }

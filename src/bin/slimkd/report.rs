@@ -1,11 +1,22 @@
 //! `slimkd report`: the paper's tables and figures.
 
 use crate::*;
+use slimkd::progress::Progress;
 use slimkd::render::{self};
 use slimkd::stats::report;
 use std::time::Instant;
 
-pub(crate) fn cmd_report(args: &ReportArgs) -> Res<()> {
+/// `slimkd report --json`: the files written; the figures are in the
+/// report's own JSON file.
+#[derive(serde::Serialize)]
+struct ReportCmdJson {
+    written: Vec<String>,
+    scenes: Vec<String>,
+    all_threads: usize,
+    reps: usize,
+}
+
+pub(crate) fn cmd_report(args: &ReportArgs, ui: Out) -> Res<()> {
     // The output's name and directory, before any work.
     report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
     check_output_dir(&args.output)?;
@@ -21,13 +32,11 @@ pub(crate) fn cmd_report(args: &ReportArgs) -> Res<()> {
     };
     let mut scenes = Vec::new();
     for path in &args.scenes {
-        let loaded = load(path, false)?;
-        eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
-        scenes.push((
-            loaded.path.display().to_string(),
-            loaded.scene,
-            loaded.seconds,
-        ));
+        let loaded = load(path, ui.bars_off())?;
+        if !ui.quiet {
+            eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
+        }
+        scenes.push((loaded.name(), loaded.scene, loaded.seconds));
     }
     let all_threads = match args.threads {
         Some(0) => return Err(Usage("--threads must be at least 1".into()).into()),
@@ -45,13 +54,44 @@ pub(crate) fn cmd_report(args: &ReportArgs) -> Res<()> {
         rule: args.hoist_rule.rule(true),
     };
     let start = Instant::now();
-    let report = report::run(&options, &mut |line| {
-        eprintln!("[{:7.1} s] {line}", start.elapsed().as_secs_f64())
+    // One bar over all the report's steps; each step's line goes above it,
+    // and the last one is its message.
+    let progress = Progress::default();
+    let current = std::sync::Mutex::new(String::new());
+    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
+    let report = with_bar_lines(ui.bars_off(), "report", &progress, &message, |lines| {
+        Ok(report::run_with_progress(
+            &options,
+            Some(&progress),
+            &mut |line| {
+                if let Ok(mut m) = current.lock() {
+                    line.clone_into(&mut m);
+                }
+                lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
+            },
+        )?)
     })?;
     let written = report
         .write(&args.output)
         // Its errors name the file.
         .map_err(|e| format!("cannot write the report: {e}"))?;
+    if ui.json {
+        return print_json(
+            "report",
+            ReportCmdJson {
+                written: written.iter().map(|p| p.display().to_string()).collect(),
+                scenes: report.scenes.iter().map(|s| s.name.clone()).collect(),
+                all_threads: report.all_threads,
+                reps: report.reps,
+            },
+        );
+    }
+    if ui.quiet {
+        return Ok(());
+    }
+    if ui.verbose {
+        print!("{}", report.markdown_for(&args.output));
+    }
     for p in written {
         println!("wrote {}", p.display());
     }

@@ -2,7 +2,7 @@
 //! the Embree peer program's `--rays` mode, and optionally counts the
 //! traversal's work with a separate, untimed counting pass.
 
-use serde_json::json;
+use serde::Serialize;
 use slimkd::format::KdFile;
 use slimkd::fsio;
 use slimkd::trace::packet::PacketTracer;
@@ -12,7 +12,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use crate::Res;
+use crate::{Out, Res, print_json};
 
 #[derive(clap::Args)]
 pub struct TraceArgs {
@@ -41,9 +41,6 @@ pub struct TraceArgs {
     /// Write one little-endian f32 result per ray to this file.
     #[arg(long)]
     pub dump: Option<PathBuf>,
-    /// Print one JSON object instead of text.
-    #[arg(long)]
-    pub json: bool,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -52,7 +49,36 @@ pub enum TraceMode {
     Packet,
 }
 
-pub fn cmd_trace(args: &TraceArgs, pool: rayon::ThreadPool) -> Res<()> {
+/// `slimkd trace --json`.
+#[derive(Serialize)]
+struct TraceJson {
+    file: String,
+    rays_file: String,
+    mode: &'static str,
+    query: &'static str,
+    simd: &'static str,
+    threads: usize,
+    rays: usize,
+    mrays_per_s: f64,
+    mrays_per_s_reps: Vec<f64>,
+    hits: u64,
+    checksum: f64,
+    open_ms: f64,
+    stats: Option<TraceStatsJson>,
+}
+
+#[derive(Serialize)]
+struct TraceStatsJson {
+    rays: u64,
+    nodes_per_ray: f64,
+    leaves_per_ray: f64,
+    tris_per_ray: f64,
+    hoisted_per_ray: f64,
+    packets: u64,
+    lanes_per_step: f64,
+}
+
+pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> {
     if args.reps == 0 {
         return Err("--reps must be at least 1".into());
     }
@@ -121,34 +147,41 @@ pub fn cmd_trace(args: &TraceArgs, pool: rayon::ThreadPool) -> Res<()> {
     let query_name = if args.occluded { "occluded" } else { "closest" };
     let threads = pool.current_num_threads();
     let per_ray = |s: &TraceStats, v: u64| v as f64 / (s.rays.max(1)) as f64;
-    if args.json {
-        let mut out = json!({
-            "file": args.file.display().to_string(),
-            "rays_file": args.rays.display().to_string(),
-            "mode": mode,
-            "query": query_name,
-            "simd": simd,
-            "threads": threads,
-            "rays": rays.len(),
-            "mrays_per_s": mrays,
-            "mrays_per_s_reps": rates,
-            "hits": last.hits(query),
-            "checksum": last.checksum(query),
-            "open_ms": open_ms,
-        });
-        if let Some((s, _)) = &stats {
-            out["stats"] = json!({
-                "rays": s.rays,
-                "nodes_per_ray": per_ray(s, s.nodes),
-                "leaves_per_ray": per_ray(s, s.leaves),
-                "tris_per_ray": per_ray(s, s.tris),
-                "hoisted_per_ray": per_ray(s, s.hoisted),
-                "packets": s.packets,
-                "lanes_per_step": if s.nodes > 0 { s.lane_steps as f64 / s.nodes as f64 } else { 0.0 },
-            });
+    let lanes_per_step = |s: &TraceStats| {
+        if s.nodes > 0 {
+            s.lane_steps as f64 / s.nodes as f64
+        } else {
+            0.0
         }
-        println!("{out}");
-    } else {
+    };
+    if ui.json {
+        print_json(
+            "trace",
+            TraceJson {
+                file: args.file.display().to_string(),
+                rays_file: args.rays.display().to_string(),
+                mode,
+                query: query_name,
+                simd,
+                threads,
+                rays: rays.len(),
+                mrays_per_s: mrays,
+                mrays_per_s_reps: rates,
+                hits: last.hits(query),
+                checksum: last.checksum(query),
+                open_ms,
+                stats: stats.as_ref().map(|(s, _)| TraceStatsJson {
+                    rays: s.rays,
+                    nodes_per_ray: per_ray(s, s.nodes),
+                    leaves_per_ray: per_ray(s, s.leaves),
+                    tris_per_ray: per_ray(s, s.tris),
+                    hoisted_per_ray: per_ray(s, s.hoisted),
+                    packets: s.packets,
+                    lanes_per_step: lanes_per_step(s),
+                }),
+            },
+        )?;
+    } else if !ui.quiet {
         println!(
             "{mode} {query_name} ({simd}, {threads} threads): {:.3} Mrays/s (median of {}), {} rays, hits {}, checksum {:.6}",
             mrays,
@@ -164,11 +197,7 @@ pub fn cmd_trace(args: &TraceArgs, pool: rayon::ThreadPool) -> Res<()> {
                     per_ray(s, s.nodes),
                     per_ray(s, s.tris),
                     per_ray(s, s.hoisted),
-                    if s.nodes > 0 {
-                        s.lane_steps as f64 / s.nodes as f64
-                    } else {
-                        0.0
-                    }
+                    lanes_per_step(s)
                 );
             } else {
                 println!(

@@ -458,6 +458,8 @@ impl<'a> Builder<'a> {
             s.level.store(depth, Ordering::Relaxed);
             s.open_nodes.store(big.len() as u64, Ordering::Relaxed);
             s.refs.store(l.tri.len() as u64, Ordering::Relaxed);
+            s.small_nodes
+                .fetch_add(small.len() as u64, Ordering::Relaxed);
         }
         self.report.max_level_refs = self.report.max_level_refs.max(l.tri.len() as u64);
         self.report.max_open_nodes = self.report.max_open_nodes.max(big.len() as u64);

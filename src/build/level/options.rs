@@ -75,4 +75,7 @@ pub struct LevelStatus {
     pub open_nodes: AtomicU64,
     /// References at this level.
     pub refs: AtomicU64,
+    /// Nodes handed to the depth-first finisher so far (below the small
+    /// threshold): once no node is open, the finisher is what runs.
+    pub small_nodes: AtomicU64,
 }

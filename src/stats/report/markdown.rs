@@ -255,8 +255,12 @@ impl Report {
         let mut md = String::new();
         md += "## Table 3(b). Frame rate\n\n";
         md += &format!(
-            "Mrays/s (median of {}); *loss* is the drop against std in the same column, %. Every tree \
-             and mode gave the same hits as std (checked per pixel).\n\n",
+            "Mrays/s (median of {} frames after a warm-up, the trees' frames interleaved, each \
+             repetition starting with the next tree); *loss* is the drop against std in the same \
+             column, %: the median over the repetitions of each frame's loss against std's frame of \
+             the same repetition, with the interquartile range in parentheses; ≈ marks a loss whose \
+             range includes 0, which the repetitions do not tell from noise. Every tree and mode \
+             gave the same hits as std (checked per pixel).\n\n",
             self.reps
         );
         let all = format!("{}T", self.all_threads);
@@ -277,7 +281,7 @@ impl Report {
             for v in &s.table3b {
                 for kind in TreeKind::ALL {
                     let r = v.rates[kind as usize].as_array();
-                    let l = v.loss_pct(kind);
+                    let l = v.loss[kind as usize];
                     let mut row = vec![
                         s.name.clone(),
                         v.view.clone(),
@@ -289,7 +293,7 @@ impl Report {
                         row.push(if kind == TreeKind::Std {
                             String::new()
                         } else {
-                            num(l[i], 1)
+                            loss_cell(&l[i])
                         });
                     }
                     rows.push(row);
@@ -358,7 +362,10 @@ impl Report {
         md += "## Figure 5. Threshold sweep\n\n";
         md += &format!(
             "Size reduction against std (same format) and frame-rate loss (packets, {} threads, \
-             median over the views) for a τ_occu × τ_freq grid, max_t2rn {SWEEP_MAX_T2RN}.\n\n\
+             median over the views of the median per-repetition loss against std, the two trees \
+             alternating which goes first) for a τ_occu × τ_freq grid, max_t2rn {SWEEP_MAX_T2RN}. \
+             The range is the interquartile range of every view's per-repetition losses (the \
+             figure's error bars); ≈ marks a loss whose range includes 0.\n\n\
              ![Figure 5]({file})\n\n",
             self.all_threads
         );
@@ -373,6 +380,7 @@ impl Report {
                     num(p.tree_bytes as f64 / MIB, 3),
                     num(p.reduction_pct, 1),
                     num(p.loss_pct, 1),
+                    loss_range(&p.loss_spread),
                     num(p.slim_s, 3),
                 ]);
             }
@@ -386,9 +394,10 @@ impl Report {
                 "memory (MiB)",
                 "reduction (%)",
                 "loss (%)",
+                "range (%)",
                 "slim pass (s)",
             ],
-            &[false, true, true, true, true, true, true, true],
+            &[false, true, true, true, true, true, true, true, true],
             &rows,
         );
         md += "\n";
@@ -423,6 +432,27 @@ impl Report {
         }
         md
     }
+}
+
+/// A loss with its interquartile range, `≈` when the range includes 0.
+fn loss_cell(s: &Spread) -> String {
+    if !s.median.is_finite() {
+        return num(s.median, 1);
+    }
+    format!("{} {}", num(s.median, 1), loss_range(s))
+}
+
+/// An interquartile range, `(q1…q3)`, followed by `≈` when it includes 0.
+fn loss_range(s: &Spread) -> String {
+    if !(s.q1.is_finite() && s.q3.is_finite()) {
+        return String::new();
+    }
+    format!(
+        "({}…{}){}",
+        num(s.q1, 1),
+        num(s.q3, 1),
+        if s.includes_zero() { " ≈" } else { "" }
+    )
 }
 
 #[cfg(test)]

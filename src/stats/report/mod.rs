@@ -43,13 +43,14 @@ mod markdown;
 mod run;
 mod tables;
 
-pub use run::run;
+pub use run::{run, run_with_progress};
 pub use tables::duplication;
 
 use super::plot::{self, LabelledPoint, LinePanel, LineSeries, ScatterSeries};
 use crate::build::{self, BuildConfig, Builder};
 use crate::format::{
-    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, TreeFigures, WriteOptions,
+    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
+    WriteOptions,
 };
 use crate::geom::Aabb;
 use crate::render::{self, Camera, View};
@@ -81,8 +82,10 @@ pub const VIEW_IDS: [&str; 3] = ["1", "2", "3"];
 /// What to report on.
 #[derive(Clone, Debug)]
 pub struct ReportOptions {
-    /// `(name, geometry, load seconds)`; the name is matched against the
-    /// views file by [`render::find_view`] (a file name or path works).
+    /// `(name, geometry, load seconds)`: the scene's name (its file's stem,
+    /// as tables and legends show it and `.kd` headers record it) is
+    /// matched against the views file by [`render::find_view_named`] (or,
+    /// for a file name or path, by its stem).
     pub scenes: Vec<(String, TriangleColumns, f64)>,
     pub views: Vec<View>,
     /// Image size `(width, height)` of every traced frame.
@@ -102,13 +105,13 @@ pub struct ReportOptions {
 }
 
 impl Default for ReportOptions {
-    /// No scenes, 1024×1024 frames, 3 repetitions, no sweep, every core.
+    /// No scenes, 1024×1024 frames, 9 repetitions, no sweep, every core.
     fn default() -> Self {
         ReportOptions {
             scenes: Vec::new(),
             views: Vec::new(),
             size: (1024, 1024),
-            reps: 3,
+            reps: 9,
             sweep: false,
             all_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             sweep_grid: None,
@@ -292,6 +295,45 @@ impl Rates {
     }
 }
 
+/// The spread of repeated measurements: median, quartiles (linear
+/// interpolation between order statistics) and extremes; NaN for none.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Spread {
+    pub median: f64,
+    pub q1: f64,
+    pub q3: f64,
+    pub min: f64,
+    pub max: f64,
+}
+
+impl Spread {
+    pub fn of(values: &[f64]) -> Spread {
+        let mut v = values.to_vec();
+        v.sort_by(f64::total_cmp);
+        let at = |q: f64| {
+            if v.is_empty() {
+                return f64::NAN;
+            }
+            let pos = q * (v.len() - 1) as f64;
+            let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
+            v[lo] + (v[hi] - v[lo]) * (pos - lo as f64)
+        };
+        Spread {
+            median: median(values),
+            q1: at(0.25),
+            q3: at(0.75),
+            min: at(0.0),
+            max: at(1.0),
+        }
+    }
+
+    /// Whether 0 lies inside the interquartile range: a difference that
+    /// the repetitions do not tell from the machine's noise.
+    pub fn includes_zero(&self) -> bool {
+        self.q1 <= 0.0 && 0.0 <= self.q3
+    }
+}
+
 /// Table 3(b) for one view.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ViewRates {
@@ -301,16 +343,21 @@ pub struct ViewRates {
     pub hits: u64,
     /// Sum of the hit distances (the same for every tree and mode).
     pub checksum: f64,
-    /// Indexed like [`TreeKind::ALL`].
+    /// Indexed like [`TreeKind::ALL`]: the median of each column.
     pub rates: [Rates; 3],
+    /// The loss against std in %, per tree (like [`TreeKind::ALL`]) and
+    /// column (like [`Rates::as_array`]): the spread over the repetitions of
+    /// the loss of each repetition's frame against std's frame of the same
+    /// repetition (the two traced one after the other).
+    pub loss: [[Spread; 4]; 3],
 }
 
 impl ViewRates {
-    /// The loss of `tree` against std in %, per column of [`Rates::as_array`].
+    /// The loss of `tree` against std in %, per column of
+    /// [`Rates::as_array`]: the median of the per-repetition losses (with
+    /// one repetition, the loss of the medians).
     pub fn loss_pct(&self, tree: TreeKind) -> [f64; 4] {
-        let std = self.rates[0].as_array();
-        let r = self.rates[tree as usize].as_array();
-        std::array::from_fn(|i| percent_below(r[i], std[i]))
+        self.loss[tree as usize].map(|s| s.median)
     }
 }
 
@@ -344,6 +391,8 @@ pub struct SweepPoint {
     pub reduction_pct: f64,
     /// Median over the views of the packet, all-threads frame-rate loss, %.
     pub loss_pct: f64,
+    /// The spread of the per-repetition losses of every view, %.
+    pub loss_spread: Spread,
     /// The loss per view, in view order.
     pub view_loss_pct: Vec<f64>,
     pub slim_s: f64,
@@ -519,7 +568,17 @@ impl Report {
                     .map(|p| LabelledPoint {
                         x: p.reduction_pct,
                         y: p.loss_pct,
-                        label: format!("{}/{}", p.tau_occu, p.tau_freq),
+                        label: format!(
+                            "{}/{}{}",
+                            p.tau_occu,
+                            p.tau_freq,
+                            if p.loss_spread.includes_zero() {
+                                " ≈"
+                            } else {
+                                ""
+                            }
+                        ),
+                        y_range: Some((p.loss_spread.q1, p.loss_spread.q3)),
                     })
                     .collect(),
             })

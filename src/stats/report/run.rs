@@ -3,6 +3,7 @@
 use super::tables::{duplication, measure_views, sweep_point};
 use super::*;
 use crate::pipeline::file_config;
+use crate::progress::Progress;
 
 /// A tree written and opened again.
 pub(super) struct Written {
@@ -38,15 +39,25 @@ pub(super) fn write_tree(
     Ok(Written { file, seconds })
 }
 
+/// The views of a scene among [`VIEW_IDS`], found by its name (or, for a
+/// file name or path, by its stem).
+fn view_ids<'v>(options: &'v ReportOptions, name: &str) -> Vec<(&'static str, &'v View)> {
+    VIEW_IDS
+        .iter()
+        .filter_map(|&id| {
+            render::find_view_named(&options.views, name, id)
+                .or_else(|| render::find_view(&options.views, Path::new(name), id))
+                .map(|v| (id, v))
+        })
+        .collect()
+}
+
 /// The cameras of a scene: its views 1–3, or the default camera.
 fn cameras(options: &ReportOptions, name: &str, bounds: &Aabb) -> Vec<(String, Camera)> {
     let (w, h) = options.size;
-    let found: Vec<(String, Camera)> = VIEW_IDS
-        .iter()
-        .filter_map(|id| {
-            render::find_view(&options.views, Path::new(name), id)
-                .map(|v| (id.to_string(), Camera::from_view(v, w, h)))
-        })
+    let found: Vec<(String, Camera)> = view_ids(options, name)
+        .into_iter()
+        .map(|(id, v)| (id.to_string(), Camera::from_view(v, w, h)))
         .collect();
     if found.is_empty() {
         vec![("default".to_string(), Camera::default_for(bounds, w, h))]
@@ -67,9 +78,51 @@ impl Pools {
     }
 }
 
+/// The steps of a report, each announced by a line: the share of the
+/// report done (in a [`Progress`], one step per line) and the lines.
+struct Steps<'p> {
+    bar: Option<&'p Progress>,
+    done: u64,
+    total: u64,
+    log: &'p mut dyn FnMut(&str),
+}
+
+impl Steps<'_> {
+    /// Starts a step (the one before it is done).
+    fn step(&mut self, line: &str) {
+        self.finish_step();
+        (self.log)(line);
+    }
+
+    /// Ends the step in progress, if any.
+    fn finish_step(&mut self) {
+        if self.done > 0 && self.done <= self.total {
+            Progress::advance(self.bar, self.done - 1, self.done, self.total);
+        }
+        self.done += 1;
+    }
+
+    /// A line that starts no step (a warning).
+    fn note(&mut self, line: &str) {
+        (self.log)(line);
+    }
+}
+
 /// Builds, writes and traces every scene; `progress` gets one line per
 /// step.
 pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Report, ReportError> {
+    run_with_progress(options, None, progress)
+}
+
+/// [`run`], advancing `bar` by one equal share per step, over all scenes
+/// (a step is what one line of `log` announces: a build, a slim pass, a
+/// file written, one view traced in one mode and thread count, or a sweep
+/// point). A line that starts with `warning:` announces no step.
+pub fn run_with_progress(
+    options: &ReportOptions,
+    bar: Option<&Progress>,
+    log: &mut dyn FnMut(&str),
+) -> Result<Report, ReportError> {
     if options.reps == 0 {
         return Err(ReportError::Options("reps must be at least 1".into()));
     }
@@ -97,8 +150,26 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
     };
     let config = BuildConfig::default();
     let mut scenes = Vec::new();
+    // Per scene: the std build, two slim passes, three files, four
+    // measurements per view and the sweep's points.
+    let sweep_points = if options.sweep {
+        grid_occu.len() * grid_freq.len()
+    } else {
+        0
+    };
+    let total = options
+        .scenes
+        .iter()
+        .map(|(name, _, _)| 6 + 4 * view_ids(options, name).len().max(1) + sweep_points)
+        .sum::<usize>() as u64;
+    let mut steps = Steps {
+        bar,
+        done: 0,
+        total,
+        log,
+    };
     for (name, scene, load_s) in &options.scenes {
-        progress(&format!("{name}: building std tree"));
+        steps.step(&format!("{name}: building std tree"));
         let start = Instant::now();
         // The level builder is the fastest (the same tree as every other
         // builder), so the slim ratios of Table 4 are against the best std
@@ -123,7 +194,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
             let slimmed = match kind.params(options.rule) {
                 None => None,
                 Some(p) => {
-                    progress(&format!("{name}: slim pass ({})", kind.name()));
+                    steps.step(&format!("{name}: slim pass ({})", kind.name()));
                     let start = Instant::now();
                     let (t, r) = pools
                         .all
@@ -133,14 +204,17 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
                     Some(t)
                 }
             };
-            progress(&format!("{name}: writing {} file", kind.name()));
+            steps.step(&format!("{name}: writing {} file", kind.name()));
             let tree = slimmed.as_ref().unwrap_or(&std_tree);
-            let cfg = file_config(
-                &config,
-                scene.len(),
-                kind.preset(),
-                kind.params(options.rule).as_ref(),
-            );
+            let cfg = FileConfig {
+                scene: SceneTag::new(name, scene),
+                ..file_config(
+                    &config,
+                    scene.len(),
+                    kind.preset(),
+                    kind.params(options.rule).as_ref(),
+                )
+            };
             let w = write_tree(name, kind.name(), tree, scene, cfg)?;
             times.write_s[k] = w.seconds;
             written.push(w);
@@ -156,12 +230,20 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
         });
         let leaf_depths = files.map(|f| f.leaf_depth_histogram());
         let cams = cameras(options, name, &std_tree.bounds);
-        let table3b = measure_views(name, &cams, &files, &pools, options.reps, progress)?;
+        if cams[0].0 == "default" {
+            steps.note(&format!(
+                "warning: {name} has no views (views are matched by the scene's name); \
+                 Table 3(b) times it from the default camera"
+            ));
+        }
+        let table3b = measure_views(name, &cams, &files, &pools, options.reps, &mut |line| {
+            steps.step(line)
+        })?;
         let mut sweep = Vec::new();
         if options.sweep {
             for &tau_occu in &grid_occu {
                 for &tau_freq in &grid_freq {
-                    progress(&format!(
+                    steps.step(&format!(
                         "{name}: sweep τ_occu {tau_occu} τ_freq {tau_freq}"
                     ));
                     let params = SlimParams {
@@ -196,6 +278,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
             leaf_depths,
         });
     }
+    steps.finish_step();
     Ok(Report {
         all_threads: pools.all.current_num_threads(),
         size: options.size,

@@ -78,6 +78,16 @@ pub(super) fn check_hits(
     )))
 }
 
+/// The loss in % of each repetition's rate against the reference's rate of
+/// the same repetition.
+fn paired_loss(rates: &[f64], reference: &[f64]) -> Vec<f64> {
+    rates
+        .iter()
+        .zip(reference)
+        .map(|(&r, &s)| percent_below(r, s))
+        .collect()
+}
+
 /// Table 3(b) for one scene: every view, mode and thread count; the trees'
 /// frames interleaved within each repetition so that drift in the machine's
 /// speed touches all trees alike.
@@ -97,6 +107,7 @@ pub(super) fn measure_views(
     for (id, cam) in cams {
         let reference = pools.one.install(|| render::trace_frame(&scalars[0], cam));
         let mut rates = [Rates::default(); 3];
+        let mut loss = [[Spread::default(); 4]; 3];
         for packet in [false, true] {
             for all in [false, true] {
                 let pool = pools.get(all);
@@ -112,14 +123,17 @@ pub(super) fn measure_views(
                     scalars.iter().map(|t| t as &dyn ClosestHit).collect()
                 };
                 let mut samples: [Vec<f64>; 3] = Default::default();
-                // One warm-up frame per tree, then the timed ones.
+                // One warm-up frame per tree, then the timed ones; each
+                // repetition starts with the next tree, so that no tree
+                // always follows the same one.
                 for rep in 0..=reps {
-                    for (k, kind) in TreeKind::ALL.iter().enumerate() {
+                    for j in 0..TreeKind::ALL.len() {
+                        let k = (rep + j) % TreeKind::ALL.len();
                         let buf = pool.install(|| render::trace_frame(tracers[k], cam));
                         check_hits(&reference.hits, &buf, || {
                             format!(
                                 "{name} view {id}: the {} tree, {mode}, {threads} threads",
-                                kind.name()
+                                TreeKind::ALL[k].name()
                             )
                         })?;
                         if rep > 0 {
@@ -127,8 +141,10 @@ pub(super) fn measure_views(
                         }
                     }
                 }
+                let column = 2 * usize::from(packet) + usize::from(all);
                 for k in 0..3 {
                     *rates[k].slot(packet, all) = median(&samples[k]);
+                    loss[k][column] = Spread::of(&paired_loss(&samples[k], &samples[0]));
                 }
             }
         }
@@ -137,6 +153,7 @@ pub(super) fn measure_views(
             hits: reference.n_hits(),
             checksum: reference.checksum(),
             rates,
+            loss,
         });
     }
     Ok(out)
@@ -162,17 +179,28 @@ pub(super) fn sweep_point(
         .install(|| slim::slim(std_tree, scene, config, &params));
     let slim_s = start.elapsed().as_secs_f64();
     let label = format!("τ_occu {} τ_freq {}", params.tau_occu, params.tau_freq);
-    let cfg = file_config(config, scene.len(), Preset::Custom, Some(&params));
+    let cfg = FileConfig {
+        scene: SceneTag::new(name, scene),
+        ..file_config(config, scene.len(), Preset::Custom, Some(&params))
+    };
     let written = write_tree(name, &label, &tree, scene, cfg)?;
     drop(tree);
     let std_tracer = PacketTracer::new(std_file);
     let tracer = PacketTracer::new(&written.file);
     let mut view_loss_pct = Vec::new();
+    let mut all_losses = Vec::new();
     for (id, cam) in cams {
         let (mut std_rates, mut rates) = (Vec::new(), Vec::new());
         for rep in 0..=reps {
-            let a = pools.all.install(|| render::trace_frame(&std_tracer, cam));
-            let b = pools.all.install(|| render::trace_frame(&tracer, cam));
+            // The two trees alternate which goes first.
+            let (first, second) = if rep % 2 == 0 {
+                (&std_tracer, &tracer)
+            } else {
+                (&tracer, &std_tracer)
+            };
+            let x = pools.all.install(|| render::trace_frame(first, cam));
+            let y = pools.all.install(|| render::trace_frame(second, cam));
+            let (a, b) = if rep % 2 == 0 { (x, y) } else { (y, x) };
             check_hits(&a.hits, &b, || {
                 format!("{name} view {id}: the {label} tree")
             })?;
@@ -181,7 +209,9 @@ pub(super) fn sweep_point(
                 rates.push(b.mrays_per_s());
             }
         }
-        view_loss_pct.push(percent_below(median(&rates), median(&std_rates)));
+        let losses = paired_loss(&rates, &std_rates);
+        view_loss_pct.push(median(&losses));
+        all_losses.extend(losses);
     }
     let tree_bytes = written.file.figures().tree_bytes();
     Ok(SweepPoint {
@@ -192,6 +222,7 @@ pub(super) fn sweep_point(
         hoisted: slim_report.hoisted,
         reduction_pct: percent_below(tree_bytes as f64, std_file.figures().tree_bytes() as f64),
         loss_pct: median(&view_loss_pct),
+        loss_spread: Spread::of(&all_losses),
         view_loss_pct,
         slim_s,
     })

@@ -1,0 +1,295 @@
+//! The objects `--json` prints: one `serde` struct per part, shared by the
+//! commands that print the same quantity, so that a key means one thing
+//! everywhere (docs/json-schema.md lists every key, its meaning and unit).
+
+use crate::*;
+use serde::Serialize;
+use slimkd::pipeline::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
+use slimkd::stats::{TreeStats, report};
+
+/// One command's object: `schema` and `command` first, then its parts.
+#[derive(Serialize)]
+pub(crate) struct Doc<T: Serialize> {
+    pub(crate) schema: u32,
+    pub(crate) command: &'static str,
+    #[serde(flatten)]
+    pub(crate) body: T,
+}
+
+/// Prints `body` as the one JSON object of `command`.
+pub(crate) fn print_json<T: Serialize>(command: &'static str, body: T) -> Res<()> {
+    let doc = Doc {
+        schema: JSON_SCHEMA,
+        command,
+        body,
+    };
+    println!("{}", serde_json::to_string(&doc)?);
+    Ok(())
+}
+
+/// A loaded scene.
+#[derive(Serialize)]
+pub(crate) struct SceneJson {
+    /// The scene file as given (or the embedded scene's file name).
+    pub(crate) scene: String,
+    /// Its name: the file's stem.
+    pub(crate) scene_name: String,
+    pub(crate) triangles: usize,
+    pub(crate) vertices: usize,
+    pub(crate) dropped_degenerate: usize,
+    pub(crate) load_s: f64,
+}
+
+impl SceneJson {
+    pub(crate) fn of(loaded: &Loaded) -> SceneJson {
+        SceneJson {
+            scene: loaded.path.display().to_string(),
+            scene_name: loaded.name(),
+            triangles: loaded.scene.len(),
+            vertices: loaded.scene.positions().len(),
+            dropped_degenerate: loaded.summary.dropped_degenerate,
+            load_s: loaded.seconds,
+        }
+    }
+}
+
+/// A built tree's figures.
+#[derive(Serialize)]
+pub(crate) struct TreeJson {
+    #[serde(flatten)]
+    pub(crate) nodes: NodeCounts,
+    pub(crate) nodes_empty_leaf: usize,
+    pub(crate) refs: usize,
+    pub(crate) max_depth: u32,
+    pub(crate) mean_leaf_depth: f64,
+    pub(crate) sah_cost: f64,
+    pub(crate) leaf_depth_histogram: Vec<u64>,
+}
+
+impl TreeJson {
+    pub(crate) fn of(s: &TreeStats) -> TreeJson {
+        TreeJson {
+            nodes: NodeCounts::of_stats(s),
+            nodes_empty_leaf: s.empty_leaves,
+            refs: s.refs,
+            max_depth: s.max_depth,
+            mean_leaf_depth: s.mean_leaf_depth,
+            sah_cost: s.sah_cost,
+            leaf_depth_histogram: s.leaf_depths.clone(),
+        }
+    }
+}
+
+#[derive(Serialize)]
+pub(crate) struct LevelJson {
+    sah_s: f64,
+    classify_clip_s: f64,
+    events_s: f64,
+    leaves_s: f64,
+    small_nodes_s: f64,
+    setup_s: f64,
+    assemble_s: f64,
+    levels: u64,
+    small_nodes: u64,
+    start_rss_anon_bytes: u64,
+    peak_rss_anon_bytes: u64,
+    peak_rss_file_bytes: u64,
+    scratch_bytes_written: u64,
+    cpu_s: f64,
+}
+
+#[derive(Serialize)]
+pub(crate) struct SlimJson {
+    hoisted: usize,
+    cancelled: usize,
+    rejected: usize,
+    rebuilds: usize,
+    rebuilt_refs: u64,
+    passes: u32,
+    analysis_s: f64,
+    rebuild_s: f64,
+    apply_s: f64,
+    assemble_s: f64,
+}
+
+/// How a tree was built.
+#[derive(Serialize)]
+pub(crate) struct BuildJson {
+    pub(crate) builder: &'static str,
+    /// The whole build: std tree and slim pass.
+    pub(crate) build_s: f64,
+    pub(crate) std_build_s: f64,
+    pub(crate) k_t: f64,
+    pub(crate) k_i: f64,
+    pub(crate) lambda_empty: f64,
+    pub(crate) preset: &'static str,
+    pub(crate) hoisted: usize,
+    pub(crate) tau_occu: Option<f64>,
+    pub(crate) tau_freq: Option<f64>,
+    pub(crate) max_t2rn: Option<u32>,
+    pub(crate) hoist_rule: Option<&'static str>,
+    pub(crate) level: Option<LevelJson>,
+    pub(crate) slim: Option<SlimJson>,
+}
+
+impl BuildJson {
+    pub(crate) fn of(built: &Built) -> BuildJson {
+        let slim = built.slim.as_ref();
+        BuildJson {
+            builder: built.builder,
+            build_s: built.seconds,
+            std_build_s: built.std_seconds,
+            k_t: built.config.sah.k_t,
+            k_i: built.config.sah.k_i,
+            lambda_empty: built.config.sah.lambda_empty,
+            preset: built.preset.name(),
+            hoisted: slim.map_or(0, |(_, r, _)| r.hoisted),
+            tau_occu: slim.map(|(p, _, _)| p.tau_occu),
+            tau_freq: slim.map(|(p, _, _)| p.tau_freq),
+            max_t2rn: slim.map(|(p, _, _)| p.max_t2rn),
+            hoist_rule: slim.map(|(p, _, _)| report::rule_name(p.rule)),
+            level: built.level.as_ref().map(|r| LevelJson {
+                sah_s: r.phases.sah_s,
+                classify_clip_s: r.phases.classify_clip_s,
+                events_s: r.phases.events_s,
+                leaves_s: r.phases.leaves_s,
+                small_nodes_s: r.phases.small_s,
+                setup_s: r.phases.setup_s,
+                assemble_s: r.phases.assemble_s,
+                levels: r.levels as u64,
+                small_nodes: r.small_nodes,
+                start_rss_anon_bytes: r.start_rss_anon_bytes,
+                peak_rss_anon_bytes: r.peak_rss_anon_bytes,
+                peak_rss_file_bytes: r.peak_rss_file_bytes,
+                scratch_bytes_written: r.scratch.file_bytes_total,
+                cpu_s: r.cpu_s,
+            }),
+            slim: slim.map(|(_, r, ph)| SlimJson {
+                hoisted: r.hoisted,
+                cancelled: r.cancelled,
+                rejected: r.rejected,
+                rebuilds: r.rebuilds,
+                rebuilt_refs: r.rebuilt_refs as u64,
+                passes: ph.passes,
+                analysis_s: ph.analysis_s,
+                rebuild_s: ph.rebuild_s,
+                apply_s: ph.apply_s,
+                assemble_s: ph.assemble_s,
+            }),
+        }
+    }
+}
+
+/// A `.kd` file written.
+#[derive(Serialize)]
+pub(crate) struct WrittenJson {
+    pub(crate) output: String,
+    pub(crate) write_s: f64,
+    pub(crate) reorder: bool,
+    #[serde(flatten)]
+    pub(crate) storage: StorageJson,
+}
+
+/// The peak memory of a command.
+#[derive(Serialize)]
+pub(crate) struct MemoryJson {
+    pub(crate) peak_rss_anon_bytes: u64,
+    pub(crate) peak_rss_file_bytes: u64,
+}
+
+/// `slimkd build --json`.
+#[derive(Serialize)]
+pub(crate) struct BuildCmdJson {
+    #[serde(flatten)]
+    pub(crate) scene: SceneJson,
+    #[serde(flatten)]
+    pub(crate) tree: TreeJson,
+    #[serde(flatten)]
+    pub(crate) build: BuildJson,
+    pub(crate) threads: usize,
+    #[serde(flatten)]
+    pub(crate) written: Option<WrittenJson>,
+    #[serde(flatten)]
+    pub(crate) memory: MemoryJson,
+}
+
+/// A `.kd` file opened.
+#[derive(Serialize)]
+pub(crate) struct FileJson {
+    pub(crate) file: String,
+    /// The scene name the header records (null: not recorded).
+    pub(crate) scene_name: Option<String>,
+    /// The header's geometry hash, 16 hex digits (all zero: not recorded).
+    pub(crate) geometry_hash: String,
+    pub(crate) triangles: u64,
+    pub(crate) vertices: u64,
+    pub(crate) open_ms: f64,
+    #[serde(flatten)]
+    pub(crate) figures: FiguresJson,
+}
+
+impl FileJson {
+    pub(crate) fn of<D: AsRef<[u8]>>(
+        path: &std::path::Path,
+        file: &slimkd::format::KdFile<D>,
+        open_ms: f64,
+    ) -> FileJson {
+        let f = file.figures();
+        let tag = file.config().scene;
+        FileJson {
+            file: path.display().to_string(),
+            scene_name: tag.name().map(str::to_string),
+            geometry_hash: format!("{:016x}", tag.geometry_hash),
+            triangles: f.triangles,
+            vertices: f.vertices,
+            open_ms,
+            figures: FiguresJson::of(&f),
+        }
+    }
+}
+
+/// A frame traced.
+#[derive(Serialize)]
+pub(crate) struct FrameJson {
+    pub(crate) mode: &'static str,
+    pub(crate) simd: &'static str,
+    pub(crate) threads: usize,
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    pub(crate) reps: usize,
+    pub(crate) mrays_per_s: f64,
+    pub(crate) hits: u64,
+    pub(crate) checksum: f64,
+    pub(crate) eye: [f64; 3],
+    pub(crate) at: [f64; 3],
+    pub(crate) up: [f64; 3],
+    pub(crate) fov: f64,
+}
+
+/// What `render` traced: a tree it built, or a file.
+#[derive(Serialize)]
+#[serde(untagged)]
+pub(crate) enum RenderSourceJson {
+    Built(Box<BuiltJson>),
+    File(FileJson),
+}
+
+/// A tree `render` built: the scene, the tree and the build.
+#[derive(Serialize)]
+pub(crate) struct BuiltJson {
+    #[serde(flatten)]
+    pub(crate) scene: SceneJson,
+    #[serde(flatten)]
+    pub(crate) tree: TreeJson,
+    #[serde(flatten)]
+    pub(crate) build: BuildJson,
+}
+
+/// `slimkd render --json`.
+#[derive(Serialize)]
+pub(crate) struct RenderCmdJson {
+    #[serde(flatten)]
+    pub(crate) source: RenderSourceJson,
+    #[serde(flatten)]
+    pub(crate) frame: FrameJson,
+}
