@@ -276,12 +276,19 @@ pub fn split_overlap(d: [f64; 3], sa: f64, axis: usize) -> f64 {
 /// `(FLAT_PRICED_OVERLAP − s) / 2` for a flat split, else 0.
 #[inline]
 pub fn flat_extra(d: [f64; 3], sa: f64, axis: usize) -> f64 {
-    let s = split_overlap(d, sa, axis);
-    if s < FLAT_OVERLAP {
-        (FLAT_PRICED_OVERLAP - s) / 2.0
+    if is_flat_split(d, sa, axis) {
+        (FLAT_PRICED_OVERLAP - split_overlap(d, sa, axis)) / 2.0
     } else {
         0.0
     }
+}
+
+/// Whether the splits on `axis` of a cell with extents `d` and surface
+/// area `sa` are flat: their overlap is below [`FLAT_OVERLAP`] (never for
+/// a cell without area, whose overlap is `NaN`).
+#[inline]
+pub fn is_flat_split(d: [f64; 3], sa: f64, axis: usize) -> bool {
+    split_overlap(d, sa, axis) < FLAT_OVERLAP
 }
 
 /// Whether a reference whose box spans `lo..=hi` on the split axis
@@ -392,8 +399,7 @@ pub fn is_leaf(
                 return true;
             }
             let d = [0, 1, 2].map(|k| f64::from(cell.max[k]) - f64::from(cell.min[k]));
-            let overlap = split_overlap(d, cell.surface_area(), s.axis as usize);
-            if !(overlap < FLAT_OVERLAP) {
+            if !is_flat_split(d, cell.surface_area(), s.axis as usize) {
                 return false;
             }
             let halvings = depth / FLAT_HALVING;
