@@ -248,17 +248,17 @@ pub const FLAT_OVERLAP: f64 = 1e-3;
 /// `(FLAT_PRICED_OVERLAP − s) / 2`, so that a reference in both children
 /// costs what it costs in a slab ten times thinner than wide. With the true
 /// ratios it costs nothing, and 1,000 random triangles in one plane make
-/// 27,609 references per triangle; with this, 117 (and an SAH cost of 2,285
-/// against the unbounded tree's 1,794).
+/// 27,609 references per triangle; priced so (without [`FLAT_HALVING`]),
+/// 117, with an SAH cost of 2,285 against the unbounded tree's 1,794.
 pub const FLAT_PRICED_OVERLAP: f64 = 0.1;
 
 /// A flat split is taken only if at most `n / 2^⌊depth / FLAT_HALVING⌋` of
 /// the node's `n` references straddle it ([`is_leaf`]), so that flat splits
 /// at most multiply the references per triangle by
-/// `∏_d (1 + 2^−⌊d/6⌋)` over the depths `d` of a path, whatever the depth
-/// limit. Pricing alone still lets a fan of slivers meeting in one corner
-/// double its references every few levels (456 per triangle for a
-/// 10⁵-corner fan, 36 s); with this, 27 (2.6 s).
+/// `∏_d (1 + 2^−⌊d/6⌋)` over the depths `d` of a path (about 11,700 over
+/// all depths; 12 to 27 measured). Pricing alone still lets a fan of
+/// slivers meeting in one corner blow up (10⁴ corners: 3,121 references
+/// per triangle, 19 s); with this, 26.5 (0.56 s; 10⁵ corners 4.4 s).
 pub const FLAT_HALVING: u32 = 6;
 
 /// The overlap `s = P_L + P_R − 1` of every split on `axis` of a cell with
