@@ -207,7 +207,20 @@ impl<'a> TreeWriter<'a> {
         weight: u64,
     ) -> Option<(Split, Aabb, Aabb)> {
         let n = refs.len();
-        if sah::is_leaf(self.sah, best.as_ref(), n, depth, self.depth_limit) {
+        if sah::is_leaf(
+            self.sah,
+            best.as_ref(),
+            n,
+            depth,
+            self.depth_limit,
+            cell,
+            |s| {
+                let k = s.axis as usize;
+                refs.iter()
+                    .filter(|r| sah::straddles(r.bounds.min[k], r.bounds.max[k], s.pos))
+                    .count()
+            },
+        ) {
             self.leaf(refs.iter().map(|r| r.tri));
             Progress::add(self.progress, weight);
             return None;

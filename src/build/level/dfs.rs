@@ -210,7 +210,15 @@ impl<'a> Finisher<'a> {
                 );
             }
         }
-        if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
+        if sah::is_leaf(
+            self.params,
+            best.as_ref(),
+            n,
+            depth,
+            self.depth_limit,
+            &cell,
+            |s| straddlers(&self.boxes[r0..r0 + n], s),
+        ) {
             self.leaf(r0, n);
             return;
         }
@@ -436,7 +444,15 @@ impl<'a> Finisher<'a> {
             let (simd, params) = (self.simd, self.params);
             tiny::best_split(simd, params, &cell, sa, boxes, which, scratch, &mut best);
         }
-        if sah::is_leaf(self.params, best.as_ref(), n, depth, self.depth_limit) {
+        if sah::is_leaf(
+            self.params,
+            best.as_ref(),
+            n,
+            depth,
+            self.depth_limit,
+            &cell,
+            |s| straddlers(&self.boxes[r0..r0 + n], s),
+        ) {
             self.leaf(r0, n);
             return;
         }
@@ -528,4 +544,13 @@ fn grow<T: Copy + Default>(v: &mut Vec<T>, len: usize) {
     if v.len() < len {
         v.resize(len.max(v.len() * 2), T::default());
     }
+}
+
+/// How many of `boxes` straddle `split`'s plane ([`sah::is_leaf`]).
+pub(super) fn straddlers(boxes: &[Box6], split: &Split) -> usize {
+    let k = split.axis as usize;
+    boxes
+        .iter()
+        .filter(|b| sah::straddles(b[k], b[k + 3], split.pos))
+        .count()
 }

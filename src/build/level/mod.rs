@@ -553,6 +553,8 @@ impl<'a> Builder<'a> {
                 nd.n,
                 depth,
                 self.depth_limit,
+                &nd.cell,
+                |s| dfs::straddlers(&l.bounds[nd.refs..nd.refs + nd.n], s),
             ) {
                 let start = self.leaf_tris.len();
                 self.leaf_tris

@@ -301,7 +301,9 @@ struct Pricer {
     k_t: f64,
     k_i: f64,
     lambda_empty: f64,
-    /// `2A / SA(V)` and `2B / SA(V)`.
+    /// `2A / SA(V)` plus the flat-split addition
+    /// ([`sah::AxisPricer::extra`], a constant of the cell and axis), and
+    /// `2B / SA(V)`.
     a2: f64,
     b2: f64,
     lo: f64,
@@ -334,7 +336,7 @@ impl Pricer {
             k_t: params.k_t,
             k_i: params.k_i,
             lambda_empty: params.lambda_empty,
-            a2: 2.0 * u * v * inv,
+            a2: 2.0 * u * v * inv + exact.extra(),
             b2: 2.0 * (u + v) * inv,
             lo: f64::from(cell.min[axis]),
             hi: f64::from(cell.max[axis]),
