@@ -104,3 +104,85 @@ fn leaf_ranges_must_not_overlap_or_leave_gaps() {
         assert!(with_leaf(&bytes, b.0, b.1).is_ok());
     }
 }
+
+/// A mapped file rewritten in place after it was opened can hold anything:
+/// here every inner node becomes its own child and every leaf lists a
+/// range past its index array. The traversers read such words as empty
+/// leaves, so a ray ends (it used to spin forever on the self-loop) and
+/// never panics.
+#[test]
+fn a_mapped_file_changed_in_place_never_loops() {
+    use slimkd::format::Section;
+    use slimkd::geom::Ray;
+    use slimkd::trace::packet::PacketTracer;
+    use slimkd::trace::{ClosestHit, Hit, Scalar};
+    use std::os::unix::fs::FileExt;
+
+    let mut rng = Rng(7);
+    let scene = random_small_scene(&mut rng, 300, 4);
+    let bytes = write(&std_tree(&scene), &scene, false);
+    let dir = common::fresh_temp_dir("changed_in_place");
+    let path = dir.join("t.kd");
+    std::fs::write(&path, &bytes).unwrap();
+    let file = KdFile::open(&path, true).unwrap();
+    let nodes = section(&bytes, Section::Nodes);
+    let mut changed = bytes.clone();
+    let (mut loops, mut leaves) = (0, 0);
+    for (i, at) in nodes.clone().step_by(8).enumerate() {
+        let w = get_u64(&changed, at);
+        let new = match w & node::A_MASK {
+            node::A_LEAF => {
+                leaves += 1;
+                w | (0xffff_ff00u64 << 32)
+            }
+            node::A_TREF => w,
+            _ => {
+                loops += 1;
+                (w & !(0x1fff_ffffu64 << 3)) | ((i as u64) << 3)
+            }
+        };
+        set_u64(&mut changed, at, new);
+    }
+    assert!(
+        loops > 10 && leaves > 10,
+        "{loops} inner nodes, {leaves} leaves"
+    );
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .unwrap()
+        .write_all_at(&changed[nodes.clone()], nodes.start as u64)
+        .unwrap();
+    assert_eq!(
+        file.nodes()[0],
+        get_u64(&changed, nodes.start),
+        "the map shows the change"
+    );
+    let (done, finished) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let b = file.bounds();
+        let rays: Vec<Ray> = (0..16)
+            .map(|i| {
+                let o = b.min - (b.max - b.min) * 0.5;
+                let t = b.min + (b.max - b.min) * (0.2 + 0.04 * i as f32);
+                Ray::new(o, (t - o).normalize())
+            })
+            .collect();
+        let single: Vec<Hit> = rays
+            .iter()
+            .map(|r| Scalar::new(&file).closest_hit(r))
+            .collect();
+        let mut packet = vec![Hit::MISS; 16];
+        PacketTracer::new(&file).closest_hit_n(&rays, &mut packet);
+        let mut any = vec![false; 16];
+        PacketTracer::new(&file).occluded_n(&rays, &mut any);
+        done.send((single, packet, any)).unwrap();
+    });
+    let (single, packet, any) = finished
+        .recv_timeout(std::time::Duration::from_secs(10))
+        .expect("traversal of the changed file ended within 10 s");
+    // The root is its own child now: every walk reads it as an empty leaf.
+    assert!(single.iter().chain(&packet).all(|h| !h.is_hit()));
+    assert!(any.iter().all(|&a| !a));
+    std::fs::remove_dir_all(&dir).ok();
+}

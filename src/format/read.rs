@@ -801,7 +801,13 @@ impl KdFile<Mapped> {
     /// under the program (or fault on truncation). slimkd writes `.kd` files
     /// by atomic rename, never in place, so a map of a file slimkd wrote
     /// stays valid when the file is rewritten; the caller must not let any
-    /// other process modify it in place.
+    /// other process modify it in place. If one does all the same, the
+    /// traversers still end and never read out of bounds (see
+    /// [`crate::trace::FileWalk`]), but a truncation makes the kernel send
+    /// SIGBUS on the next read of a lost page, which ends the process.
+    /// Where files may be changed under the reader, read the file into
+    /// memory instead: `KdFile::from_bytes(aligned_copy(&std::fs::read(path)?))`
+    /// (the whole file in anonymous memory, no map).
     pub fn open(path: &Path, verify_checksums: bool) -> Result<KdFile<Mapped>, FormatError> {
         let io = |source| FormatError::Io {
             path: path.to_path_buf(),

@@ -11,8 +11,18 @@ use glam::Vec3;
 
 /// The sections of a validated [`KdFile`]. Only [`FileWalk::new`] makes
 /// one, so every word, child block, leaf range and vertex index in it
-/// passed [`KdFile::from_bytes`]; indexing stays checked all the same (a
-/// failed check is a panic, never a wrong read).
+/// passed [`KdFile::from_bytes`] when the file was opened.
+///
+/// **A mapped file changed after it was opened** (rewritten in place by
+/// another process) can hold anything, so every read stays checked, and a
+/// check that fails reads as nothing rather than panicking: a child block
+/// that does not lie after its node (a loop) or outside the node section,
+/// or a leaf range outside its index array, is an empty leaf; a triangle
+/// or vertex index out of range is a triangle that is never hit. Each is a
+/// comparison the slice indexing made anyway, and the first keeps every
+/// walk moving forward through the nodes, so it ends. (A file truncated
+/// under the mapping is another matter: the kernel answers a read of the
+/// lost pages with SIGBUS; see [`KdFile::open`].)
 #[derive(Clone, Copy)]
 pub struct FileWalk<'a> {
     nodes: &'a [u64],
@@ -59,15 +69,29 @@ impl<'a> Walk<'a> for FileWalk<'a> {
 
     #[inline(always)]
     fn node(&self, n: u32) -> SourceNode<'a> {
-        let w = self.nodes[n as usize];
+        const EMPTY: SourceNode<'static> = SourceNode::Leaf(LeafTris::Ids(&[]));
+        let Some(&w) = self.nodes.get(n as usize) else {
+            return EMPTY;
+        };
         let hi = (w >> 32) as u32;
         if w & 0b11 != 0b11 {
             // Type I or II inner node: children at `block` (type I) or
             // after the T-reference at `block` (type II).
             let block = (w as u32) >> 3;
+            if block <= n {
+                // Validated files have every child block after its node.
+                return EMPTY;
+            }
             let type2 = w & A_TYPE2 != 0;
             let left = block + u32::from(type2);
-            let t_ref = type2.then(|| (self.nodes[block as usize] >> 32) as u32);
+            let t_ref = if type2 {
+                match self.nodes.get(block as usize) {
+                    Some(&t) => Some((t >> 32) as u32),
+                    None => return EMPTY,
+                }
+            } else {
+                None
+            };
             return SourceNode::Inner {
                 axis: (w & 0b11) as u8,
                 pos: f32::from_bits(hi),
@@ -78,17 +102,23 @@ impl<'a> Walk<'a> for FileWalk<'a> {
         }
         if w & A_TYPE2 != 0 {
             // A T-reference is never a child (validated); read as empty.
-            return SourceNode::Leaf(LeafTris::Ids(&[]));
+            return EMPTY;
         }
         let start = hi as usize;
         let leaf = if (w >> 3) & 1 == 0 {
             let count = (((w as u32) >> 5) & MAX_LEAF32) as usize;
-            LeafIndices::Idx32(&self.idx32[start..start + count])
+            match self.idx32.get(start..start + count) {
+                Some(ids) => LeafIndices::Idx32(ids),
+                None => return EMPTY,
+            }
         } else {
             let count = (((w as u32) >> 5) & 0x7ff) as usize;
-            LeafIndices::Idx16 {
-                upper: (w as u32) & 0xffff_0000,
-                low: &self.idx16[start..start + count],
+            match self.idx16.get(start..start + count) {
+                Some(low) => LeafIndices::Idx16 {
+                    upper: (w as u32) & 0xffff_0000,
+                    low,
+                },
+                None => return EMPTY,
             }
         };
         SourceNode::Leaf(LeafTris::File(leaf))
@@ -97,13 +127,22 @@ impl<'a> Walk<'a> for FileWalk<'a> {
     #[inline(always)]
     fn triangle(&self, t: u32) -> [Vec3; 3] {
         let v = self.vertices;
-        self.triangles[t as usize].map(|i| Vec3::from_array(v[i as usize]))
+        let vertex = |i: u32| v.get(i as usize).map(|&p| Vec3::from_array(p));
+        match self
+            .triangles
+            .get(t as usize)
+            .map(|&[a, b, c]| (vertex(a), vertex(b), vertex(c)))
+        {
+            Some((Some(a), Some(b), Some(c))) => [a, b, c],
+            // Degenerate (zero area): never hit.
+            _ => [Vec3::ZERO; 3],
+        }
     }
 
     #[inline(always)]
     fn input_id(&self, t: u32) -> TriId {
         TriId(match self.tri_map {
-            Some(map) => map[t as usize],
+            Some(map) => map.get(t as usize).copied().unwrap_or(t),
             None => t,
         })
     }

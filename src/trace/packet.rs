@@ -655,8 +655,11 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                     };
                     if second.1 != 0 {
                         // One entry per inner node on the path: the depth
-                        // bound (MAX_DEPTH) keeps it below MAX_STACK.
-                        stack.push(Entry {
+                        // bound (MAX_DEPTH) keeps it below MAX_STACK; a
+                        // deeper path, which only a file changed after it
+                        // was opened can make, drops the cell (as the
+                        // scalar walk does).
+                        let _ = stack.try_push(Entry {
                             node: second.0,
                             mask: second.1,
                             tmin: *second.2,
