@@ -413,44 +413,25 @@ impl Accel {
     /// The closest hit with `t` in `(ray.tmin, ray.tmax]`, if any (ties go
     /// to the smaller `prim`).
     pub fn intersect(&self, ray: &Ray) -> Option<HitRecord> {
-        let hit = with_file!(&self.image, |f| Scalar::new(f).closest_hit(ray));
-        self.record(ray, hit)
+        self.tracer().intersect(ray)
     }
 
     /// Whether anything is hit with `t` in `(ray.tmin, ray.tmax)`.
     pub fn occluded(&self, ray: &Ray) -> bool {
-        with_file!(&self.image, |f| Scalar::new(f).occluded(ray))
+        self.tracer().occluded(ray)
     }
 
     /// [`Accel::intersect`] for the lanes of `packet` whose bit is set in
     /// `mask` (traced as one packet); the other lanes are `None`.
     pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
-        let (rays, lanes, n) = gather(packet, mask);
-        let mut hits = [Hit::MISS; 16];
-        with_file!(&self.image, |f| PacketTracer::new(f)
-            .closest_hit_n(&rays[..n], &mut hits[..n]));
-        let mut out = [None; 16];
-        for i in 0..n {
-            out[lanes[i]] = self.record(&rays[i], hits[i]);
-        }
-        out
+        self.tracer().intersect_packet(packet, mask)
     }
 
     /// [`Accel::occluded`] for the lanes of `packet` whose bit is set in
     /// `mask`: bit `i` of the result is set iff lane `i` is in the mask and
     /// occluded.
     pub fn occluded_packet(&self, packet: &RayPacket, mask: u16) -> u16 {
-        let (rays, lanes, n) = gather(packet, mask);
-        let mut occ = [false; 16];
-        with_file!(&self.image, |f| PacketTracer::new(f)
-            .occluded_n(&rays[..n], &mut occ[..n]));
-        (0..n).filter(|&i| occ[i]).fold(0, |m, i| m | 1 << lanes[i])
-    }
-
-    /// The record of a traversal's hit.
-    fn record(&self, ray: &Ray, hit: Hit) -> Option<HitRecord> {
-        hit.is_hit()
-            .then(|| record(ray, hit, self.triangle(hit.tri.0)))
+        self.tracer().occluded_packet(packet, mask)
     }
 
     /// A handle that traces many rays: the file's sections are taken once
