@@ -186,3 +186,44 @@ fn a_mapped_file_changed_in_place_never_loops() {
     assert!(any.iter().all(|&a| !a));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `KdFile::read` (the CLI's `--no-mmap`) holds the file in memory: the
+/// file truncated on disk afterwards (which a map answers with SIGBUS)
+/// changes nothing, and it traces as the mapped file did.
+#[test]
+fn a_file_read_into_memory_survives_truncation() {
+    use slimkd::geom::Ray;
+    use slimkd::trace::{ClosestHit, Hit, Scalar};
+
+    let mut rng = Rng(11);
+    let scene = random_small_scene(&mut rng, 300, 4);
+    let bytes = write(&std_tree(&scene), &scene, false);
+    let dir = common::fresh_temp_dir("read_into_memory");
+    let path = dir.join("t.kd");
+    std::fs::write(&path, &bytes).unwrap();
+    let trace = |file: &KdFile<slimkd::format::Mapped>| -> Vec<Hit> {
+        let b = file.bounds();
+        (0..64)
+            .map(|i| {
+                let o = b.min - (b.max - b.min) * 0.5;
+                let t = b.min + (b.max - b.min) * (0.1 + 0.0125 * i as f32);
+                Scalar::new(file).closest_hit(&Ray::new(o, (t - o).normalize()))
+            })
+            .collect()
+    };
+    let mapped = trace(&KdFile::open(&path, true).unwrap());
+    assert!(mapped.iter().any(|h| h.is_hit()));
+    let read = KdFile::read(&path, true).unwrap();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .unwrap()
+        .set_len(0)
+        .unwrap();
+    assert_eq!(trace(&read), mapped);
+    assert!(
+        KdFile::read(&path, false).is_err(),
+        "the truncated file is refused"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -782,12 +782,22 @@ impl<D: AsRef<[u8]>> KdFile<D> {
     }
 }
 
-/// A read-only memory map of a `.kd` file.
-pub struct Mapped(memmap2::Mmap);
+/// The bytes of an opened `.kd` file: a read-only memory map
+/// ([`KdFile::open`]) or, for files that may change under the reader, a
+/// copy in memory ([`KdFile::read`]).
+pub struct Mapped(Backing);
+
+enum Backing {
+    Map(memmap2::Mmap),
+    Heap(AlignedBytes),
+}
 
 impl AsRef<[u8]> for Mapped {
     fn as_ref(&self) -> &[u8] {
-        &self.0
+        match &self.0 {
+            Backing::Map(m) => m,
+            Backing::Heap(h) => h.as_ref(),
+        }
     }
 }
 
@@ -806,8 +816,7 @@ impl KdFile<Mapped> {
     /// [`crate::trace::FileWalk`]), but a truncation makes the kernel send
     /// SIGBUS on the next read of a lost page, which ends the process.
     /// Where files may be changed under the reader, read the file into
-    /// memory instead: `KdFile::from_bytes(aligned_copy(&std::fs::read(path)?))`
-    /// (the whole file in anonymous memory, no map).
+    /// memory instead ([`KdFile::read`], the CLI's `--no-mmap`).
     pub fn open(path: &Path, verify_checksums: bool) -> Result<KdFile<Mapped>, FormatError> {
         let io = |source| FormatError::Io {
             path: path.to_path_buf(),
@@ -820,7 +829,28 @@ impl KdFile<Mapped> {
         // remaining precondition (nobody modifies the file in place while
         // it is mapped) is the caller's, documented above.
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
-        let kd = KdFile::from_bytes(Mapped(map))?;
+        let kd = KdFile::from_bytes(Mapped(Backing::Map(map)))?;
+        if verify_checksums {
+            kd.verify()?;
+        }
+        Ok(kd)
+    }
+
+    /// [`KdFile::open`] without a map: the whole file is read into memory
+    /// (anonymous pages, as large as the file) and validated, so nothing
+    /// another process does to the file afterwards reaches the reader.
+    pub fn read(path: &Path, verify_checksums: bool) -> Result<KdFile<Mapped>, FormatError> {
+        let io = |source| FormatError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let mut bytes = Vec::new();
+        std::io::Read::read_to_end(
+            &mut crate::fsio::open_regular(path).map_err(io)?,
+            &mut bytes,
+        )
+        .map_err(io)?;
+        let kd = KdFile::from_bytes(Mapped(Backing::Heap(aligned_copy(&bytes))))?;
         if verify_checksums {
             kd.verify()?;
         }

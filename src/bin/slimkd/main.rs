@@ -157,6 +157,7 @@ fn main() -> ExitCode {
         }
     }
     let ui = cli.out;
+    render::NO_MMAP.store(cli.no_mmap, std::sync::atomic::Ordering::Relaxed);
     let result = match cli.command {
         // In a pool of its own: rayon's global pool panics where it cannot
         // start its threads, a pool built here is an error.

@@ -35,10 +35,20 @@ pub(crate) fn expect_kd(path: &Path, command: &str) -> Res<()> {
     }
 }
 
-/// Maps and validates a `.kd` file (`verify`: its checksums too); every
-/// error names the file once.
+/// `--no-mmap`: `.kd` files are read into memory rather than mapped (set
+/// once by `main` before any command runs).
+pub(crate) static NO_MMAP: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
+
+/// Maps (or with `--no-mmap` reads) and validates a `.kd` file (`verify`:
+/// its checksums too); every error names the file once.
 pub(crate) fn open_kd(path: &Path, verify: bool) -> Res<KdFile<Mapped>> {
-    KdFile::open(path, verify).map_err(|e| match e {
+    let opened = if NO_MMAP.load(std::sync::atomic::Ordering::Relaxed) {
+        KdFile::read(path, verify)
+    } else {
+        KdFile::open(path, verify)
+    };
+    opened.map_err(|e| match e {
         // It names the file already.
         format::FormatError::Io { .. } => e.to_string().into(),
         _ => format!("{}: {e}", path.display()).into(),

@@ -3,7 +3,6 @@
 //! traversal's work with a separate, untimed counting pass.
 
 use serde::Serialize;
-use slimkd::format::KdFile;
 use slimkd::fsio;
 use slimkd::trace::packet::PacketTracer;
 use slimkd::trace::rays::{self, Query};
@@ -83,7 +82,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
         return Err("--reps must be at least 1".into());
     }
     let start = Instant::now();
-    let file = KdFile::open(&args.file, false)?;
+    let file = crate::render::open_kd(&args.file, false)?;
     let open_ms = start.elapsed().as_secs_f64() * 1e3;
     let rays = rays::read_rays(&args.rays)?;
     let query = if args.occluded {
