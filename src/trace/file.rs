@@ -48,6 +48,7 @@ impl super::KdSource for FileWalk<'_> {
 }
 
 impl<'a> FileWalk<'a> {
+    /// The sections of `file` as slices.
     pub fn new<D: AsRef<[u8]>>(file: &'a KdFile<D>) -> FileWalk<'a> {
         FileWalk {
             nodes: file.nodes(),

@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! Closest-hit queries: the scalar front-to-back kd-tree traverser, the 4×4
 //! packet traverser ([`packet`]) and the brute-force reference.
 //!
@@ -52,12 +53,15 @@ pub struct Hit {
 }
 
 impl Hit {
+    /// The triangle id of a miss.
     pub const NO_TRI: TriId = TriId(u32::MAX);
+    /// No hit: `t` is +inf.
     pub const MISS: Hit = Hit {
         t: f32::INFINITY,
         tri: Hit::NO_TRI,
     };
 
+    /// Whether a triangle was hit.
     pub fn is_hit(&self) -> bool {
         self.tri != Hit::NO_TRI
     }
@@ -74,6 +78,7 @@ impl Hit {
 /// Anything that answers closest-hit and any-hit queries (used by the
 /// renderer and the ray-file tracer).
 pub trait ClosestHit: Sync {
+    /// The closest hit with `t` in `(ray.tmin, ray.tmax]` (ties go to the smaller id).
     fn closest_hit(&self, ray: &Ray) -> Hit;
 
     /// Whether anything is hit at a `t` in `(tmin, tmax)`: exactly
@@ -108,19 +113,27 @@ pub trait ClosestHit: Sync {
 pub enum SourceNode<'a> {
     /// `t_ref` is a hoisted triangle (type II node), in source numbering.
     Inner {
+        /// Split axis (0, 1, 2 for x, y, z).
         axis: u8,
+        /// Split position on the axis.
         pos: f32,
+        /// The child below the plane.
         left: u32,
+        /// The child above the plane.
         right: u32,
+        /// The hoisted triangle of a type II node.
         t_ref: Option<u32>,
     },
+    /// A leaf and its triangles.
     Leaf(LeafTris<'a>),
 }
 
 /// The triangles of a leaf, in source numbering.
 #[derive(Clone, Copy, Debug)]
 pub enum LeafTris<'a> {
+    /// Triangle ids of an in-memory tree.
     Ids(&'a [TriId]),
+    /// The index list of a `.kd` file's leaf.
     File(LeafIndices<'a>),
 }
 
@@ -160,9 +173,11 @@ impl LeafTris<'_> {
 /// (for a file: its sections as plain slices, so that a node step is a
 /// load and a few bit operations).
 pub trait KdSource: Sync {
+    /// The view a traverser walks.
     type Walk<'a>: Walk<'a>
     where
         Self: 'a;
+    /// Takes the view (once per tracer).
     fn walk(&self) -> Self::Walk<'_>;
 }
 
@@ -170,6 +185,7 @@ pub trait KdSource: Sync {
 pub trait Walk<'a>: Copy + Sync {
     /// The root cell.
     fn bounds(&self) -> Aabb;
+    /// Node `n` (the root is 0).
     fn node(&self, n: u32) -> SourceNode<'a>;
     /// The vertices of a triangle (source numbering).
     fn triangle(&self, t: u32) -> [Vec3; 3];
@@ -180,7 +196,9 @@ pub trait Walk<'a>: Copy + Sync {
 /// An in-memory tree and its scene.
 #[derive(Clone, Copy)]
 pub struct TreeTracer<'a> {
+    /// The tree.
     pub tree: &'a TreeIr,
+    /// The scene it was built over (source numbering = input ids).
     pub scene: &'a TriangleColumns,
 }
 
@@ -247,6 +265,7 @@ impl<D: AsRef<[u8]> + Sync> KdSource for KdFile<D> {
 pub struct Scalar<'a, S: KdSource + 'a>(S::Walk<'a>);
 
 impl<'a, S: KdSource> Scalar<'a, S> {
+    /// Takes `src`'s walk once.
     pub fn new(src: &'a S) -> Self {
         Scalar(src.walk())
     }
@@ -348,10 +367,12 @@ pub struct TraceStats {
     /// Packets traced, and the active lanes summed over their node steps
     /// (`lane_steps / nodes` is the packets' mean occupancy).
     pub packets: u64,
+    /// Active lanes summed over packet node steps.
     pub lane_steps: u64,
 }
 
 impl TraceStats {
+    /// Adds the counts of `o`.
     pub fn add(&mut self, o: &TraceStats) {
         self.rays += o.rays;
         self.nodes += o.nodes;

@@ -27,13 +27,17 @@ pub const CHUNK: usize = 256;
 /// What is wrong with a ray file.
 #[derive(Debug)]
 pub enum RayFileError {
+    /// The file could not be read.
     Io(PathBuf, std::io::Error),
     /// The size is not a whole number of records.
     Size(PathBuf, u64),
     /// Record `index` (from 0) is not a ray.
     Record {
+        /// The ray file.
         path: PathBuf,
+        /// The record's index (0-based).
         index: usize,
+        /// What is wrong with it.
         what: &'static str,
     },
 }
@@ -138,6 +142,7 @@ pub enum Query {
 pub struct Traced {
     /// One result per ray (see [`Query`]).
     pub results: Vec<f32>,
+    /// Wall time of the batch.
     pub seconds: f64,
 }
 
@@ -170,6 +175,7 @@ impl Traced {
         }
     }
 
+    /// Million rays per second.
     pub fn mrays_per_s(&self) -> f64 {
         self.results.len() as f64 / self.seconds / 1e6
     }
