@@ -210,15 +210,7 @@ impl<'a> Finisher<'a> {
                 );
             }
         }
-        if sah::is_leaf(
-            self.params,
-            best.as_ref(),
-            n,
-            depth,
-            self.depth_limit,
-            &cell,
-            |s| straddlers(&self.boxes[r0..r0 + n], s),
-        ) {
+        if self.is_leaf(best.as_ref(), r0, n, depth, &cell) {
             self.leaf(r0, n);
             return;
         }
@@ -415,6 +407,14 @@ impl<'a> Finisher<'a> {
         }
     }
 
+    /// [`sah::is_leaf`] for the references `r0..r0 + n` in `cell` with
+    /// their best split.
+    fn is_leaf(&self, best: Option<&Split>, r0: usize, n: usize, depth: u32, cell: &Aabb) -> bool {
+        sah::is_leaf(self.params, best, n, depth, self.depth_limit, cell, |s| {
+            straddlers(&self.boxes[r0..r0 + n], s)
+        })
+    }
+
     /// A leaf of the references `r0..r0 + n`.
     fn leaf(&mut self, r0: usize, n: usize) {
         let start = self.leaf_tris.len() as u32;
@@ -444,15 +444,7 @@ impl<'a> Finisher<'a> {
             let (simd, params) = (self.simd, self.params);
             tiny::best_split(simd, params, &cell, sa, boxes, which, scratch, &mut best);
         }
-        if sah::is_leaf(
-            self.params,
-            best.as_ref(),
-            n,
-            depth,
-            self.depth_limit,
-            &cell,
-            |s| straddlers(&self.boxes[r0..r0 + n], s),
-        ) {
+        if self.is_leaf(best.as_ref(), r0, n, depth, &cell) {
             self.leaf(r0, n);
             return;
         }
