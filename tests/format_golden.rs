@@ -1,4 +1,6 @@
-//! A committed golden `.kd` file (`tests/golden/`) that must keep loading.
+//! The committed golden `.kd` files (`tests/golden/`): the current
+//! version's must keep loading; version 1's must be refused with a message
+//! that says to rebuild it.
 
 mod common;
 
@@ -45,7 +47,38 @@ fn golden_inputs() -> (TriangleColumns, TreeIr, WriteOptions) {
 const GOLDEN_DEPTH_LIMIT: u32 = 16;
 
 fn golden_path() -> PathBuf {
-    manifest_dir().join("tests/golden/bunny_npm.kd")
+    manifest_dir().join("tests/golden/bunny_npm.v2.kd")
+}
+
+/// The same inputs written by format version 1 (children in blocks of two,
+/// every empty leaf a word).
+fn golden_v1_path() -> PathBuf {
+    manifest_dir().join("tests/golden/bunny_npm.v1.kd")
+}
+
+/// A version-1 file is refused, and the error says what to do.
+#[test]
+fn version_1_file_says_to_rebuild() {
+    let bytes = std::fs::read(golden_v1_path()).unwrap();
+    assert_eq!(bytes.len(), 170_368);
+    let err = KdFile::from_bytes(aligned_copy(&bytes))
+        .err()
+        .expect("version 1 is refused");
+    assert!(
+        matches!(
+            err,
+            format::FormatError::Version {
+                expected: 2,
+                got: 1
+            }
+        ),
+        "{err:?}"
+    );
+    let message = err.to_string();
+    assert!(
+        message.contains("version 1") && message.contains("rebuild"),
+        "{message}"
+    );
 }
 
 /// Rewrites `tests/golden/bunny_npm.kd`. Run only on purpose, when the
@@ -121,15 +154,17 @@ fn golden_file_still_loads() {
 }
 
 // The golden file's size and figures, as written by `regenerate_golden`.
-const GOLDEN_SIZE: usize = 170_368;
+const GOLDEN_SIZE: usize = 154_880;
 const GOLDEN_MAX_DEPTH: u32 = 16;
 const GOLDEN_FIGURES: format::TreeFigures = format::TreeFigures {
     inner: 1721,
     t_inner: 1852,
     leaves: 3574,
+    implicit_empty: 1922,
+    one_leaves: 60,
     idx32: 0,
-    idx16: 8525,
+    idx16: 8465,
     triangles: 3674,
     vertices: 1839,
-    words: 8999,
+    words: 7077,
 };

@@ -9,7 +9,7 @@
 //! validates every count, offset, node and index before any traversal, so
 //! that no byte string makes traversal panic, read out of bounds or loop.
 //!
-//! # Layout, version 1
+//! # Layout, version 2
 //!
 //! The header (384 bytes) comes first; then the sections, in the order of
 //! the section table, each starting at the first multiple of 64 bytes at or
@@ -18,15 +18,16 @@
 //! The layout is thus canonical, and the reader checks it.
 //!
 //! Every byte is checked: the header by its CRC (bytes 0..336), each section
-//! by its CRC in the section table ([`KdFile::verify`]), and the reserved
-//! header bytes 340..384 and the padding after each section must be zero
-//! ([`KdFile::from_bytes`]). So any single corrupted bit makes
-//! `from_bytes` or `verify` fail.
+//! by its CRC in the section table ([`KdFile::verify`]), the counts of empty
+//! leaves without a word and of one-triangle leaves (bytes 340..356, after
+//! the CRC) against the nodes, and the reserved header bytes 356..384 and the
+//! padding after each section must be zero ([`KdFile::from_bytes`]). So any
+//! single corrupted bit makes `from_bytes` or `verify` fail.
 //!
 //! | offset | size | field |
 //! |---:|---:|---|
 //! | 0 | 8 | magic `89 53 4C 4B 44 0D 0A 1A` (`\x89SLKD\r\n\x1a`) |
-//! | 8 | 4 | format version (1) |
+//! | 8 | 4 | format version (2) |
 //! | 12 | 4 | endianness check `0x0A0B0C0D` |
 //! | 16 | 4 | header size (384) |
 //! | 20 | 4 | flags: bit 0 = triangles reordered (the `tri_map` section is present) |
@@ -39,10 +40,10 @@
 //! | 60 | 4 | τ_freq (f32) |
 //! | 64 | 4 | `max_t2rn` |
 //! | 68 | 4 | maximum node depth |
-//! | 72 | 8 | node words (inner + t-inner + leaves + T-references) |
+//! | 72 | 8 | node words (inner + t-inner + leaves + T-references − empty leaves without a word) |
 //! | 80 | 8 | type I inner nodes |
 //! | 88 | 8 | type II inner nodes (t-inner) |
-//! | 96 | 8 | leaves |
+//! | 96 | 8 | leaves (with the empty leaves that have no word) |
 //! | 104 | 8 | idx32 entries |
 //! | 112 | 8 | idx16 entries |
 //! | 120 | 8 | triangles |
@@ -52,15 +53,26 @@
 //! | 168 | 24 | scene name ([`SceneTag`]): UTF-8, padded with zero bytes (all zero: not recorded) |
 //! | 192 | 6 × 24 | section table: per section, byte offset (u64), byte length (u64), CRC-32 (u32), reserved (u32) |
 //! | 336 | 4 | CRC-32 of bytes 0..336 |
-//! | 340 | 44 | reserved (zero) |
+//! | 340 | 8 | empty leaves without a word |
+//! | 348 | 8 | one-triangle leaves (no index entry) |
+//! | 356 | 28 | reserved (zero) |
 //!
 //! Sections, in order: `nodes` (u64 node words, see [`node`]), `idx32`
 //! (u32), `idx16` (u16), `vertices` (3 × f32), `triangles` (3 × u32 vertex
 //! indices), `tri_map` (u32: file triangle id → input triangle id; empty
-//! unless reordered). The root is node 0. Every child block lies strictly
-//! after its parent, so there are no cycles; the node section is limited to
-//! 2^29 nodes (4 GiB) by the 29-bit offset field, and the writer refuses
-//! larger trees rather than wrap.
+//! unless reordered). The root is node 0 and the nodes lie in pre-order
+//! ([`node`]: the left child next, the right child at its slot, an empty
+//! child without a word). [`KdFile::from_bytes`] checks that order, which
+//! makes every node the child of exactly one parent and every child lie
+//! after its parent, so there are no cycles and no shared subtrees.
+//!
+//! **Limits:** 2^29 node words (4 GiB; the 29-bit slot field), 2^32
+//! triangles, vertices and entries of each index array, 2^27 − 1
+//! triangles in a leaf, depth [`MAX_DEPTH`](crate::tree::MAX_DEPTH). The
+//! writer refuses larger trees rather than wrap.
+//!
+//! **Version 1** (every empty leaf a word, children in blocks of two) is
+//! not read: opening one is an error that says to rebuild the file.
 //!
 //! Hit ids reported by traversal are always input ids (through `tri_map`).
 //!
@@ -97,7 +109,7 @@ fn check_vertex_indices(triangles: &[[u32; 3]], n_vertices: u64) -> Result<(), F
 }
 
 pub const MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 pub const ENDIAN_CHECK: u32 = 0x0A0B_0C0D;
 pub const HEADER_SIZE: usize = 384;
 pub const SECTION_ALIGN: usize = 64;
@@ -148,6 +160,11 @@ pub(crate) const HEADER_CRC: usize = 336;
 /// name ([`SCENE_NAME_LEN`] bytes).
 pub(crate) const SCENE_HASH_AT: usize = 160;
 pub(crate) const SCENE_NAME_AT: usize = 168;
+/// Where the header counts the empty leaves that take no word (u64) and
+/// the one-triangle leaves (u64), after its checksummed part.
+pub(crate) const IMPLICIT_EMPTY_AT: usize = 340;
+pub(crate) const ONE_LEAVES_AT: usize = 348;
+pub(crate) const RESERVED_AT: usize = 356;
 
 // The header table must fit before the header checksum.
 const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);
@@ -218,6 +235,11 @@ impl fmt::Display for FormatError {
                 write!(f, "truncated file: needs {needed} bytes, has {got}")
             }
             FormatError::BadMagic => write!(f, "not a slimkd .kd file (bad magic)"),
+            FormatError::Version { expected, got } if got < expected => write!(
+                f,
+                "format version {got}, which this build no longer reads (it reads {expected}): \
+                 rebuild the tree with `slimkd build`"
+            ),
             FormatError::Version { expected, got } => {
                 write!(
                     f,

@@ -4,8 +4,8 @@
 use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
 use super::write::{FileConfig, Preset, SceneTag};
 use super::{
-    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SECTION_ALIGN,
-    SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, IMPLICIT_EMPTY_AT, MAGIC,
+    ONE_LEAVES_AT, RESERVED_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::geom::Aabb;
 use crate::tree::MAX_DEPTH;
@@ -36,25 +36,38 @@ pub struct KdFile<D> {
 pub struct TreeFigures {
     pub inner: u64,
     pub t_inner: u64,
+    /// Every leaf of the tree, with the empty ones that have no word.
     pub leaves: u64,
+    /// Empty leaves without a word (all but the rare left child of a node
+    /// whose two children are empty, and an empty root).
+    pub implicit_empty: u64,
+    /// Leaves of one triangle, held in their word (no index entry).
+    pub one_leaves: u64,
     pub idx32: u64,
     pub idx16: u64,
     pub triangles: u64,
     pub vertices: u64,
-    /// Node words in the file (inner + t-inner + leaves + T-references).
+    /// Node words in the file: inner + t-inner + T-references + the leaves
+    /// that have a word.
     pub words: u64,
 }
 
 impl TreeFigures {
-    /// Nodes as the paper counts them: inner, t-inner and leaves.
+    /// Nodes as the paper counts them: inner, t-inner and leaves (empty
+    /// ones too).
     pub fn nodes(&self) -> u64 {
         self.inner + self.t_inner + self.leaves
     }
 
-    /// Tree memory as the paper counts it:
-    /// `8·(nodes + T-references) + 4·|idx32| + 2·|idx16|` bytes.
+    /// Triangle references of the leaves (index entries and one-triangle
+    /// leaves).
+    pub fn references(&self) -> u64 {
+        self.idx32 + self.idx16 + self.one_leaves
+    }
+
+    /// Tree memory as stored: `8·words + 4·|idx32| + 2·|idx16|` bytes.
     pub fn tree_bytes(&self) -> u64 {
-        8 * (self.nodes() + self.t_inner) + 4 * self.idx32 + 2 * self.idx16
+        8 * self.words + 4 * self.idx32 + 2 * self.idx16
     }
 
     /// Vertex positions and vertex-index triples as stored.
@@ -67,7 +80,12 @@ impl TreeFigures {
 #[derive(Clone, Copy, Debug)]
 pub enum LeafIndices<'a> {
     Idx32(&'a [u32]),
-    Idx16 { upper: u32, low: &'a [u16] },
+    Idx16 {
+        upper: u32,
+        low: &'a [u16],
+    },
+    /// A leaf of one triangle (its word holds the index).
+    One(u32),
 }
 
 impl LeafIndices<'_> {
@@ -75,6 +93,7 @@ impl LeafIndices<'_> {
         match self {
             LeafIndices::Idx32(s) => s.len(),
             LeafIndices::Idx16 { low, .. } => low.len(),
+            LeafIndices::One(_) => 1,
         }
     }
 
@@ -87,6 +106,7 @@ impl LeafIndices<'_> {
         match *self {
             LeafIndices::Idx32(s) => s.iter().for_each(|&t| f(t)),
             LeafIndices::Idx16 { upper, low } => low.iter().for_each(|&t| f(upper | u32::from(t))),
+            LeafIndices::One(t) => f(t),
         }
     }
 }
@@ -220,6 +240,8 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             inner: u64_at(b, 80),
             t_inner: u64_at(b, 88),
             leaves: u64_at(b, 96),
+            implicit_empty: u64_at(b, IMPLICIT_EMPTY_AT),
+            one_leaves: u64_at(b, ONE_LEAVES_AT),
             idx32: u64_at(b, 104),
             idx16: u64_at(b, 112),
             triangles: u64_at(b, 120),
@@ -242,11 +264,15 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             ));
         }
         // The node counts must add up: a binary tree has one more leaf than
-        // inner nodes, and each type II node adds one T-reference word.
+        // inner nodes, each type II node adds one T-reference word, and
+        // the empty leaves without a word take none. At most one leaf per
+        // inner node is empty and wordless (both empty: the left has one).
         let inner_all = counts.inner.checked_add(counts.t_inner);
         if inner_all.and_then(|n| n.checked_add(1)) != Some(counts.leaves)
+            || counts.implicit_empty > counts.leaves - 1
+            || counts.one_leaves > counts.leaves - counts.implicit_empty
             || inner_all
-                .and_then(|n| n.checked_add(counts.leaves))
+                .and_then(|n| n.checked_add(counts.leaves - counts.implicit_empty))
                 .and_then(|n| n.checked_add(counts.t_inner))
                 != Some(counts.words)
         {
@@ -323,7 +349,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 (e..e + 4, "the section table's reserved word, bytes")
             })
             .into_iter()
-            .chain([(HEADER_CRC + 4..HEADER_SIZE, "header bytes")]);
+            .chain([(RESERVED_AT..HEADER_SIZE, "header bytes")]);
         for (range, what) in reserved {
             if b[range.clone()].iter().any(|&x| x != 0) {
                 return Err(FormatError::Header(format!(
@@ -363,12 +389,8 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         let n = words.len() as u64;
         let n_tris = self.counts.triangles;
         let node_err = |index: u64, message: String| FormatError::Node { index, message };
-        // Depth of each node along the longest path from the root; children
-        // lie strictly forward, so one pass in index order is enough.
-        let mut depth = vec![0u8; words.len()];
-        let mut referenced = vec![false; words.len()];
-        referenced[0] = true;
-        let (mut inner, mut t_inner, mut leaves, mut trefs) = (0u64, 0u64, 0u64, 0u64);
+        let (mut inner, mut t_inner, mut leaves, mut implicit, mut ones) =
+            (0u64, 0u64, 0u64, 0u64, 0u64);
         // The leaves' index ranges cover each index array exactly once, as
         // the writer lays them out: so the work of any traversal (and of
         // `info`) is bounded by the file's size, whatever its splits.
@@ -380,83 +402,150 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 format!("leaf range overlaps another leaf's range in {array}"),
             )
         };
-        for (i, &w) in words.iter().enumerate() {
-            let decoded = node::decode(w).map_err(|m| node_err(i as u64, m.to_string()))?;
-            if !referenced[i] {
+        // One pass in pre-order: the node expected next (its slot, cell,
+        // depth, and whether it may be an empty leaf word) must be the word
+        // at `i`, so every word is one node of one tree, reached once, each
+        // child after its parent; the cells carry every split's bounds.
+        struct Expect {
+            slot: u64,
+            cell: Aabb,
+            depth: u32,
+            may_be_empty: bool,
+        }
+        let mut pending = vec![Expect {
+            slot: 0,
+            cell: self.bounds,
+            depth: 0,
+            may_be_empty: true,
+        }];
+        let mut i = 0usize;
+        while let Some(e) = pending.pop() {
+            if e.slot != i as u64 {
                 return Err(node_err(
                     i as u64,
-                    "not referenced by any inner node".into(),
+                    format!(
+                        "not in pre-order: the next node is expected at {i}, its parent's slot field says {}",
+                        e.slot
+                    ),
                 ));
             }
+            let Some(&w) = words.get(i) else {
+                return Err(node_err(
+                    i as u64,
+                    format!("a child slot outside the {n} node words"),
+                ));
+            };
+            let decoded = node::decode(w).map_err(|m| node_err(i as u64, m.to_string()))?;
             match decoded {
                 NodeWord::Inner {
                     axis,
                     t_ref,
-                    block,
+                    right,
                     pos,
                 } => {
                     if axis > 2 {
                         return Err(node_err(i as u64, "axis 3".into()));
                     }
-                    if !pos.is_finite() {
-                        return Err(node_err(i as u64, "split position is not finite".into()));
-                    }
-                    let block = u64::from(block);
-                    let size = if t_ref { 3 } else { 2 };
-                    if block <= i as u64 || block + size > n {
+                    let k = usize::from(axis);
+                    let cell = e.cell;
+                    if !(pos >= cell.min[k] && pos <= cell.max[k]) {
                         return Err(node_err(
                             i as u64,
-                            format!("child block {block} is not forward and inside {n} nodes"),
+                            format!(
+                                "split {pos:?} on axis {k} outside the node's cell [{:?}, {:?}]",
+                                cell.min[k], cell.max[k]
+                            ),
                         ));
                     }
-                    let d = depth[i] + 1;
-                    if u32::from(d) > MAX_DEPTH || u32::from(d) > self.max_depth {
+                    let depth = e.depth + 1;
+                    if depth > MAX_DEPTH || depth > self.max_depth {
                         return Err(node_err(
                             i as u64,
                             "deeper than the header's maximum depth".into(),
                         ));
                     }
-                    for c in block..block + size {
-                        let c = c as usize;
-                        if referenced[c] {
-                            return Err(node_err(i as u64, format!("node {c} has two parents")));
-                        }
-                        referenced[c] = true;
-                        depth[c] = d;
-                        let is_tref = words[c] & node::A_MASK == node::A_TREF;
-                        let want_tref = t_ref && c as u64 == block;
-                        if is_tref != want_tref {
-                            return Err(node_err(
-                                i as u64,
-                                "T-reference missing from, or misplaced in, a child block".into(),
-                            ));
-                        }
-                    }
                     if t_ref {
+                        match words.get(i + 1).map(|&t| node::decode(t)) {
+                            Some(Ok(NodeWord::TRef { tri })) if u64::from(tri) < n_tris => {}
+                            Some(Ok(NodeWord::TRef { tri })) => {
+                                return Err(node_err(
+                                    i as u64 + 1,
+                                    format!("T-reference to triangle {tri} of {n_tris}"),
+                                ));
+                            }
+                            _ => {
+                                return Err(node_err(
+                                    i as u64,
+                                    "type II node without its T-reference".into(),
+                                ));
+                            }
+                        }
                         t_inner += 1;
                     } else {
                         inner += 1;
                     }
-                }
-                NodeWord::TRef { tri } => {
-                    if u64::from(tri) >= n_tris {
+                    let first = i as u64 + 1 + u64::from(t_ref);
+                    let (left_cell, right_cell) = cell.split(k, pos);
+                    let child = |slot: u64, cell: Aabb, may_be_empty: bool| Expect {
+                        slot,
+                        cell,
+                        depth,
+                        may_be_empty,
+                    };
+                    let right = u64::from(right);
+                    if right == 0 {
+                        // The right child is empty; the left one has a word,
+                        // which may be an empty leaf (both children empty).
+                        leaves += 1;
+                        implicit += 1;
+                        pending.push(child(first, left_cell, true));
+                    } else if right == first {
+                        leaves += 1;
+                        implicit += 1;
+                        pending.push(child(first, right_cell, false));
+                    } else if right > first {
+                        pending.push(child(right, right_cell, false));
+                        pending.push(child(first, left_cell, false));
+                    } else {
                         return Err(node_err(
                             i as u64,
-                            format!("T-reference to triangle {tri} of {n_tris}"),
+                            format!("right child slot {right} is not after the node"),
                         ));
                     }
-                    if i == 0 {
-                        return Err(node_err(0, "the root is a T-reference".into()));
+                    i = first as usize;
+                    continue;
+                }
+                NodeWord::TRef { .. } => {
+                    return Err(node_err(
+                        i as u64,
+                        "a T-reference where a child is expected".into(),
+                    ));
+                }
+                NodeWord::Leaf1 { tri } => {
+                    if u64::from(tri) >= n_tris {
+                        return Err(node_err(i as u64, format!("triangle {tri} of {n_tris}")));
                     }
-                    trefs += 1;
+                    ones += 1;
                 }
                 NodeWord::Leaf32 { count, start } => {
-                    leaves += 1;
                     let end = u64::from(start) + u64::from(count);
                     if end > self.counts.idx32 {
                         return Err(node_err(
                             i as u64,
                             format!("leaf range {start}+{count} outside idx32"),
+                        ));
+                    }
+                    if count == 0 && (start != 0 || !e.may_be_empty) {
+                        return Err(node_err(
+                            i as u64,
+                            "an empty leaf with a word (its parent's slot field says it is empty)"
+                                .into(),
+                        ));
+                    }
+                    if count == 1 {
+                        return Err(node_err(
+                            i as u64,
+                            "a one-triangle leaf with an index entry".into(),
                         ));
                     }
                     if !cover32.claim(u64::from(start), u64::from(count)) {
@@ -468,12 +557,17 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                     upper,
                     start,
                 } => {
-                    leaves += 1;
                     let end = u64::from(start) + u64::from(count);
                     if count >= LEAF16_LIMIT || end > self.counts.idx16 {
                         return Err(node_err(
                             i as u64,
                             format!("leaf range {start}+{count} outside idx16"),
+                        ));
+                    }
+                    if count < 2 {
+                        return Err(node_err(
+                            i as u64,
+                            format!("a 2-byte-mode leaf of {count} triangles"),
                         ));
                     }
                     if !cover16.claim(u64::from(start), u64::from(count)) {
@@ -493,6 +587,15 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                     }
                 }
             }
+            // A leaf.
+            leaves += 1;
+            i += 1;
+        }
+        if i as u64 != n {
+            return Err(node_err(
+                i as u64,
+                "not referenced by any inner node (words after the tree)".into(),
+            ));
         }
         for (cover, array) in [(&cover32, "idx32"), (&cover16, "idx16")] {
             if !cover.is_full() {
@@ -503,19 +606,14 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 });
             }
         }
-        if (inner, t_inner, leaves, trefs)
-            != (
-                self.counts.inner,
-                self.counts.t_inner,
-                self.counts.leaves,
-                t_inner,
-            )
+        let c = &self.counts;
+        if (inner, t_inner, leaves, implicit, ones)
+            != (c.inner, c.t_inner, c.leaves, c.implicit_empty, c.one_leaves)
         {
             return Err(FormatError::Header(
                 "node counts do not match the nodes".into(),
             ));
         }
-        self.check_splits_in_cells()?;
         if let Some(p) = self.idx32().iter().position(|&t| u64::from(t) >= n_tris) {
             return Err(FormatError::Index {
                 section: "idx32",
@@ -576,44 +674,6 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                         message: "not a permutation of the triangles".into(),
                     });
                 }
-            }
-        }
-        Ok(())
-    }
-
-    /// Checks that every split lies inside its node's cell (the scene
-    /// bounds narrowed by the ancestors' splits), as
-    /// [`TreeIr::validate`](crate::tree::TreeIr::validate) requires of a
-    /// tree: a split outside it leaves one child a cell no ray can enter,
-    /// and its distance along a ray may overflow to ±∞ even for rays that
-    /// are not parallel to the plane. Runs after the pass in index order,
-    /// which proved the nodes a tree of bounded depth, so this walk ends
-    /// and its stack stays below twice [`MAX_DEPTH`].
-    fn check_splits_in_cells(&self) -> Result<(), FormatError> {
-        let words = self.nodes();
-        let mut stack = vec![(0usize, self.bounds)];
-        while let Some((i, cell)) = stack.pop() {
-            if let Ok(NodeWord::Inner {
-                axis,
-                t_ref,
-                block,
-                pos,
-            }) = node::decode(words[i])
-            {
-                let k = usize::from(axis);
-                if !(pos >= cell.min[k] && pos <= cell.max[k]) {
-                    return Err(FormatError::Node {
-                        index: i as u64,
-                        message: format!(
-                            "split {pos:?} on axis {k} outside the node's cell [{:?}, {:?}]",
-                            cell.min[k], cell.max[k]
-                        ),
-                    });
-                }
-                let (left, right) = cell.split(k, pos);
-                let first = block as usize + usize::from(t_ref);
-                stack.push((first + 1, right));
-                stack.push((first, left));
             }
         }
         Ok(())
@@ -714,6 +774,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 upper: u32::from(upper) << 16,
                 low: &self.idx16()[start as usize..start as usize + count as usize],
             },
+            NodeWord::Leaf1 { tri } => LeafIndices::One(tri),
             _ => LeafIndices::Idx32(&[]),
         }
     }
@@ -738,26 +799,24 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         self.reordered
     }
 
-    /// Leaves per depth (root = 0).
+    /// Leaves per depth (root = 0), empty ones too.
     pub fn leaf_depth_histogram(&self) -> Vec<u64> {
         let words = self.nodes();
         let mut hist = Vec::new();
-        let mut stack = vec![(0usize, 0usize)];
+        // `None`: an empty child without a word.
+        let mut stack = vec![(Some(0u32), 0usize)];
         while let Some((i, d)) = stack.pop() {
-            match node::decode(words[i]) {
-                Ok(NodeWord::Inner { t_ref, block, .. }) => {
-                    let first = block as usize + usize::from(t_ref);
-                    stack.push((first + 1, d + 1));
-                    stack.push((first, d + 1));
-                }
-                Ok(NodeWord::Leaf32 { .. } | NodeWord::Leaf16 { .. }) => {
-                    if hist.len() <= d {
-                        hist.resize(d + 1, 0);
-                    }
-                    hist[d] += 1;
-                }
-                _ => {}
+            let word = i.map(|i| (i, node::decode(words[i as usize])));
+            if let Some((i, Ok(NodeWord::Inner { t_ref, right, .. }))) = word {
+                let (l, r) = node::children(i, t_ref, right);
+                stack.push((r, d + 1));
+                stack.push((l, d + 1));
+                continue;
             }
+            if hist.len() <= d {
+                hist.resize(d + 1, 0);
+            }
+            hist[d] += 1;
         }
         hist
     }

@@ -219,22 +219,39 @@ struct Layout {
     n_inner: u64,
     n_t_inner: u64,
     n_leaves: u64,
+    /// Empty leaves that take no word.
+    n_implicit_empty: u64,
+    /// Leaves of one triangle (held in their word).
+    n_one_leaves: u64,
     max_depth: u32,
 }
 
-/// Lays out the node words and index arrays. Refuses, rather than writing
-/// a file the reader would reject, a tree that does not fit the format
-/// (too many nodes, a leaf over [`MAX_LEAF32`] triangles, deeper than
-/// [`MAX_DEPTH`]) or that is malformed (a child or leaf list out of range,
-/// a node reached twice, an axis over 2, a split that is not finite or lies
-/// outside its node's cell, a triangle id of `n_tris` or more).
+/// What a node of the layout walk knows of its place: its cell, and, for
+/// a right child, its parent's slot and word without the slot field (which
+/// the right child fills in: its own slot, or 0 when it is empty), or,
+/// for a left child, whether it must have a word even when empty (its
+/// right sibling is empty too).
+#[derive(Clone, Copy)]
+struct Place {
+    cell: crate::geom::Aabb,
+    parent: Option<(usize, u64)>,
+    keep_empty: bool,
+}
+
+/// Lays out the node words (format version 2, see [`node`]: pre-order,
+/// empty children without a word, one-triangle leaves in their word) and
+/// the index arrays. Refuses, rather than writing a file the reader would
+/// reject, a tree that does not fit the format (too many nodes, a leaf over
+/// [`MAX_LEAF32`] triangles, deeper than [`MAX_DEPTH`]) or that is
+/// malformed (a child or leaf list out of range, a node reached twice, an
+/// axis over 2, a split that is not finite or lies outside its node's cell,
+/// a triangle id of `n_tris` or more).
 fn layout(
     tree: &TreeIr,
     n_tris: usize,
     new_id: &dyn Fn(TriId) -> u32,
     words: &mut Words<'_>,
 ) -> Result<Layout, FormatError> {
-    words.push(0)?;
     let mut out = Layout {
         n_words: 0,
         idx32: Vec::new(),
@@ -242,6 +259,8 @@ fn layout(
         n_inner: 0,
         n_t_inner: 0,
         n_leaves: 0,
+        n_implicit_empty: 0,
+        n_one_leaves: 0,
         max_depth: 0,
     };
     let too_large = |what: &str| FormatError::TooLarge(what.to_string());
@@ -256,7 +275,7 @@ fn layout(
     };
     // Each IR node is laid out at most once (the walk refuses a node
     // reached twice), so a malformed tree (a cycle, shared children) cannot
-    // make the loop run away. The state is the node's slot in `words`.
+    // make the loop run away.
     let n_nodes = tree.nodes.len();
     let walk_fault = |fault: WalkFault| match fault {
         WalkFault::Missing { node } => {
@@ -265,104 +284,138 @@ fn layout(
         WalkFault::ReachedTwice { node } => bad_node(node, "reached twice (not a tree)".into()),
         WalkFault::TooDeep { .. } => too_large(&format!("a node deeper than {MAX_DEPTH}")),
     };
+    let is_empty_leaf = |i: usize| matches!(tree.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
     let mut ids = Vec::new();
-    tree.walk_checked(
-        (0usize, tree.bounds),
-        walk_fault,
-        |i, &node, depth, (slot, cell)| {
-            out.max_depth = out.max_depth.max(depth);
-            match node {
-                Node::Inner {
-                    axis, pos, t_ref, ..
-                } => {
-                    if axis > 2 {
-                        return Err(bad_node(i, format!("axis {axis}")));
-                    }
-                    if !pos.is_finite() {
-                        return Err(bad_node(i, "split position is not finite".into()));
-                    }
-                    let k = usize::from(axis);
-                    if !(pos >= cell.min[k] && pos <= cell.max[k]) {
-                        return Err(bad_node(
-                            i,
-                            format!("split {pos:?} on axis {k} outside the node's cell"),
-                        ));
-                    }
-                    let block = words.len();
-                    let first_child = match t_ref {
-                        Some(t) => {
-                            if t.0 as usize >= n_tris {
-                                return Err(bad_tri(i, t));
-                            }
-                            out.n_t_inner += 1;
-                            words.push(node::encode_tref(new_id(t)))?;
-                            block + 1
-                        }
-                        None => {
-                            out.n_inner += 1;
-                            block
-                        }
-                    };
-                    words.push(0)?;
-                    words.push(0)?;
-                    if words.len() as u64 > MAX_NODES {
-                        return Err(too_large(
-                            "more than 2^29 node words (the 4 GiB offset limit)",
-                        ));
-                    }
-                    words.set(
-                        slot,
-                        node::encode_inner(axis, t_ref.is_some(), block as u32, pos),
-                    );
-                    let (left, right) = cell.split(k, pos);
-                    Ok(Some(((first_child, left), (first_child + 1, right))))
+    let root = Place {
+        cell: tree.bounds,
+        parent: None,
+        keep_empty: true,
+    };
+    tree.walk_checked(root, walk_fault, |i, &node, depth, place| {
+        out.max_depth = out.max_depth.max(depth);
+        let empty = matches!(node, Node::Leaf { count: 0, .. });
+        let has_word = !empty || place.keep_empty;
+        let slot = words.len();
+        // A right child completes its parent's word: its own slot, or 0
+        // when it has none.
+        if let Some((parent, word)) = place.parent {
+            let field = if has_word { slot as u64 } else { 0 };
+            words.set(parent, word | field << 3);
+        }
+        if !has_word {
+            out.n_leaves += 1;
+            out.n_implicit_empty += 1;
+            return Ok(None);
+        }
+        if slot as u64 >= MAX_NODES {
+            return Err(too_large(
+                "more than 2^29 node words (the 29-bit slot field)",
+            ));
+        }
+        match node {
+            Node::Inner {
+                axis,
+                pos,
+                t_ref,
+                right,
+            } => {
+                if axis > 2 {
+                    return Err(bad_node(i, format!("axis {axis}")));
                 }
-                Node::Leaf { start, count } => {
-                    // Checked before the list is read: a leaf this large is
-                    // always in 4-byte mode, whose count field has 27 bits.
-                    if count > MAX_LEAF32 {
-                        return Err(too_large(&format!(
-                            "a leaf with {count} triangles (at most 2^27 - 1)"
-                        )));
-                    }
-                    let list = tree
-                        .leaf_tris
-                        .get(start as usize..start as usize + count as usize)
-                        .ok_or_else(|| {
-                            bad_node(
-                                i,
-                                format!(
-                                    "leaf list {start}+{count} outside the {} listed triangles",
-                                    tree.leaf_tris.len()
-                                ),
-                            )
-                        })?;
-                    if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
-                        return Err(bad_tri(i, t));
-                    }
-                    out.n_leaves += 1;
-                    ids.clear();
-                    ids.extend(list.iter().map(|&t| new_id(t)));
-                    ids.sort_unstable();
-                    let word = if node::fits_leaf16(ids.len(), ids.iter().copied()) {
-                        let upper = ids.first().map_or(0, |&t| t >> 16);
-                        let first = u32::try_from(out.idx16.len())
-                            .map_err(|_| too_large("idx16 over 2^32 entries"))?;
-                        out.idx16.extend(ids.iter().map(|&t| t as u16));
-                        node::encode_leaf16(ids.len() as u32, upper as u16, first)
-                    } else {
-                        let first = u32::try_from(out.idx32.len())
-                            .map_err(|_| too_large("idx32 over 2^32 entries"))?;
-                        out.idx32.extend_from_slice(&ids);
-                        node::encode_leaf32(ids.len() as u32, first)
-                    };
-                    words.set(slot, word);
-                    Ok(None)
+                if !pos.is_finite() {
+                    return Err(bad_node(i, "split position is not finite".into()));
                 }
+                let k = usize::from(axis);
+                let cell = place.cell;
+                if !(pos >= cell.min[k] && pos <= cell.max[k]) {
+                    return Err(bad_node(
+                        i,
+                        format!("split {pos:?} on axis {k} outside the node's cell"),
+                    ));
+                }
+                // The slot field is filled in by the right child.
+                let word = node::encode_inner(axis, t_ref.is_some(), 0, pos);
+                words.push(word)?;
+                match t_ref {
+                    Some(t) => {
+                        if t.0 as usize >= n_tris {
+                            return Err(bad_tri(i, t));
+                        }
+                        out.n_t_inner += 1;
+                        words.push(node::encode_tref(new_id(t)))?;
+                    }
+                    None => out.n_inner += 1,
+                }
+                let (left, right_cell) = cell.split(k, pos);
+                Ok(Some((
+                    Place {
+                        cell: left,
+                        parent: None,
+                        keep_empty: is_empty_leaf(right.0 as usize),
+                    },
+                    Place {
+                        cell: right_cell,
+                        parent: Some((slot, word)),
+                        keep_empty: false,
+                    },
+                )))
             }
-        },
-    )?;
+            Node::Leaf { start, count } => {
+                // Checked before the list is read: a leaf this large is
+                // always in 4-byte mode, whose count field has 27 bits.
+                if count > MAX_LEAF32 {
+                    return Err(too_large(&format!(
+                        "a leaf with {count} triangles (at most 2^27 - 1)"
+                    )));
+                }
+                let list = tree
+                    .leaf_tris
+                    .get(start as usize..start as usize + count as usize)
+                    .ok_or_else(|| {
+                        bad_node(
+                            i,
+                            format!(
+                                "leaf list {start}+{count} outside the {} listed triangles",
+                                tree.leaf_tris.len()
+                            ),
+                        )
+                    })?;
+                if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
+                    return Err(bad_tri(i, t));
+                }
+                out.n_leaves += 1;
+                ids.clear();
+                ids.extend(list.iter().map(|&t| new_id(t)));
+                ids.sort_unstable();
+                let word = if let [t] = ids[..] {
+                    out.n_one_leaves += 1;
+                    node::encode_leaf1(t)
+                } else if ids.is_empty() {
+                    // The one form of an empty leaf with a word.
+                    node::encode_leaf32(0, 0)
+                } else if node::fits_leaf16(ids.len(), ids.iter().copied()) {
+                    let upper = ids.first().map_or(0, |&t| t >> 16);
+                    let first = u32::try_from(out.idx16.len())
+                        .map_err(|_| too_large("idx16 over 2^32 entries"))?;
+                    out.idx16.extend(ids.iter().map(|&t| t as u16));
+                    node::encode_leaf16(ids.len() as u32, upper as u16, first)
+                } else {
+                    let first = u32::try_from(out.idx32.len())
+                        .map_err(|_| too_large("idx32 over 2^32 entries"))?;
+                    out.idx32.extend_from_slice(&ids);
+                    node::encode_leaf32(ids.len() as u32, first)
+                };
+                words.push(word)?;
+                Ok(None)
+            }
+        }
+    })?;
     out.n_words = words.len() as u64;
+    if out.n_words > MAX_NODES {
+        return Err(too_large(
+            "more than 2^29 node words (the 29-bit slot field)",
+        ));
+    }
     Ok(out)
 }
 
@@ -600,6 +653,8 @@ fn write_kd<W: Read + Write + Seek>(
     put_u64(&mut header, 80, lay.n_inner);
     put_u64(&mut header, 88, lay.n_t_inner);
     put_u64(&mut header, 96, lay.n_leaves);
+    put_u64(&mut header, super::IMPLICIT_EMPTY_AT, lay.n_implicit_empty);
+    put_u64(&mut header, super::ONE_LEAVES_AT, lay.n_one_leaves);
     put_u64(&mut header, 104, lay.idx32.len() as u64);
     put_u64(&mut header, 112, lay.idx16.len() as u64);
     put_u64(&mut header, 120, n_tris as u64);

@@ -1,10 +1,10 @@
 //! Where a tree's bytes go, and how much any hoisting could save in this
 //! format (the analysis behind the slim presets' size figures).
 //!
-//! Tree memory is counted as the paper counts it
-//! ([`TreeFigures::tree_bytes`]): `8·(nodes + T-references) + 4·|idx32| +
-//! 2·|idx16|`. [`ByteSplit::of`] splits it into inner nodes (type I and
-//! II), T-references, non-empty and empty leaves, and the two index lists,
+//! Tree memory is counted as stored ([`TreeFigures::tree_bytes`]):
+//! `8·words + 4·|idx32| + 2·|idx16|`. [`ByteSplit::of`] splits it into
+//! inner nodes (type I and II), T-references, non-empty leaves, the empty
+//! leaves that have a word, and the two index lists,
 //! and bounds what hoisting could save on the index side, with the nodes
 //! as they are. (A rebuilt subtree can also have fewer nodes than the one
 //! it replaces, or more: removing a triangle that filled a cell lets the
@@ -18,6 +18,9 @@
 //!   `t` with references costing `c_t` bytes in all saves at most
 //!   `max(0, c_t − 8)`.
 //!
+//! A reference costs its index entry (4 or 2 bytes), or, in a leaf of one
+//! triangle, the leaf's word (8 bytes), which goes with it.
+//!
 //! [`TreeFigures::tree_bytes`]: crate::format::TreeFigures::tree_bytes
 
 use crate::format::KdFile;
@@ -30,9 +33,9 @@ pub struct ByteSplit {
     pub inner_bytes: u64,
     /// Type II inner nodes and their T-reference words (16 bytes each).
     pub t_inner_bytes: u64,
-    /// Leaves with at least one index (8 bytes each).
+    /// Leaves with at least one triangle (8 bytes each).
     pub leaf_bytes: u64,
-    /// Empty leaves (8 bytes each).
+    /// Empty leaves that have a word (8 bytes each; most have none).
     pub empty_leaf_bytes: u64,
     /// 4-byte leaf indices.
     pub idx32_bytes: u64,
@@ -92,6 +95,8 @@ impl ByteSplit {
                 NodeWord::TRef { .. } => continue,
                 NodeWord::Leaf32 { .. } => (4u8, file.leaf(word)),
                 NodeWord::Leaf16 { .. } => (2u8, file.leaf(word)),
+                // The word is the reference: it goes when the triangle does.
+                NodeWord::Leaf1 { .. } => (8u8, file.leaf(word)),
             };
             if leaf.is_empty() {
                 s.empty_leaf_bytes += 8;

@@ -3,22 +3,27 @@
 //! operations on the raw 8-byte word (no decoded enum, no section lookup).
 
 use super::{LeafTris, SourceNode, Walk};
-use crate::format::node::{A_TYPE2, MAX_LEAF32};
+use crate::format::node::{A_TYPE2, E_IDX16, E_IDX32, E_ONE, MAX_LEAF32};
 use crate::format::{KdFile, LeafIndices};
 use crate::geom::Aabb;
 use crate::tree::TriId;
 use glam::Vec3;
 
+/// The slot an empty child reads as: past any node section (at most
+/// 2^29 words), so [`Walk::node`] gives an empty leaf without a load.
+pub(crate) const NO_WORD: u32 = u32::MAX;
+
 /// The sections of a validated [`KdFile`]. Only [`FileWalk::new`] makes
-/// one, so every word, child block, leaf range and vertex index in it
+/// one, so every word, child slot, leaf range and vertex index in it
 /// passed [`KdFile::from_bytes`] when the file was opened.
 ///
 /// **A mapped file changed after it was opened** (rewritten in place by
 /// another process) can hold anything, so every read stays checked, and a
-/// check that fails reads as nothing rather than panicking: a child block
+/// check that fails reads as nothing rather than panicking: a child slot
 /// that does not lie after its node (a loop) or outside the node section,
 /// or a leaf range outside its index array, is an empty leaf; a triangle
-/// or vertex index out of range is a triangle that is never hit. Each is a
+/// index out of range (a one-triangle leaf's too) or a vertex index out of
+/// range is a triangle that is never hit. Each is a
 /// comparison the slice indexing made anyway, and the first keeps every
 /// walk moving forward through the nodes, so it ends. (A file truncated
 /// under the mapping is another matter: the kernel answers a read of the
@@ -76,17 +81,21 @@ impl<'a> Walk<'a> for FileWalk<'a> {
         };
         let hi = (w >> 32) as u32;
         if w & 0b11 != 0b11 {
-            // Type I or II inner node: children at `block` (type I) or
-            // after the T-reference at `block` (type II).
-            let block = (w as u32) >> 3;
-            if block <= n {
-                // Validated files have every child block after its node.
-                return EMPTY;
-            }
+            // Type I or II inner node (format version 2, see
+            // `format::node`): the left child follows the node (and its
+            // T-reference), the right child is at the slot field; an empty
+            // child has no word and reads as `NO_WORD`, which lies past the
+            // node section and so reads as an empty leaf.
             let type2 = w & A_TYPE2 != 0;
-            let left = block + u32::from(type2);
+            let first = n + 1 + u32::from(type2);
+            let field = (w as u32) >> 3;
+            let left = if field == first { NO_WORD } else { first };
+            // Validated files have every child after its node; a field that
+            // is not (0 for an empty right child, or a slot rewritten under
+            // the map) is no child, so every walk moves forward and ends.
+            let right = if field > n { field } else { NO_WORD };
             let t_ref = if type2 {
-                match self.nodes.get(block as usize) {
+                match self.nodes.get(n as usize + 1) {
                     Some(&t) => Some((t >> 32) as u32),
                     None => return EMPTY,
                 }
@@ -97,7 +106,7 @@ impl<'a> Walk<'a> for FileWalk<'a> {
                 axis: (w & 0b11) as u8,
                 pos: f32::from_bits(hi),
                 left,
-                right: left + 1,
+                right,
                 t_ref,
             };
         }
@@ -106,21 +115,26 @@ impl<'a> Walk<'a> for FileWalk<'a> {
             return EMPTY;
         }
         let start = hi as usize;
-        let leaf = if (w >> 3) & 1 == 0 {
-            let count = (((w as u32) >> 5) & MAX_LEAF32) as usize;
-            match self.idx32.get(start..start + count) {
-                Some(ids) => LeafIndices::Idx32(ids),
-                None => return EMPTY,
+        let leaf = match (w >> 3) & 0b11 {
+            E_IDX32 => {
+                let count = (((w as u32) >> 5) & MAX_LEAF32) as usize;
+                match self.idx32.get(start..start + count) {
+                    Some(ids) => LeafIndices::Idx32(ids),
+                    None => return EMPTY,
+                }
             }
-        } else {
-            let count = (((w as u32) >> 5) & 0x7ff) as usize;
-            match self.idx16.get(start..start + count) {
-                Some(low) => LeafIndices::Idx16 {
-                    upper: (w as u32) & 0xffff_0000,
-                    low,
-                },
-                None => return EMPTY,
+            E_IDX16 => {
+                let count = (((w as u32) >> 5) & 0x7ff) as usize;
+                match self.idx16.get(start..start + count) {
+                    Some(low) => LeafIndices::Idx16 {
+                        upper: (w as u32) & 0xffff_0000,
+                        low,
+                    },
+                    None => return EMPTY,
+                }
             }
+            E_ONE => LeafIndices::One(hi),
+            _ => return EMPTY,
         };
         SourceNode::Leaf(LeafTris::File(leaf))
     }

@@ -164,6 +164,7 @@ impl LeafTris<'_> {
             LeafTris::Ids(ids) => ids[i].0,
             LeafTris::File(LeafIndices::Idx32(s)) => s[i],
             LeafTris::File(LeafIndices::Idx16 { upper, low }) => upper | u32::from(low[i]),
+            LeafTris::File(LeafIndices::One(t)) => t,
         }
     }
 }

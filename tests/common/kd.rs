@@ -259,18 +259,23 @@ pub fn ir_shape(tree: &TreeIr) -> Vec<Shape> {
         .collect()
 }
 
-/// Visits the file's node words in pre-order (left child first), with
-/// their indices; T-references are not visited (their inner node is).
-pub fn walk_file<D: AsRef<[u8]>>(file: &KdFile<D>, mut visit: impl FnMut(usize, NodeWord)) {
+/// Visits the file's nodes in pre-order (left child first), with their
+/// slots; an empty child without a word is visited as `(None, an empty
+/// Leaf32)`. T-references are not visited (their inner node is).
+pub fn walk_file<D: AsRef<[u8]>>(file: &KdFile<D>, mut visit: impl FnMut(Option<usize>, NodeWord)) {
     let words = file.nodes();
-    let mut stack = vec![0usize];
+    let mut stack = vec![Some(0u32)];
     while let Some(i) = stack.pop() {
-        let w = node::decode(words[i]).unwrap();
-        visit(i, w);
-        if let NodeWord::Inner { t_ref, block, .. } = w {
-            let first = block as usize + usize::from(t_ref);
-            stack.push(first + 1);
-            stack.push(first);
+        let Some(i) = i else {
+            visit(None, NodeWord::Leaf32 { count: 0, start: 0 });
+            continue;
+        };
+        let w = node::decode(words[i as usize]).unwrap();
+        visit(Some(i as usize), w);
+        if let NodeWord::Inner { t_ref, right, .. } = w {
+            let (l, r) = node::children(i, t_ref, right);
+            stack.push(r);
+            stack.push(l);
         }
     }
 }
@@ -281,12 +286,10 @@ pub fn file_shape<D: AsRef<[u8]>>(file: &KdFile<D>) -> Vec<Shape> {
     let mut out = Vec::new();
     walk_file(file, |i, w| match w {
         NodeWord::Inner {
-            axis,
-            t_ref,
-            block,
-            pos,
+            axis, t_ref, pos, ..
         } => {
-            let tri = t_ref.then(|| match node::decode(words[block as usize]) {
+            let i = i.unwrap();
+            let tri = t_ref.then(|| match node::decode(words[i + 1]) {
                 Ok(NodeWord::TRef { tri }) => file.input_id(tri),
                 other => panic!("node {i}: expected a T-reference, got {other:?}"),
             });
@@ -296,22 +299,23 @@ pub fn file_shape<D: AsRef<[u8]>>(file: &KdFile<D>) -> Vec<Shape> {
                 t_ref: tri,
             });
         }
-        NodeWord::Leaf32 { .. } | NodeWord::Leaf16 { .. } => {
+        NodeWord::Leaf32 { .. } | NodeWord::Leaf16 { .. } | NodeWord::Leaf1 { .. } => {
             let mut ids = Vec::new();
             file.leaf(w).for_each(|t| ids.push(file.input_id(t)));
             ids.sort_unstable();
             out.push(Shape::Leaf(ids));
         }
-        NodeWord::TRef { .. } => panic!("node {i}: a T-reference where a child belongs"),
+        NodeWord::TRef { .. } => panic!("node {i:?}: a T-reference where a child belongs"),
     });
     out
 }
 
-/// The leaf words of a file in pre-order.
+/// The leaf words of a file in pre-order (not the empty leaves without a
+/// word).
 pub fn file_leaf_words<D: AsRef<[u8]>>(file: &KdFile<D>) -> Vec<NodeWord> {
     let mut out = Vec::new();
-    walk_file(file, |_, w| {
-        if !matches!(w, NodeWord::Inner { .. }) {
+    walk_file(file, |i, w| {
+        if i.is_some() && !matches!(w, NodeWord::Inner { .. }) {
             out.push(w);
         }
     });
