@@ -28,6 +28,7 @@ pub mod packet;
 pub mod rays;
 
 pub use file::FileWalk;
+pub(crate) use file::NO_WORD;
 
 use crate::format::{KdFile, LeafIndices};
 use crate::geom::{Aabb, Ray, RayPrecomp, intersect_triangle};
@@ -117,9 +118,14 @@ pub enum SourceNode<'a> {
         axis: u8,
         /// Split position on the axis.
         pos: f32,
-        /// The child below the plane.
+        /// The child below the plane; an empty child without a node of its
+        /// own (a file's, see `format::node`) is `NO_WORD` (`u32::MAX`),
+        /// which [`Walk::node`] reads as an empty leaf without a load. (The
+        /// scalar walk visits it so: skipping it at the parent measured 2–4 %
+        /// more instructions for 1–3 % fewer steps; the packet walk skips
+        /// it.)
         left: u32,
-        /// The child above the plane.
+        /// The child above the plane (`NO_WORD` likewise).
         right: u32,
         /// The hoisted triangle of a type II node.
         t_ref: Option<u32>,

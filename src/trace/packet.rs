@@ -29,7 +29,9 @@
 // Lane loops index several arrays by lane: the form LLVM vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, SourceNode, TraceStats, Walk};
+use super::{
+    ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, NO_WORD, SourceNode, TraceStats, Walk,
+};
 use crate::geom::{Ray, RayPrecomp, edges_need_f64, intersect_triangle, t_needs_f64};
 use crate::tree::TriId;
 use arrayvec::ArrayVec;
@@ -653,8 +655,9 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             (left, l_mask, &split.l_tmin, &split.l_tmax),
                         )
                     };
-                    if second.1 != 0 {
-                        // One entry per inner node on the path: the depth
+                    if second.1 != 0 && second.0 != NO_WORD {
+                        // An empty child (a file's child without a word) is
+                        // not visited. One entry per inner node on the path: the depth
                         // bound (MAX_DEPTH) keeps it below MAX_STACK; a
                         // deeper path, which only a file changed after it
                         // was opened can make, drops the cell (as the
@@ -666,7 +669,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             tmax: *second.3,
                         });
                     }
-                    if first.1 != 0 {
+                    if first.1 != 0 && first.0 != NO_WORD {
                         cur.node = first.0;
                         cur.mask = first.1;
                         cur.tmin = *first.2;
