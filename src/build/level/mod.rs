@@ -94,6 +94,7 @@ pub use self::options::{
     DEFAULT_SMALL_THRESHOLD, DEFAULT_TINY_THRESHOLD, LevelOptions, LevelStatus, NewEvents,
 };
 pub use self::report::{LevelReport, Phases};
+pub use crate::columns::ScratchStats;
 pub use crate::sys::{cpu_seconds, rss};
 
 use self::assemble::{Rec, SubStore, SubStream, assemble};
@@ -284,7 +285,7 @@ impl Finish<'_> {
 /// node): the subtree is the one [`super::sweep::build_subtree`] builds for
 /// the same references, cell and depth. The slim post-pass rebuilds its
 /// subtrees with it. One per worker; its scratch is reused across builds.
-pub struct SubtreeBuilder<'a> {
+pub(crate) struct SubtreeBuilder<'a> {
     finisher: Finisher<'a>,
     tri: Vec<u32>,
     boxes: Vec<Box6>,
