@@ -9,7 +9,7 @@
 //!    splits) as a [`tree::TreeIr`]; [`build::naive`] is the O(N²)
 //!    reference, [`build::sweep`] the O(N log N) builder of Wald & Havran
 //!    (2006), and [`build::level`] the breadth-first parallel builder of
-//!    Wu, Zhao & Liu (2011) over [`columns`] that may live in scratch
+//!    Wu, Zhao & Liu (2011) over columns that may live in scratch
 //!    files; all three produce the same tree.
 //! 3. [`slim::slim`] hoists duplicated triangles into inner nodes (Choi,
 //!    Chang & Ihm 2013); [`format`](mod@format) writes the tree and its geometry as a

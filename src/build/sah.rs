@@ -22,9 +22,9 @@
 //! triangles in `z = 0`: 27,609 references per triangle, 12.9 s). Flat cells
 //! also hold axis-aligned walls in real scenes, cut off by planes on a
 //! face. So the splits whose overlap `s = P_L + P_R − 1` is below
-//! [`FLAT_OVERLAP`] are priced as if it were [`FLAT_PRICED_OVERLAP`], and
+//! `FLAT_OVERLAP` are priced as if it were `FLAT_PRICED_OVERLAP`, and
 //! are taken only while few enough references straddle them
-//! ([`FLAT_HALVING`], [`is_leaf`]). Every other split is priced and decided
+//! (`FLAT_HALVING`, `is_leaf`). Every other split is priced and decided
 //! as above.
 //!
 //! **Tie-break.** Splits are totally ordered by (cost, axis, position,

@@ -2,7 +2,7 @@
 //!
 //! Each node keeps, per axis, its events (the starts and ends of its
 //! triangles' boxes, or one planar event for a flat box) sorted by
-//! (position, kind, triangle), with [`EventKind`] declared in sweep order
+//! (position, kind, triangle), with `EventKind` declared in sweep order
 //! End < Planar < Start. One sweep per axis finds the best plane. A child
 //! inherits the events of the triangles that lie wholly on its side through
 //! a stable partition (so they stay sorted); only the events of clipped

@@ -95,7 +95,8 @@ pub enum ColumnsError {
         /// Its size.
         bytes: u64,
     },
-    /// The scratch files would exceed [`ScratchConfig::scratch_limit`].
+    /// The scratch files would exceed the scratch limit
+    /// ([`LevelOptions::scratch_limit`](crate::build::level::LevelOptions::scratch_limit)).
     Limit {
         /// The scratch directory.
         path: PathBuf,
@@ -171,7 +172,8 @@ impl std::error::Error for ColumnsError {
     }
 }
 
-/// Byte counts of one [`Scratch`], for reports.
+/// Byte counts of the level builder's columns (RAM and scratch files),
+/// for reports.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ScratchStats {
     /// The most bytes of RAM columns alive at once.
