@@ -17,7 +17,7 @@
 //! triangle whose box lies on one side of the chosen plane ([`classify`])
 //! keeps its box in that child; a straddler's box in each child is the
 //! bounds of `tri ∩ parent cell` on that side of the plane
-//! ([`crate::geom::clip_split`]) `∩ its box in the parent`, and a straddler
+//! (`geom::clip_split`) `∩ its box in the parent`, and a straddler
 //! whose clipped box is empty (possible only by a rounding margin) is left
 //! out of that child. Leaves list their triangles in ascending id, and the
 //! nodes are emitted in pre-order.

@@ -85,6 +85,7 @@ mod pass;
 mod work;
 
 pub use bytes::min_subtree_bytes;
+#[doc(hidden)] // the literal Algorithm 1 of tests/slim.rs shares the oracle's formulas
 pub use oracle::{above, occupancy_weight};
 pub use params::{HoistRule, SlimParams, SlimPhases, SlimReport};
 
