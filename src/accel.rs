@@ -25,8 +25,6 @@
 //! std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
-#![warn(missing_docs)]
-
 use crate::build::{self, BuildConfig, BuildError, Builder};
 use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped, WriteOptions};
 use crate::geom::{Aabb, Ray, RayPrecomp};

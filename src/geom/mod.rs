@@ -8,8 +8,6 @@
 //! packet, brute force) computes bit-identical hit distances for the same
 //! ray and triangle.
 
-#![warn(missing_docs)]
-
 mod clip;
 mod intersect;
 
