@@ -25,8 +25,6 @@
 //! std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
-#![warn(missing_docs)]
-
 use crate::build::{self, BuildConfig, BuildError, Builder};
 use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped, WriteOptions};
 use crate::geom::{Aabb, Ray, RayPrecomp};
@@ -125,6 +123,10 @@ impl RayPacket {
 
     /// A packet of up to 16 rays (lanes past `rays.len()` are rays with
     /// zero direction and an empty interval).
+    ///
+    /// # Panics
+    ///
+    /// If `rays` holds more than 16 rays.
     pub fn from_rays(rays: &[Ray]) -> RayPacket {
         assert!(rays.len() <= 16, "a packet holds at most 16 rays");
         let mut p = RayPacket {
@@ -160,7 +162,7 @@ pub enum AccelError {
     /// The builder failed (its columns).
     Build(BuildError),
     /// The build's thread pool could not be made.
-    Threads(String),
+    Threads(rayon::ThreadPoolBuildError),
     /// The tree could not be stored, or a `.kd` file is not valid;
     /// `path` is the file, where there is one.
     Format {
@@ -203,7 +205,7 @@ impl std::error::Error for AccelError {
         match self {
             AccelError::Scene(e) => Some(e),
             AccelError::Build(e) => Some(e),
-            AccelError::Threads(_) => None,
+            AccelError::Threads(e) => Some(e),
             AccelError::Format { source, .. } => Some(source),
             AccelError::Io { source, .. } => Some(source),
         }
@@ -269,7 +271,7 @@ impl Accel {
             Some(n) if n > 0 => rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
                 .build()
-                .map_err(|e| AccelError::Threads(e.to_string()))?
+                .map_err(AccelError::Threads)?
                 .install(|| Self::build_here(scene, options)),
             _ => Self::build_here(scene, options),
         }
@@ -401,6 +403,10 @@ impl Accel {
     }
 
     /// The vertices of input triangle `prim`.
+    ///
+    /// # Panics
+    ///
+    /// If `prim` is not below [`Accel::len`].
     pub fn triangle(&self, prim: u32) -> [Vec3; 3] {
         let id = if self.file_id.is_empty() {
             prim

@@ -9,7 +9,7 @@
 //!    splits) as a [`tree::TreeIr`]; [`build::naive`] is the O(N²)
 //!    reference, [`build::sweep`] the O(N log N) builder of Wald & Havran
 //!    (2006), and [`build::level`] the breadth-first parallel builder of
-//!    Wu, Zhao & Liu (2011) over [`columns`] that may live in scratch
+//!    Wu, Zhao & Liu (2011) over columns that may live in scratch
 //!    files; all three produce the same tree.
 //! 3. [`slim::slim`] hoists duplicated triangles into inner nodes (Choi,
 //!    Chang & Ihm 2013); [`format`](mod@format) writes the tree and its geometry as a
@@ -61,14 +61,18 @@
 //! ```
 
 #![deny(unsafe_op_in_unsafe_fn)]
+#![warn(missing_docs)]
 #![warn(clippy::undocumented_unsafe_blocks)]
 
 pub mod accel;
 pub mod build;
-pub mod columns;
+pub(crate) mod columns;
+#[allow(missing_docs)] // documented with the format v2 rewrite
 pub mod format;
+#[doc(hidden)] // the CLI's atomic writes and input checks
 pub mod fsio;
 pub mod geom;
+#[doc(hidden)] // what the CLI and the report share
 pub mod pipeline;
 pub mod progress;
 pub mod render;
@@ -76,8 +80,9 @@ pub mod scene;
 pub(crate) mod simd;
 pub mod slim;
 pub mod stats;
+#[doc(hidden)] // the CLI's allocator hooks and /proc figures
 pub mod sys;
-pub mod text;
+pub(crate) mod text;
 pub mod trace;
 pub mod tree;
 

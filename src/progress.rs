@@ -3,8 +3,6 @@
 //! one; it lives outside [`crate::build`] so that those stages need not
 //! know the builder.
 
-#![warn(missing_docs)]
-
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The progress of a long job, for a progress bar: a fraction from 0 to 1

@@ -5,7 +5,9 @@
 /// CPU (the packet traverser, the tiny-node sweep of the level builder).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SimdLevel {
+    /// AVX-512F: 16 `f32` lanes, mask registers.
     Avx512,
+    /// AVX2: 8 `f32` lanes.
     Avx2,
     /// SSE2 on x86-64, whatever the target offers elsewhere.
     Baseline,
@@ -53,6 +55,7 @@ impl SimdLevel {
             .find(|l| l.name() == name.trim().to_ascii_lowercase())
     }
 
+    /// The level's name for `SLIMKD_SIMD` and the CLI's output.
     pub fn name(self) -> &'static str {
         match self {
             SimdLevel::Avx512 => "avx512",

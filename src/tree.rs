@@ -34,6 +34,7 @@ impl NodeId {
     pub const ROOT: NodeId = NodeId(0);
 }
 
+/// A node of a [`TreeIr`]: an inner node or a leaf.
 #[derive(Clone, Copy, Debug)]
 pub enum Node {
     /// Split by the plane `axis = pos`; the left child (`< pos` side) is the
@@ -42,13 +43,22 @@ pub enum Node {
     /// node): it is tested whenever the node is visited, and the leaves
     /// below need not list it. Standard trees have none.
     Inner {
+        /// The split axis: 0, 1, 2 for x, y, z.
         axis: u8,
+        /// The split plane's coordinate on `axis`.
         pos: f32,
+        /// The right child.
         right: NodeId,
+        /// The hoisted triangle, if any.
         t_ref: Option<TriId>,
     },
     /// Triangles `leaf_tris[start .. start + count]`.
-    Leaf { start: u32, count: u32 },
+    Leaf {
+        /// The first entry of the leaf's list in [`TreeIr::leaf_tris`].
+        start: u32,
+        /// The number of triangles; 0 for an empty leaf.
+        count: u32,
+    },
 }
 
 impl PartialEq for Node {
@@ -94,6 +104,7 @@ pub struct TreeIr {
 }
 
 impl TreeIr {
+    /// Leaves, empty ones included.
     pub fn n_leaves(&self) -> usize {
         self.nodes
             .iter()
@@ -101,6 +112,7 @@ impl TreeIr {
             .count()
     }
 
+    /// Inner nodes, with or without a hoisted triangle.
     pub fn n_inner(&self) -> usize {
         self.nodes.len() - self.n_leaves()
     }
@@ -319,75 +331,128 @@ impl TreeIr {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WalkFault {
     /// A child index at or past the end of the nodes.
-    Missing { node: usize },
+    Missing {
+        /// The parent whose child is missing.
+        node: usize,
+    },
     /// A node reached a second time (not a tree).
-    ReachedTwice { node: usize },
+    ReachedTwice {
+        /// The node, by pre-order index.
+        node: usize,
+    },
     /// A node deeper than [`MAX_DEPTH`].
-    TooDeep { node: usize },
+    TooDeep {
+        /// The node, by pre-order index.
+        node: usize,
+    },
 }
 
 /// Why [`TreeIr::validate`] refused a tree; the message names the node.
 #[derive(Clone, Debug, PartialEq)]
 pub enum TreeError {
+    /// The tree has no node (an empty scene is one empty leaf).
     NoNodes,
+    /// More nodes than a [`NodeId`] can number.
     TooManyNodes,
+    /// A node lies deeper than [`MAX_DEPTH`].
     TooDeep {
+        /// The node, by pre-order index.
         node: usize,
     },
+    /// A node is reached out of pre-order.
     NotInPreOrder {
+        /// The node, by pre-order index.
         node: usize,
+        /// The index pre-order puts next.
         expected: usize,
     },
+    /// An inner node's axis is not 0, 1 or 2.
     BadAxis {
+        /// The node, by pre-order index.
         node: usize,
+        /// The axis it holds.
         axis: u8,
     },
+    /// A hoisted triangle is not in the scene.
     HoistedOutOfRange {
+        /// The node, by pre-order index.
         node: usize,
+        /// The triangle's id.
         tri: u32,
     },
+    /// A hoisted triangle does not overlap its node's cell.
     HoistedOutsideCell {
+        /// The node, by pre-order index.
         node: usize,
+        /// The triangle's id.
         tri: u32,
     },
     /// The right child is not in `(node + 1, end)`.
     RightChildOutside {
+        /// The node, by pre-order index.
         node: usize,
+        /// Its right child.
         right: usize,
+        /// The end of the node's subtree range.
         end: usize,
     },
+    /// A split plane lies outside its node's cell.
     SplitOutsideCell {
+        /// The node, by pre-order index.
         node: usize,
+        /// The plane's coordinate.
         pos: f32,
+        /// The split axis.
         axis: usize,
     },
+    /// A leaf is not the last node of its subtree range.
     LeafNotLast {
+        /// The node, by pre-order index.
         node: usize,
     },
+    /// A leaf's list does not start where the previous leaf's ends.
     LeafListStart {
+        /// The node, by pre-order index.
         node: usize,
+        /// Where its list starts.
         start: u32,
+        /// Where the previous list ends.
         expected: u32,
     },
+    /// A leaf's list runs past the end of [`TreeIr::leaf_tris`].
     LeafListOutOfRange {
+        /// The node, by pre-order index.
         node: usize,
     },
+    /// A leaf's list is not strictly ascending.
     LeafListNotAscending {
+        /// The node, by pre-order index.
         node: usize,
     },
+    /// A leaf lists a triangle that is not in the scene.
     LeafTriOutOfRange {
+        /// The node, by pre-order index.
         node: usize,
+        /// The triangle's id.
         tri: u32,
     },
+    /// A leaf lists a triangle that does not overlap its cell.
     LeafTriOutsideCell {
+        /// The node, by pre-order index.
         node: usize,
+        /// The triangle's id.
         tri: u32,
     },
+    /// Nodes that no path from the root reaches.
     Unreachable {
+        /// How many.
         count: usize,
     },
+    /// [`TreeIr::leaf_tris`] has entries after the last leaf's list.
     UnlistedLeafTris,
+    /// A triangle that no leaf or inner node holds.
     TriangleInNoLeaf {
+        /// The triangle's id.
         tri: usize,
     },
 }

@@ -175,6 +175,16 @@ fn small_in_input_order() {
 }
 
 #[test]
+fn fast_reordered() {
+    round_trip(Preset::Fast, true);
+}
+
+#[test]
+fn fast_in_input_order() {
+    round_trip(Preset::Fast, false);
+}
+
+#[test]
 fn fast_on_two_threads() {
     let scene = load_scene("nexuiz_dieselpower.obj");
     let options = BuildOptions {

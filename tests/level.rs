@@ -11,10 +11,10 @@ mod common;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
+use slimkd::build::BuildError;
 use slimkd::build::level::{self, LevelOptions, LevelReport, NewEvents};
 use slimkd::build::sah::SahParams;
 use slimkd::build::{self as b, BuildConfig, Builder};
-use slimkd::columns::ColumnsError;
 use slimkd::format::{WriteOptions, write_to_vec};
 use slimkd::scene::TriangleColumns;
 use slimkd::tree::TreeIr;
@@ -181,7 +181,7 @@ fn missing_scratch_dir_is_a_clear_error() {
     let dir = std::env::temp_dir().join(format!("slimkd-level-missing-{}", std::process::id()));
     let scene = columns(&[[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]);
     let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &dir)).unwrap_err();
-    assert!(matches!(err, ColumnsError::NoDir { .. }), "{err:?}");
+    assert!(matches!(err, BuildError::NoDir { .. }), "{err:?}");
     let msg = err.to_string();
     assert!(msg.contains(&*dir.to_string_lossy()), "{msg}");
     assert!(!dir.exists(), "the missing directory is not created");
@@ -207,7 +207,7 @@ fn unwritable_scratch_dir_is_a_clear_error() {
         std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o555)).unwrap();
         // Root writes anyway; anyone else gets the error.
         if let Err(e) = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &ro)) {
-            assert!(matches!(e, ColumnsError::File { .. }), "{e:?}");
+            assert!(matches!(e, BuildError::File { .. }), "{e:?}");
             assert!(e.to_string().contains(&*ro.to_string_lossy()), "{e}");
         }
         assert!(is_empty_dir(&ro), "nothing is left behind");
@@ -226,7 +226,7 @@ fn scratch_limit_mid_build_is_an_error_and_leaves_nothing() {
         ..opts(0, 0, &dir)
     };
     let err = level::build(&scene, &BuildConfig::default(), None, &o).unwrap_err();
-    assert!(matches!(err, ColumnsError::Limit { .. }), "{err:?}");
+    assert!(matches!(err, BuildError::Limit { .. }), "{err:?}");
     assert!(err.to_string().contains(&*dir.to_string_lossy()), "{err}");
     assert!(is_empty_dir(&dir), "nothing is left behind");
     std::fs::remove_dir_all(dir).unwrap();
@@ -319,7 +319,7 @@ fn full_disk_is_a_clear_error() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
     let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &dir)).unwrap_err();
-    assert!(matches!(err, ColumnsError::NoSpace { .. }), "{err:?}");
+    assert!(matches!(err, BuildError::NoSpace { .. }), "{err:?}");
     assert!(err.to_string().contains(&*dir.to_string_lossy()), "{err}");
     assert!(is_empty_dir(&dir), "nothing is left behind");
 }

@@ -17,34 +17,39 @@
 //! triangle whose box lies on one side of the chosen plane ([`classify`])
 //! keeps its box in that child; a straddler's box in each child is the
 //! bounds of `tri ∩ parent cell` on that side of the plane
-//! ([`crate::geom::clip_split`]) `∩ its box in the parent`, and a straddler
+//! (`geom::clip_split`) `∩ its box in the parent`, and a straddler
 //! whose clipped box is empty (possible only by a rounding margin) is left
 //! out of that child. Leaves list their triangles in ascending id, and the
 //! nodes are emitted in pre-order.
 
 pub mod level;
 pub mod naive;
+#[doc(hidden)] // the builders' shared cost function; its parameters are `SahParams`
 pub mod sah;
 pub mod sweep;
 
 pub use crate::progress::Progress;
+pub use sah::SahParams;
 
 use crate::geom::{Aabb, clip_split};
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use glam::Vec3;
-use sah::{SahParams, Side, Split};
+use sah::{Side, Split};
 
 /// What every builder needs to know.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct BuildConfig {
+    /// The cost model and depth limit every builder prices splits with.
     pub sah: SahParams,
 }
 
 /// Which builder to run.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Builder {
+    /// The O(N²) reference ([`naive::build`]).
     Naive,
+    /// The O(N log N) event sweep of Wald & Havran ([`sweep::build`]).
     Sweep,
     /// The level builder with default options (everything in RAM).
     Level,
@@ -53,7 +58,7 @@ pub enum Builder {
 /// Why a build failed: only the level builder can, with its columns
 /// (with its default options, no scratch files, only when one level holds
 /// more than 2³⁰ references).
-pub type BuildError = crate::columns::ColumnsError;
+pub use crate::columns::ColumnsError as BuildError;
 
 /// Builds the standard tree with the chosen builder.
 ///
@@ -78,23 +83,31 @@ pub fn build(
 }
 
 /// A triangle in a node, with its (clipped) box in that node.
+#[doc(hidden)]
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TriRef {
+    /// The triangle, in the scene's numbering.
     pub tri: TriId,
+    /// The triangle's box clipped to the node's cell.
     pub bounds: Aabb,
 }
 
 /// Where a triangle goes when its node is split.
+#[doc(hidden)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Placement {
+    /// Only into the left child.
     Left,
+    /// Only into the right child.
     Right,
+    /// Into both: the triangle straddles the plane and is clipped.
     Both,
 }
 
 /// The one classification rule: planar boxes go to the split's planar side,
 /// boxes ending at or before the plane go left, boxes starting at or after it
 /// go right, the rest straddle.
+#[doc(hidden)]
 #[inline]
 pub fn classify(bounds: &Aabb, split: &Split) -> Placement {
     let k = split.axis as usize;
@@ -119,6 +132,7 @@ pub fn classify(bounds: &Aabb, split: &Split) -> Placement {
 /// by the plane ([`clip_split`]), with the reference's box as the known
 /// bounds of `triangle ∩ cell`, so only the faces it reaches are clipped.
 /// Every builder clips through here, so all make the same boxes.
+#[doc(hidden)]
 pub fn clip_straddler(
     scene: &TriangleColumns,
     r: &TriRef,
@@ -137,6 +151,7 @@ pub fn clip_straddler(
 }
 
 /// The root cell and the root's triangle references.
+#[doc(hidden)]
 pub fn root(scene: &TriangleColumns) -> (Aabb, Vec<TriRef>) {
     let refs: Vec<TriRef> = (0..scene.len() as u32)
         .map(|i| TriRef {
@@ -151,7 +166,7 @@ pub fn root(scene: &TriangleColumns) -> (Aabb, Vec<TriRef>) {
 /// The root cell of a scene whose triangles' boxes have the union
 /// `union`: that union, or a point at the origin for a scene with no
 /// triangle. Every builder's root cell comes from here.
-pub fn root_cell(union: Aabb) -> Aabb {
+pub(crate) fn root_cell(union: Aabb) -> Aabb {
     if union.is_empty() {
         Aabb::new(Vec3::ZERO, Vec3::ZERO)
     } else {

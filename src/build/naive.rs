@@ -8,6 +8,8 @@ use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::TreeIr;
 
+/// Builds the standard tree of `scene` by counting (the tests' reference),
+/// advancing `progress` as leaves are written.
 pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Progress>) -> TreeIr {
     let (bounds, refs) = root(scene);
     let mut ctx = Ctx {

@@ -22,9 +22,9 @@
 //! triangles in `z = 0`: 27,609 references per triangle, 12.9 s). Flat cells
 //! also hold axis-aligned walls in real scenes, cut off by planes on a
 //! face. So the splits whose overlap `s = P_L + P_R − 1` is below
-//! [`FLAT_OVERLAP`] are priced as if it were [`FLAT_PRICED_OVERLAP`], and
+//! `FLAT_OVERLAP` are priced as if it were `FLAT_PRICED_OVERLAP`, and
 //! are taken only while few enough references straddle them
-//! ([`FLAT_HALVING`], [`is_leaf`]). Every other split is priced and decided
+//! (`FLAT_HALVING`, `is_leaf`). Every other split is priced and decided
 //! as above.
 //!
 //! **Tie-break.** Splits are totally ordered by (cost, axis, position,
@@ -92,7 +92,7 @@ pub struct Split {
 
 impl Split {
     /// The documented total order: (cost, axis, position, planar side).
-    pub fn cmp_order(&self, other: &Split) -> Ordering {
+    pub(crate) fn cmp_order(&self, other: &Split) -> Ordering {
         self.cost
             .total_cmp(&other.cost)
             .then(self.axis.cmp(&other.axis))
@@ -102,7 +102,7 @@ impl Split {
 
     /// Keeps the better of `best` and `self`.
     #[inline]
-    pub fn keep_best(self, best: &mut Option<Split>) {
+    pub(crate) fn keep_best(self, best: &mut Option<Split>) {
         match best {
             Some(b) if self.cmp_order(b) != Ordering::Less => {}
             _ => *best = Some(self),
@@ -112,7 +112,7 @@ impl Split {
 
 /// How the triangles of a node lie against one plane.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct PlaneCounts {
+pub(crate) struct PlaneCounts {
     /// Triangles whose box starts left of the plane (`min < pos`), straddlers
     /// included.
     pub left: usize,
@@ -126,7 +126,7 @@ pub struct PlaneCounts {
 /// The cost of splitting `cell` (surface area `sa_cell > 0`) at `axis = pos`.
 /// Returns the cheaper assignment of the planar triangles.
 #[inline]
-pub fn split_cost(
+pub(crate) fn split_cost(
     params: &SahParams,
     cell: &Aabb,
     sa_cell: f64,
@@ -148,7 +148,7 @@ pub fn split_cost(
 /// operation for operation (a test holds the two equal bit for bit), plus
 /// [`flat_extra`] for the flat splits (0 for all others).
 #[derive(Clone, Copy, Debug)]
-pub struct AxisPricer {
+pub(crate) struct AxisPricer {
     d: [f64; 3],
     lo: f64,
     hi: f64,
@@ -163,7 +163,7 @@ pub struct AxisPricer {
 
 impl AxisPricer {
     #[inline]
-    pub fn new(cell: &Aabb, sa_cell: f64, axis: usize) -> AxisPricer {
+    pub(crate) fn new(cell: &Aabb, sa_cell: f64, axis: usize) -> AxisPricer {
         let d = [0, 1, 2].map(|k| f64::from(cell.max[k]) - f64::from(cell.min[k]));
         AxisPricer {
             d,
@@ -179,13 +179,13 @@ impl AxisPricer {
 
     /// The cell's extents in `f64`.
     #[inline]
-    pub fn extents(&self) -> [f64; 3] {
+    pub(crate) fn extents(&self) -> [f64; 3] {
         self.d
     }
 
     /// What the flat-split rule adds to each child's ratio ([`flat_extra`]).
     #[inline]
-    pub fn extra(&self) -> f64 {
+    pub(crate) fn extra(&self) -> f64 {
         self.extra
     }
 
@@ -196,7 +196,7 @@ impl AxisPricer {
 
     /// The cost of the plane at `pos` (see [`split_cost`]).
     #[inline]
-    pub fn cost(&self, params: &SahParams, pos: f32, counts: PlaneCounts) -> Split {
+    pub(crate) fn cost(&self, params: &SahParams, pos: f32, counts: PlaneCounts) -> Split {
         let (p, on_face) = match self.axis {
             0 => self.ratios_on::<0>(pos),
             1 => self.ratios_on::<1>(pos),
@@ -226,7 +226,7 @@ impl AxisPricer {
     /// the plane lies on a face of the cell. Generic over the axis so that
     /// a loop over many planes vectorizes (`build::level::tiny`).
     #[inline(always)]
-    pub fn ratios_on<const AXIS: usize>(&self, pos: f32) -> ([f64; 2], bool) {
+    pub(crate) fn ratios_on<const AXIS: usize>(&self, pos: f32) -> ([f64; 2], bool) {
         debug_assert_eq!(AXIS, self.axis);
         let x = f64::from(pos);
         let (mut dl, mut dr) = (self.d, self.d);
@@ -242,7 +242,7 @@ impl AxisPricer {
 /// Splits whose overlap `s` ([`split_overlap`]) is below this are *flat*:
 /// a flat cell's splits in its plane (`s = 0`), and those of cells a
 /// thousand times thinner than they are wide.
-pub const FLAT_OVERLAP: f64 = 1e-3;
+pub(crate) const FLAT_OVERLAP: f64 = 1e-3;
 
 /// The overlap flat splits are priced with: each child's ratio gains
 /// `(FLAT_PRICED_OVERLAP − s) / 2`, so that a reference in both children
@@ -250,7 +250,7 @@ pub const FLAT_OVERLAP: f64 = 1e-3;
 /// ratios it costs nothing, and 1,000 random triangles in one plane make
 /// 27,609 references per triangle; priced so (without [`FLAT_HALVING`]),
 /// 117, with an SAH cost of 2,285 against the unbounded tree's 1,794.
-pub const FLAT_PRICED_OVERLAP: f64 = 0.1;
+pub(crate) const FLAT_PRICED_OVERLAP: f64 = 0.1;
 
 /// A flat split is taken only if at most `n / 2^⌊depth / FLAT_HALVING⌋` of
 /// the node's `n` references straddle it ([`is_leaf`]), so that flat splits
@@ -259,7 +259,7 @@ pub const FLAT_PRICED_OVERLAP: f64 = 0.1;
 /// all depths; 12 to 27 measured). Pricing alone still lets a fan of
 /// slivers meeting in one corner blow up (10⁴ corners: 3,121 references
 /// per triangle, 19 s); with this, 26.5 (0.56 s; 10⁵ corners 4.4 s).
-pub const FLAT_HALVING: u32 = 6;
+pub(crate) const FLAT_HALVING: u32 = 6;
 
 /// The overlap `s = P_L + P_R − 1` of every split on `axis` of a cell with
 /// extents `d` and surface area `sa`: the children's surface areas sum to
@@ -267,7 +267,7 @@ pub const FLAT_HALVING: u32 = 6;
 /// `s = 2·A_⊥ / SA` whatever the position (`1/3` in a cube, `0` in a flat
 /// cell; `NaN` for a cell without area, which is never split).
 #[inline]
-pub fn split_overlap(d: [f64; 3], sa: f64, axis: usize) -> f64 {
+pub(crate) fn split_overlap(d: [f64; 3], sa: f64, axis: usize) -> f64 {
     2.0 * (d[(axis + 1) % 3] * d[(axis + 2) % 3]) / sa
 }
 
@@ -275,7 +275,7 @@ pub fn split_overlap(d: [f64; 3], sa: f64, axis: usize) -> f64 {
 /// splits on `axis` of a cell with extents `d` and surface area `sa`:
 /// `(FLAT_PRICED_OVERLAP − s) / 2` for a flat split, else 0.
 #[inline]
-pub fn flat_extra(d: [f64; 3], sa: f64, axis: usize) -> f64 {
+pub(crate) fn flat_extra(d: [f64; 3], sa: f64, axis: usize) -> f64 {
     if is_flat_split(d, sa, axis) {
         (FLAT_PRICED_OVERLAP - split_overlap(d, sa, axis)) / 2.0
     } else {
@@ -287,7 +287,7 @@ pub fn flat_extra(d: [f64; 3], sa: f64, axis: usize) -> f64 {
 /// area `sa` are flat: their overlap is below [`FLAT_OVERLAP`] (never for
 /// a cell without area, whose overlap is `NaN`).
 #[inline]
-pub fn is_flat_split(d: [f64; 3], sa: f64, axis: usize) -> bool {
+pub(crate) fn is_flat_split(d: [f64; 3], sa: f64, axis: usize) -> bool {
     split_overlap(d, sa, axis) < FLAT_OVERLAP
 }
 
@@ -295,7 +295,7 @@ pub fn is_flat_split(d: [f64; 3], sa: f64, axis: usize) -> bool {
 /// straddles the plane at `pos`, going to both children (as
 /// [`crate::build::classify`] places it).
 #[inline]
-pub fn straddles(lo: f32, hi: f32, pos: f32) -> bool {
+pub(crate) fn straddles(lo: f32, hi: f32, pos: f32) -> bool {
     lo < pos && pos < hi
 }
 
@@ -305,18 +305,18 @@ pub fn straddles(lo: f32, hi: f32, pos: f32) -> bool {
 /// vectorizes (`build::level::tiny` packs a small node's three axes into
 /// the same vectors).
 #[derive(Clone, Copy, Debug)]
-pub struct CellPricer([AxisPricer; 3]);
+pub(crate) struct CellPricer([AxisPricer; 3]);
 
 impl CellPricer {
     #[inline]
-    pub fn new(cell: &Aabb, sa_cell: f64) -> CellPricer {
+    pub(crate) fn new(cell: &Aabb, sa_cell: f64) -> CellPricer {
         CellPricer([0, 1, 2].map(|axis| AxisPricer::new(cell, sa_cell, axis)))
     }
 
     /// `[P_L, P_R]` of the plane at `pos` on axis `axis` (0, 1, or 2 for
     /// any other value), and whether it lies on a face of the cell.
     #[inline(always)]
-    pub fn ratios(&self, axis: u32, pos: f32) -> ([f64; 2], bool) {
+    pub(crate) fn ratios(&self, axis: u32, pos: f32) -> ([f64; 2], bool) {
         /// Element `axis` (the last for any larger value), by selects.
         #[inline(always)]
         fn pick<T: Copy>(axis: u32, v: [T; 3]) -> T {
@@ -350,7 +350,7 @@ impl CellPricer {
 /// right)`. Branch-free in effect (selects only), so that a loop over
 /// many planes vectorizes; every builder's pricing ends here.
 #[inline(always)]
-pub fn plane_cost(
+pub(crate) fn plane_cost(
     params: &SahParams,
     p: [f64; 2],
     on_face: bool,
@@ -383,7 +383,7 @@ pub fn plane_cost(
 /// stricter rule than "costs at least the leaf" keeps every sweep's
 /// pruning valid (a pruned plane costs more than the best, or at least the
 /// leaf).
-pub fn is_leaf(
+pub(crate) fn is_leaf(
     params: &SahParams,
     best: Option<&Split>,
     n: usize,

@@ -2,7 +2,7 @@
 //!
 //! Each node keeps, per axis, its events (the starts and ends of its
 //! triangles' boxes, or one planar event for a flat box) sorted by
-//! (position, kind, triangle), with [`EventKind`] declared in sweep order
+//! (position, kind, triangle), with `EventKind` declared in sweep order
 //! End < Planar < Start. One sweep per axis finds the best plane. A child
 //! inherits the events of the triangles that lie wholly on its side through
 //! a stable partition (so they stay sorted); only the events of clipped
@@ -19,7 +19,7 @@ use std::cmp::Ordering;
 /// What an event marks, in sweep order.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 #[repr(u8)]
-pub enum EventKind {
+pub(crate) enum EventKind {
     End = 0,
     Planar = 1,
     Start = 2,
@@ -27,7 +27,7 @@ pub enum EventKind {
 
 /// A box bound on one axis.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Event {
+pub(crate) struct Event {
     pub pos: f32,
     pub kind: EventKind,
     pub tri: TriId,
@@ -37,7 +37,7 @@ impl Event {
     /// The sort order: (position, kind, triangle). Total, since a triangle
     /// has at most one event of each kind per axis.
     #[inline]
-    pub fn cmp_order(&self, o: &Event) -> Ordering {
+    pub(crate) fn cmp_order(&self, o: &Event) -> Ordering {
         self.pos
             .total_cmp(&o.pos)
             .then(self.kind.cmp(&o.kind))
@@ -47,7 +47,7 @@ impl Event {
 
 /// Appends the events of `r` on `axis`.
 #[inline]
-pub fn push_events(r: &TriRef, axis: usize, out: &mut Vec<Event>) {
+pub(crate) fn push_events(r: &TriRef, axis: usize, out: &mut Vec<Event>) {
     let (lo, hi) = (r.bounds.min[axis], r.bounds.max[axis]);
     if lo == hi {
         out.push(Event {
@@ -70,7 +70,7 @@ pub fn push_events(r: &TriRef, axis: usize, out: &mut Vec<Event>) {
 }
 
 /// The sorted events of `refs` on `axis`.
-pub fn sorted_events(refs: &[TriRef], axis: usize) -> Vec<Event> {
+pub(crate) fn sorted_events(refs: &[TriRef], axis: usize) -> Vec<Event> {
     let mut ev = Vec::with_capacity(refs.len() * 2);
     for r in refs {
         push_events(r, axis, &mut ev);
@@ -80,7 +80,7 @@ pub fn sorted_events(refs: &[TriRef], axis: usize) -> Vec<Event> {
 }
 
 /// Merges two sorted event lists.
-pub fn merge_events(a: Vec<Event>, b: &[Event]) -> Vec<Event> {
+pub(crate) fn merge_events(a: Vec<Event>, b: &[Event]) -> Vec<Event> {
     if b.is_empty() {
         return a;
     }
@@ -101,7 +101,7 @@ pub fn merge_events(a: Vec<Event>, b: &[Event]) -> Vec<Event> {
 }
 
 /// Sweeps the sorted events of one axis and keeps the best plane in `best`.
-pub fn sweep_axis(
+pub(crate) fn sweep_axis(
     params: &sah::SahParams,
     cell: &Aabb,
     sa: f64,
@@ -131,6 +131,8 @@ pub fn sweep_axis(
     }
 }
 
+/// Builds the standard tree of `scene` with the event sweep, depth-first
+/// on one thread.
 pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Progress>) -> TreeIr {
     let (bounds, refs) = root(scene);
     build_subtree(scene, config, refs, bounds, 0, progress)
@@ -143,7 +145,7 @@ pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Pr
 /// ([`crate::slim::rebuild`]; the slim pass itself uses the level
 /// builder's [`crate::build::level::SubtreeBuilder`], which builds the
 /// same subtree).
-pub fn build_subtree(
+pub(crate) fn build_subtree(
     scene: &TriangleColumns,
     config: &BuildConfig,
     refs: Vec<TriRef>,

@@ -43,7 +43,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Where columns go.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct ScratchConfig {
+pub(crate) struct ScratchConfig {
     /// Bytes of columns kept in RAM at once; columns beyond it are mapped
     /// files. `u64::MAX` keeps everything in RAM, 0 maps everything.
     pub mem_budget: u64,
@@ -72,26 +72,53 @@ pub enum ColumnsError {
     /// fit in memory.
     OutOfMemory(crate::sys::OutOfMemory),
     /// The scratch directory does not exist or is not a directory.
-    NoDir { path: PathBuf, source: io::Error },
+    NoDir {
+        /// The directory asked for.
+        path: PathBuf,
+        /// What `stat` said.
+        source: io::Error,
+    },
     /// A scratch file could not be created, sized or mapped (an
     /// unwritable directory, for example).
     File {
+        /// The scratch file.
         path: PathBuf,
+        /// The step that failed, as the message words it (`map`, ...).
         op: &'static str,
+        /// The system's error.
         source: io::Error,
     },
     /// The disk holding the scratch directory is full.
-    NoSpace { path: PathBuf, bytes: u64 },
-    /// The scratch files would exceed [`ScratchConfig::scratch_limit`].
-    Limit {
+    NoSpace {
+        /// The scratch file that did not fit.
         path: PathBuf,
+        /// Its size.
+        bytes: u64,
+    },
+    /// The scratch files would exceed the scratch limit
+    /// ([`LevelOptions::scratch_limit`](crate::build::level::LevelOptions::scratch_limit)).
+    Limit {
+        /// The scratch directory.
+        path: PathBuf,
+        /// The limit, in bytes.
         limit: u64,
+        /// The scratch bytes alive with this file.
         requested: u64,
     },
     /// A count does not fit the builder's index width.
-    Capacity { what: &'static str, limit: u64 },
+    Capacity {
+        /// What was counted (references, events, nodes).
+        what: &'static str,
+        /// The most the index width holds.
+        limit: u64,
+    },
     /// Memory could not be mapped (out of memory, or of mappings).
-    Memory { bytes: u64, source: io::Error },
+    Memory {
+        /// The size of the mapping.
+        bytes: u64,
+        /// What `mmap` said.
+        source: io::Error,
+    },
 }
 
 impl fmt::Display for ColumnsError {
@@ -145,7 +172,8 @@ impl std::error::Error for ColumnsError {
     }
 }
 
-/// Byte counts of one [`Scratch`], for reports.
+/// Byte counts of the level builder's columns (RAM and scratch files),
+/// for reports.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ScratchStats {
     /// The most bytes of RAM columns alive at once.
@@ -161,7 +189,7 @@ pub struct ScratchStats {
 /// The allocator of columns: the budget, the directory and the counters.
 /// Columns borrow it, so it outlives them.
 #[derive(Debug)]
-pub struct Scratch {
+pub(crate) struct Scratch {
     config: ScratchConfig,
     /// Bytes of RAM columns alive; guards the budget.
     ram: AtomicU64,
@@ -287,10 +315,7 @@ impl Scratch {
         })
     }
 
-    pub fn config(&self) -> &ScratchConfig {
-        &self.config
-    }
-
+    /// What the columns made so far used, peaks included.
     pub fn stats(&self) -> ScratchStats {
         ScratchStats {
             peak_ram_bytes: self.peak_ram.load(Ordering::Relaxed),
@@ -301,6 +326,9 @@ impl Scratch {
     }
 
     /// A zeroed column of `len` elements; `name` goes into the file name.
+    /// Only the tests make one: the level builder writes its columns whole
+    /// ([`Scratch::column_for_overwrite`]).
+    #[cfg(test)]
     pub fn column<T: Pod>(&self, name: &str, len: usize) -> Result<Column<'_, T>, ColumnsError> {
         self.make(name, len, true)
     }
@@ -596,7 +624,7 @@ enum Storage<T> {
 
 /// A column of `len` elements of `T`, in RAM or in a mapped scratch file.
 /// Dereferences to `[T]`.
-pub struct Column<'s, T: Pod> {
+pub(crate) struct Column<'s, T: Pod> {
     storage: Storage<T>,
     len: usize,
     /// What this column counts against the budget or the scratch limit.
@@ -684,7 +712,7 @@ impl<T: Pod> fmt::Debug for Column<'_, T> {
 /// computed by prefix sums; no two writers share a position, but the
 /// positions of one writer are not one contiguous range, so the slice
 /// cannot be split safely beforehand.
-pub struct ScatterSlice<'a, T> {
+pub(crate) struct ScatterSlice<'a, T> {
     ptr: *mut T,
     len: usize,
     _slice: PhantomData<&'a mut [T]>,
@@ -698,20 +726,13 @@ unsafe impl<T: Send> Sync for ScatterSlice<'_, T> {}
 unsafe impl<T: Send> Send for ScatterSlice<'_, T> {}
 
 impl<'a, T> ScatterSlice<'a, T> {
+    /// Shares `slice` for writes at disjoint positions.
     pub fn new(slice: &'a mut [T]) -> ScatterSlice<'a, T> {
         ScatterSlice {
             ptr: slice.as_mut_ptr(),
             len: slice.len(),
             _slice: PhantomData,
         }
-    }
-
-    pub fn len(&self) -> usize {
-        self.len
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len == 0
     }
 
     /// Writes `value` at `i` (checked against the length).

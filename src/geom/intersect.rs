@@ -139,7 +139,7 @@ fn min_of(a: f32, b: f32) -> f32 {
     clippy::neg_cmp_op_on_partial_ord,
     reason = "NaN must count as out of range"
 )]
-pub fn edges_need_f64(u: f32, v: f32, w: f32) -> bool {
+pub(crate) fn edges_need_f64(u: f32, v: f32, w: f32) -> bool {
     let m = min_of(min_of(u.abs(), v.abs()), w.abs());
     !(m >= f32::MIN_POSITIVE)
 }
@@ -154,7 +154,7 @@ pub fn edges_need_f64(u: f32, v: f32, w: f32) -> bool {
     clippy::neg_cmp_op_on_partial_ord,
     reason = "NaN must count as out of range"
 )]
-pub fn t_needs_f64(det: f32, t_scaled: f32, t: f32) -> bool {
+pub(crate) fn t_needs_f64(det: f32, t_scaled: f32, t: f32) -> bool {
     !(t_scaled.abs() >= f32::MIN_POSITIVE) | !((det + t).abs() <= f32::MAX)
 }
 

@@ -8,16 +8,13 @@
 //! packet, brute force) computes bit-identical hit distances for the same
 //! ray and triangle.
 
-#![warn(missing_docs)]
-
 mod clip;
 mod intersect;
 
-pub use clip::{clip_split, clip_split_on, clip_triangle};
-pub use intersect::{
-    RayPrecomp, edge_functions, edges_need_f64, intersect_ray_triangle, intersect_triangle,
-    t_needs_f64,
-};
+pub(crate) use clip::clip_split;
+pub use clip::clip_triangle;
+pub use intersect::{RayPrecomp, edge_functions, intersect_ray_triangle, intersect_triangle};
+pub(crate) use intersect::{edges_need_f64, t_needs_f64};
 
 use glam::Vec3;
 
@@ -143,7 +140,7 @@ impl Ray {
 
 /// Rounds an `f64` down to the nearest `f32` that is `<=` it.
 #[inline]
-pub fn f32_round_down(x: f64) -> f32 {
+pub(crate) fn f32_round_down(x: f64) -> f32 {
     let f = x as f32;
     // Both candidates, then a select: the comparison is a coin flip for
     // interpolated points, so a branch would mispredict half the time.
@@ -153,7 +150,7 @@ pub fn f32_round_down(x: f64) -> f32 {
 
 /// Rounds an `f64` up to the nearest `f32` that is `>=` it.
 #[inline]
-pub fn f32_round_up(x: f64) -> f32 {
+pub(crate) fn f32_round_up(x: f64) -> f32 {
     let f = x as f32;
     let above = f32_step(f, true);
     if f64::from(f) < x { above } else { f }

@@ -16,9 +16,13 @@ use std::path::{Path, PathBuf};
 /// A rendered frame: row-major, y = 0 is the TOP row. `rgb` are linear colours in \[0,1\] (may exceed),
 /// `depth` is the hit distance per pixel, f32::INFINITY for a miss.
 pub struct Frame {
+    /// Pixels per row.
     pub width: u32,
+    /// Rows.
     pub height: u32,
+    /// `width · height` colours.
     pub rgb: Vec<[f32; 3]>,
+    /// `width · height` hit distances.
     pub depth: Vec<f32>,
 }
 
@@ -27,13 +31,23 @@ pub struct Frame {
 pub enum ImageError {
     /// The file system refused an operation on `path`.
     Io {
+        /// The image file.
         path: PathBuf,
+        /// The system's error.
         source: std::io::Error,
     },
     /// The encoder rejected the frame or failed for a reason other than I/O.
-    Encode { path: PathBuf, message: String },
+    Encode {
+        /// The image file.
+        path: PathBuf,
+        /// The encoder's message.
+        message: String,
+    },
     /// The extension of `path` is neither `.png` nor `.exr`.
-    UnknownExtension { path: PathBuf },
+    UnknownExtension {
+        /// The file asked for.
+        path: PathBuf,
+    },
 }
 
 impl fmt::Display for ImageError {

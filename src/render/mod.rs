@@ -30,11 +30,17 @@ use std::time::Instant;
 /// A pinhole camera (see the module docs for the convention).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
+    /// The centre of projection.
     pub eye: DVec3,
+    /// A point the camera looks at (the image centre).
     pub at: DVec3,
+    /// The image's up direction (need not be orthogonal to the view).
     pub up: DVec3,
+    /// The vertical field of view, in degrees.
     pub fov_deg: f64,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
 }
 
@@ -142,18 +148,27 @@ impl Camera {
 /// Why [`Camera::check`] refused a camera.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum CameraError {
+    /// `eye`, `at` or `up` has a NaN or infinite coordinate.
     NotFinite,
+    /// The field of view is not in `(0, 180)` degrees.
     BadFov {
+        /// The field of view given.
         fov: f64,
     },
+    /// The image has no pixel.
     EmptyImage {
+        /// The width given.
         width: u32,
+        /// The height given.
         height: u32,
     },
+    /// `eye == at`: there is no view direction.
     SamePoint,
     /// `up` is zero or parallel to `dir = at - eye`.
     UpParallel {
+        /// The up vector given.
         up: DVec3,
+        /// The view direction `at - eye`.
         dir: DVec3,
     },
 }
@@ -182,19 +197,26 @@ impl std::error::Error for CameraError {}
 /// (1-based), what is wrong, and its text.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ViewsError {
+    /// The line's number, from 1.
     pub line: usize,
+    /// What is wrong with it.
     pub problem: ViewProblem,
+    /// The line as it is in the file.
     pub text: String,
 }
 
 /// What is wrong with a line of a views file.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ViewProblem {
+    /// The line has no first word (the scene's name).
     NoSceneName,
+    /// The line has no second word (the view's id).
     NoViewId,
+    /// A later word is not `key=value`.
     NotKeyValue,
     /// The value of this key does not parse.
     Bad(&'static str),
+    /// A key other than `eye`, `at`, `up` and `fov`.
     UnknownKey(String),
     /// This key is missing.
     Missing(&'static str),
@@ -238,11 +260,17 @@ impl std::error::Error for ViewsError {
 /// `SCENE VIEW_ID eye=x,y,z at=x,y,z up=x,y,z fov=DEG  # comment`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct View {
+    /// The scene's name (a file's stem or its header's scene tag).
     pub scene: String,
+    /// The view's name among the scene's views.
     pub id: String,
+    /// [`Camera::eye`].
     pub eye: DVec3,
+    /// [`Camera::at`].
     pub at: DVec3,
+    /// [`Camera::up`].
     pub up: DVec3,
+    /// [`Camera::fov_deg`].
     pub fov_deg: f64,
 }
 
@@ -351,8 +379,11 @@ pub const TILE: u32 = 16;
 
 /// Per-pixel hits of one frame, row-major, `y = 0` first.
 pub struct HitBuffer {
+    /// Pixels per row.
     pub width: u32,
+    /// Rows.
     pub height: u32,
+    /// `width · height` closest hits ([`Hit::MISS`] where a ray misses).
     pub hits: Vec<Hit>,
     /// Seconds spent generating and tracing the rays.
     pub seconds: f64,
@@ -372,10 +403,12 @@ impl HitBuffer {
             .fold(0.0, |s, h| s + f64::from(h.t))
     }
 
+    /// Rays traced per second, in millions.
     pub fn mrays_per_s(&self) -> f64 {
         self.hits.len() as f64 / self.seconds / 1e6
     }
 
+    /// The hit distances, `+∞` for a miss (a [`Frame`]'s depth).
     pub fn depth(&self) -> Vec<f32> {
         self.hits.iter().map(|h| h.t).collect()
     }

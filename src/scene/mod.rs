@@ -57,8 +57,6 @@
 //! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
 //! as `tobj` returns them (no welding).
 
-#![warn(missing_docs)]
-
 mod cache;
 mod gltf;
 mod obj;

@@ -71,7 +71,7 @@
 //!   cancelled or rejected hoist the subtree is unchanged, so its analysis
 //!   is reused.
 //! - *Rebuilds* use the level builder's depth-first finisher
-//!   ([`SubtreeBuilder`], no allocation per node), which builds the same
+//!   (`level::SubtreeBuilder`, no allocation per node), which builds the same
 //!   subtree as the sweep builder of [`rebuild`].
 //! - *Flat work tree.* Every subtree that is analysed or rebuilt is a
 //!   contiguous pre-order range of nodes (and of leaf triangles) of the
@@ -85,6 +85,7 @@ mod pass;
 mod work;
 
 pub use bytes::min_subtree_bytes;
+#[doc(hidden)] // the literal Algorithm 1 of tests/slim.rs shares the oracle's formulas
 pub use oracle::{above, occupancy_weight};
 pub use params::{HoistRule, SlimParams, SlimPhases, SlimReport};
 
@@ -106,7 +107,8 @@ use work::{WNode, Work};
 /// Rebuilds a subtree from scratch, as Algorithm 1 does: the triangles
 /// `tris` (ascending), each clipped to `cell`, built by the sweep builder
 /// at `depth`. Triangles that do not meet `cell` are left out. (The pass
-/// itself builds the same subtree with [`SubtreeBuilder`].)
+/// itself builds the same subtree with the level builder's
+/// `SubtreeBuilder`.)
 pub fn rebuild(
     scene: &TriangleColumns,
     config: &BuildConfig,

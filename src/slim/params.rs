@@ -24,16 +24,24 @@ pub enum HoistRule {
     ///
     /// [`leaf_index_bytes`]: crate::format::node::leaf_index_bytes
     /// [`TriangleColumns::morton_order`]: crate::scene::TriangleColumns::morton_order
-    Bytes { reordered: bool },
+    Bytes {
+        /// The file is written with Morton-reordered triangle ids.
+        reordered: bool,
+    },
 }
 
 /// The thresholds of the oracle, the hoisting limit and the hoist rule.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SlimParams {
+    /// A triangle is picked only if its occupancy (share of the
+    /// subtree's leaf surface area) exceeds this.
     pub tau_occu: f64,
+    /// A triangle is picked only if it is in more than this share of the
+    /// subtree's leaves.
     pub tau_freq: f64,
     /// Most hoisted triangles on any root path.
     pub max_t2rn: u32,
+    /// Which picked triangles are hoisted.
     pub rule: HoistRule,
 }
 

@@ -51,6 +51,7 @@ pub struct ByteSplit {
 }
 
 impl ByteSplit {
+    /// The tree's bytes: node words and indices.
     pub fn total(&self) -> u64 {
         self.inner_bytes
             + self.t_inner_bytes
@@ -65,10 +66,12 @@ impl ByteSplit {
         self.inner_bytes + self.t_inner_bytes + self.leaf_bytes + self.empty_leaf_bytes
     }
 
+    /// All leaf index entries, 4- and 2-byte.
     pub fn index_bytes(&self) -> u64 {
         self.idx32_bytes + self.idx16_bytes
     }
 
+    /// The split of a validated file's tree.
     pub fn of<D: AsRef<[u8]>>(file: &KdFile<D>) -> ByteSplit {
         let f = file.figures();
         let mut s = ByteSplit {

@@ -3,7 +3,8 @@
 //! Table 3 and Figure 6, for the standard tree).
 
 pub mod bytes;
-pub mod plot;
+pub(crate) mod plot;
+#[doc(hidden)] // the `slimkd report` driver
 pub mod report;
 
 use crate::build::sah::SahParams;
@@ -12,15 +13,19 @@ use crate::tree::{Node, TreeIr};
 /// Summary figures of one tree.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TreeStats {
+    /// All nodes.
     pub nodes: usize,
     /// Inner nodes without a hoisted triangle (type I).
     pub inner: usize,
     /// Inner nodes holding a hoisted triangle (type II, "t-inner").
     pub t_inner: usize,
+    /// Leaves, empty ones included.
     pub leaves: usize,
+    /// Leaves with no triangle.
     pub empty_leaves: usize,
     /// Triangle references in leaves (`leaf_tris.len()`).
     pub refs: usize,
+    /// The deepest leaf's depth (root = 0).
     pub max_depth: u32,
     /// Mean depth of the non-empty leaves.
     pub mean_leaf_depth: f64,
@@ -32,6 +37,7 @@ pub struct TreeStats {
 }
 
 impl TreeStats {
+    /// The figures of `tree`, its SAH cost priced with `params`.
     pub fn of(tree: &TreeIr, params: &SahParams) -> TreeStats {
         let sa_root = tree.bounds.surface_area();
         let mut s = TreeStats {

@@ -1,4 +1,3 @@
-#![warn(missing_docs)]
 //! Closest-hit queries: the scalar front-to-back kd-tree traverser, the 4×4
 //! packet traverser ([`packet`]) and the brute-force reference.
 //!

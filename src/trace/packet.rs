@@ -354,6 +354,10 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
 
     /// [`ClosestHit::closest_hit_n`] or [`ClosestHit::occluded_n`] (a hit
     /// per ray, any hit when `any`) with its work added to `stats`.
+    ///
+    /// # Panics
+    ///
+    /// If `rays` holds more than 16 rays or `out` is not as long.
     pub fn trace_counted(&self, rays: &[Ray], any: bool, out: &mut [Hit], stats: &mut TraceStats) {
         if any {
             self.dispatch::<true, true>(rays, out, stats)

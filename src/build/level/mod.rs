@@ -11,7 +11,7 @@
 //! split of a node) is over a total order.
 //!
 //! **One level** is the open nodes at one depth, stored as flat columns
-//! ([`crate::columns`]: in RAM below `mem_budget`, in mapped scratch files
+//! (`crate::columns`: in RAM below `mem_budget`, in mapped scratch files
 //! above it): each node's references (triangle id and clipped box,
 //! ascending by triangle) and, per axis, its events sorted as in the sweep
 //! builder (`events`). One call of `Builder::level` turns level `d`
@@ -35,13 +35,13 @@
 //! 2. **SAH**: every axis's events are cut into pieces (`pieces`) and
 //!    swept in parallel; a piece that continues a node starts from counts
 //!    carried over the node's earlier pieces (a segmented prefix count).
-//!    Every plane that can win is priced by [`sah::split_cost`] and the
-//!    best kept by [`Split::keep_best`], whose total order makes the
+//!    Every plane that can win is priced by `sah::split_cost` and the
+//!    best kept by `Split::keep_best`, whose total order makes the
 //!    reduction over pieces independent of their order. **Not in the
 //!    paper:** a plane whose cost provably exceeds the best so far is not
 //!    priced (`sweep::Pricer`); and a node at the depth limit is not swept, since
-//!    [`sah::is_leaf`] makes it a leaf whatever its best split.
-//! 3. **Leaves** ([`sah::is_leaf`]) stream out: their triangle lists are
+//!    `sah::is_leaf` makes it a leaf whatever its best split.
+//! 3. **Leaves** (`sah::is_leaf`) stream out: their triangle lists are
 //!    appended to the leaf list at once.
 //! 4. **Classify and clip**: references go left, right or both
 //!    ([`super::classify`]); straddlers are clipped to each child
@@ -94,6 +94,7 @@ pub use self::options::{
     DEFAULT_SMALL_THRESHOLD, DEFAULT_TINY_THRESHOLD, LevelOptions, LevelStatus, NewEvents,
 };
 pub use self::report::{LevelReport, Phases};
+pub use crate::columns::ScratchStats;
 pub use crate::sys::{cpu_seconds, rss};
 
 use self::assemble::{Rec, SubStore, SubStream, assemble};
@@ -284,7 +285,7 @@ impl Finish<'_> {
 /// node): the subtree is the one [`super::sweep::build_subtree`] builds for
 /// the same references, cell and depth. The slim post-pass rebuilds its
 /// subtrees with it. One per worker; its scratch is reused across builds.
-pub struct SubtreeBuilder<'a> {
+pub(crate) struct SubtreeBuilder<'a> {
     finisher: Finisher<'a>,
     tri: Vec<u32>,
     boxes: Vec<Box6>,

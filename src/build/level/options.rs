@@ -70,6 +70,7 @@ impl Default for LevelOptions {
 /// The level being built, for progress displays.
 #[derive(Debug, Default)]
 pub struct LevelStatus {
+    /// The depth being built breadth-first (root = 0).
     pub level: AtomicU32,
     /// Open nodes processed breadth-first at this level.
     pub open_nodes: AtomicU64,

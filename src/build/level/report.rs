@@ -23,6 +23,7 @@ pub struct Phases {
 }
 
 impl Phases {
+    /// The whole build's time: the sum of the phases.
     pub fn total(&self) -> f64 {
         self.setup_s
             + self.sah_s
@@ -37,6 +38,7 @@ impl Phases {
 /// What one build did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LevelReport {
+    /// Where the build's time went.
     pub phases: Phases,
     /// Levels processed breadth-first.
     pub levels: u32,

@@ -15,6 +15,7 @@
 //! straddler from 161 to 123 ns.
 
 use super::{Aabb, f32_round_down, f32_round_up};
+#[cfg(test)]
 use crate::simd::SimdLevel;
 use glam::Vec3;
 
@@ -267,9 +268,9 @@ fn clip_triangle_by(
 /// cross.) With `known = cell` every face the triangle crosses is clipped.
 ///
 /// On a CPU with AVX-512 the polygon is clipped in vector lanes
-/// ([`clip_split_on`]), with the same results bit for bit.
+/// (`clip_split_checked`), with the same results bit for bit.
 #[inline]
-pub fn clip_split(
+pub(crate) fn clip_split(
     tri: &[Vec3; 3],
     cell: &Aabb,
     known: &Aabb,
@@ -285,11 +286,13 @@ pub fn clip_split(
 
 /// [`clip_split`] on a chosen instruction set: [`SimdLevel::Avx512`]
 /// clips in vector lanes, every other level runs the scalar
-/// code. Both give the same bits.
+/// code. Both give the same bits (the tests hold every level to the
+/// reference).
 ///
 /// # Panics
 /// On [`SimdLevel::Avx512`] when this CPU lacks avx512f.
-pub fn clip_split_on(
+#[cfg(test)]
+pub(crate) fn clip_split_on(
     simd: SimdLevel,
     tri: &[Vec3; 3],
     cell: &Aabb,

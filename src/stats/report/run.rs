@@ -114,7 +114,7 @@ pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Re
     run_with_progress(options, None, progress)
 }
 
-/// [`run`], advancing `bar` by one equal share per step, over all scenes
+/// [`run()`], advancing `bar` by one equal share per step, over all scenes
 /// (a step is what one line of `log` announces: a build, a slim pass, a
 /// file written, one view traced in one mode and thread count, or a sweep
 /// point). A line that starts with `warning:` announces no step.
