@@ -67,7 +67,6 @@
 pub mod accel;
 pub mod build;
 pub(crate) mod columns;
-#[allow(missing_docs)] // documented with the format v2 rewrite
 pub mod format;
 #[doc(hidden)] // the CLI's atomic writes and input checks
 pub mod fsio;

@@ -108,25 +108,38 @@ fn check_vertex_indices(triangles: &[[u32; 3]], n_vertices: u64) -> Result<(), F
     }
 }
 
+/// The file's first 8 bytes (PNG-style: a high byte, the name, CR LF, ^Z).
 pub const MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
+/// The format version this build writes and reads.
 pub const VERSION: u32 = 2;
+/// Written in the machine's byte order; reads back equal only on a little-endian reader.
 pub const ENDIAN_CHECK: u32 = 0x0A0B_0C0D;
+/// Bytes of the header (a multiple of [`SECTION_ALIGN`]).
 pub const HEADER_SIZE: usize = 384;
+/// Every section starts at a multiple of this many bytes (a cache line).
 pub const SECTION_ALIGN: usize = 64;
+/// Header flag: triangles renumbered, the `tri_map` section present.
 pub const FLAG_REORDERED: u32 = 1;
 
 /// The sections, in file order.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Section {
+    /// u64 node words ([`node`]).
     Nodes = 0,
+    /// u32 leaf indices.
     Idx32 = 1,
+    /// u16 leaf indices (the low halves; the leaf word holds the upper).
     Idx16 = 2,
+    /// Vertex positions, 3 × f32.
     Vertices = 3,
+    /// Vertex-index triples, 3 × u32, in the file's triangle numbering.
     Triangles = 4,
+    /// u32: file triangle id → input triangle id (empty unless reordered).
     TriMap = 5,
 }
 
 impl Section {
+    /// Every section, in file order.
     pub const ALL: [Section; 6] = [
         Section::Nodes,
         Section::Idx32,
@@ -136,6 +149,7 @@ impl Section {
         Section::TriMap,
     ];
 
+    /// The section's name in messages.
     pub fn name(self) -> &'static str {
         [
             "nodes",
@@ -178,49 +192,72 @@ const _: () = assert!(SCENE_NAME_AT + SCENE_NAME_LEN == SECTION_TABLE);
 /// wrong; `Io` names the file.
 #[derive(Debug)]
 pub enum FormatError {
+    /// Reading or writing the file failed.
     Io {
+        /// The file.
         path: PathBuf,
+        /// The error of the operating system.
         source: std::io::Error,
     },
     /// Shorter than the header or than a section it announces.
     Truncated {
+        /// Bytes the file needs.
         needed: u64,
+        /// What the file has.
         got: u64,
     },
+    /// Not a `.kd` file (the first 8 bytes are not [`MAGIC`]).
     BadMagic,
+    /// A format version this build does not read.
     Version {
+        /// The version this build reads.
         expected: u32,
+        /// The file's version.
         got: u32,
     },
     /// Written on a machine of the other byte order.
     Endianness,
     /// The byte source is not 8-byte aligned (mmap always is).
     Misaligned,
+    /// The header's CRC-32 does not match its bytes.
     HeaderChecksum {
+        /// The CRC-32 stored in the file.
         expected: u32,
+        /// The CRC-32 computed.
         got: u32,
     },
     /// A header field out of range.
     Header(String),
     /// A section's placement or size.
     Section {
+        /// The section.
         section: &'static str,
+        /// What is wrong.
         message: String,
     },
     /// A node word that is malformed or points outside the file.
     Node {
+        /// The node's slot.
         index: u64,
+        /// What is wrong.
         message: String,
     },
+    /// A section's CRC-32 does not match the section table's.
     ChecksumMismatch {
+        /// The section.
         section: &'static str,
+        /// The CRC-32 stored in the file.
         expected: u32,
+        /// The CRC-32 computed.
         got: u32,
     },
     /// An index or vertex reference out of range.
     Index {
+        /// The section.
         section: &'static str,
+        /// The entry's position in the section.
         position: u64,
+        /// What is wrong.
         message: String,
     },
     /// The tree does not fit the format (e.g. more than 2^29 nodes).

@@ -34,14 +34,18 @@
 
 /// Node type bits `A` (bits 0–2).
 pub const A_MASK: u64 = 0b111;
+/// `A` of a leaf word.
 pub const A_LEAF: u64 = 0b011;
+/// `A` of a T-reference word.
 pub const A_TREF: u64 = 0b111;
 /// Set in `A` for a type II inner node.
 pub const A_TYPE2: u64 = 0b100;
 
 /// Leaf mode `E` (bits 3–4).
 pub const E_IDX32: u64 = 0b00;
+/// `E` of a leaf in 2-byte mode.
 pub const E_IDX16: u64 = 0b01;
+/// `E` of a leaf of one triangle, held in the word.
 pub const E_ONE: u64 = 0b10;
 
 /// The largest count a 4-byte-mode leaf can hold (27 bits).
@@ -57,25 +61,39 @@ pub enum NodeWord {
     /// Type I (`t_ref == false`) or type II (the T-reference in the next
     /// slot); `right` is the slot field `R` ([`children`] reads it).
     Inner {
+        /// Split axis (0, 1, 2 for x, y, z).
         axis: u8,
+        /// Type II: a T-reference word follows the node.
         t_ref: bool,
+        /// The slot field `R`.
         right: u32,
+        /// Split position.
         pos: f32,
     },
+    /// A leaf whose indices are `idx32[start..start + count]`.
     Leaf32 {
+        /// Triangles in the leaf.
         count: u32,
+        /// First entry in the index section.
         start: u32,
     },
+    /// A leaf whose indices are `upper << 16 | idx16[i]`, `i` in `start..start + count`.
     Leaf16 {
+        /// Triangles in the leaf.
         count: u32,
+        /// The upper 16 bits of every index.
         upper: u16,
+        /// First entry in the index section.
         start: u32,
     },
     /// A leaf of one triangle, held in the word.
     Leaf1 {
+        /// A (file) triangle id.
         tri: u32,
     },
+    /// The hoisted triangle of the type II node before it.
     TRef {
+        /// A (file) triangle id.
         tri: u32,
     },
 }
@@ -109,6 +127,7 @@ pub fn encode_leaf1(tri: u32) -> u64 {
     (u64::from(tri) << 32) | (E_ONE << 3) | A_LEAF
 }
 
+/// Encodes a leaf of 4-byte indices `idx32[start..start + count]`.
 pub fn encode_leaf32(count: u32, start: u32) -> u64 {
     debug_assert!(count <= MAX_LEAF32);
     (u64::from(start) << 32) | (u64::from(count) << 5) | (E_IDX32 << 3) | A_LEAF
@@ -147,6 +166,7 @@ pub fn leaf_bytes(len: usize, ids: impl IntoIterator<Item = u32>) -> u64 {
     }
 }
 
+/// Encodes a leaf of 2-byte indices (`count` < [`LEAF16_LIMIT`]).
 pub fn encode_leaf16(count: u32, upper: u16, start: u32) -> u64 {
     debug_assert!(count < LEAF16_LIMIT);
     (u64::from(start) << 32)
@@ -156,6 +176,7 @@ pub fn encode_leaf16(count: u32, upper: u16, start: u32) -> u64 {
         | A_LEAF
 }
 
+/// Encodes the T-reference word of (file) triangle `tri`.
 pub fn encode_tref(tri: u32) -> u64 {
     (u64::from(tri) << 32) | A_TREF
 }

@@ -34,7 +34,9 @@ pub struct KdFile<D> {
 /// The counts the paper reports for a tree (Choi et al. 2013, Table 3(a)).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TreeFigures {
+    /// Type I inner nodes.
     pub inner: u64,
+    /// Type II inner nodes (each with a T-reference word).
     pub t_inner: u64,
     /// Every leaf of the tree, with the empty ones that have no word.
     pub leaves: u64,
@@ -43,9 +45,13 @@ pub struct TreeFigures {
     pub implicit_empty: u64,
     /// Leaves of one triangle, held in their word (no index entry).
     pub one_leaves: u64,
+    /// Entries of the idx32 section.
     pub idx32: u64,
+    /// Entries of the idx16 section.
     pub idx16: u64,
+    /// Triangles of the scene.
     pub triangles: u64,
+    /// Vertices of the scene.
     pub vertices: u64,
     /// Node words in the file: inner + t-inner + T-references + the leaves
     /// that have a word.
@@ -79,9 +85,13 @@ impl TreeFigures {
 /// The triangle ids of one leaf, in the file's numbering.
 #[derive(Clone, Copy, Debug)]
 pub enum LeafIndices<'a> {
+    /// 4-byte indices.
     Idx32(&'a [u32]),
+    /// 2-byte indices: each is `upper | low[i]`.
     Idx16 {
+        /// The upper 16 bits of every index.
         upper: u32,
+        /// The low 16 bits of each index.
         low: &'a [u16],
     },
     /// A leaf of one triangle (its word holds the index).
@@ -89,6 +99,7 @@ pub enum LeafIndices<'a> {
 }
 
 impl LeafIndices<'_> {
+    /// The number of triangles.
     pub fn len(&self) -> usize {
         match self {
             LeafIndices::Idx32(s) => s.len(),
@@ -97,11 +108,13 @@ impl LeafIndices<'_> {
         }
     }
 
+    /// Whether the leaf holds none.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
     #[inline]
+    /// Calls `f` with each (file) triangle id.
     pub fn for_each(&self, mut f: impl FnMut(u32)) {
         match *self {
             LeafIndices::Idx32(s) => s.iter().for_each(|&t| f(t)),
@@ -720,14 +733,17 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         self.section(Section::Nodes)
     }
 
+    /// The 4-byte leaf indices.
     pub fn idx32(&self) -> &[u32] {
         self.section(Section::Idx32)
     }
 
+    /// The 2-byte leaf indices (low halves).
     pub fn idx16(&self) -> &[u16] {
         self.section(Section::Idx16)
     }
 
+    /// The vertex positions.
     pub fn vertices(&self) -> &[[f32; 3]] {
         self.section(Section::Vertices)
     }
@@ -752,7 +768,10 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         }
     }
 
-    /// The vertices of file triangle `t`.
+    /// The vertices of *file* triangle `t` (the file's numbering, which
+    /// differs from the input's when reordered): a hit's triangle id is an
+    /// input id, whose vertices [`Accel::triangle`](crate::Accel::triangle)
+    /// gives; [`KdFile::input_id`] maps file ids to input ids.
     #[inline]
     pub fn triangle(&self, t: u32) -> [Vec3; 3] {
         let v = self.vertices();
@@ -779,22 +798,27 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         }
     }
 
+    /// How the tree was built (the header's record).
     pub fn config(&self) -> &FileConfig {
         &self.config
     }
 
+    /// The scene bounds: the root's cell.
     pub fn bounds(&self) -> Aabb {
         self.bounds
     }
 
+    /// The depth of the deepest node (root = 0).
     pub fn max_depth(&self) -> u32 {
         self.max_depth
     }
 
+    /// The header's counts (checked against the nodes by a full open).
     pub fn figures(&self) -> TreeFigures {
         self.counts
     }
 
+    /// Whether the triangles were renumbered (a `tri_map` is present).
     pub fn is_reordered(&self) -> bool {
         self.reordered
     }
@@ -821,6 +845,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         hist
     }
 
+    /// The whole file.
     pub fn as_bytes(&self) -> &[u8] {
         self.data.as_ref()
     }

@@ -13,19 +13,25 @@ use std::path::Path;
 /// The build preset recorded in the header.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Preset {
+    /// No hoisting.
     Std = 0,
+    /// The `fast` slim preset.
     Fast = 1,
+    /// The `small` slim preset.
     Small = 2,
+    /// Hoisting with thresholds of the caller's choice.
     Custom = 3,
 }
 
 impl Preset {
+    /// The preset of a header value.
     pub fn from_u32(v: u32) -> Option<Preset> {
         [Preset::Std, Preset::Fast, Preset::Small, Preset::Custom]
             .get(v as usize)
             .copied()
     }
 
+    /// The preset's name, as the CLI spells it.
     pub fn name(self) -> &'static str {
         ["std", "fast", "small", "custom"][self as usize]
     }
@@ -128,14 +134,23 @@ impl SceneTag {
 /// traversal does not depend on it), and the scene's tag.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FileConfig {
+    /// SAH cost of a traversal step.
     pub k_t: f64,
+    /// SAH cost of a triangle test.
     pub k_i: f64,
+    /// The SAH's bonus factor for cutting off empty space.
     pub lambda_empty: f64,
+    /// The depth limit the build used.
     pub depth_limit: u32,
+    /// The slim preset, or `Std`.
     pub preset: Preset,
+    /// The hoisting occupancy threshold (0 for `Std`).
     pub tau_occu: f32,
+    /// The hoisting frequency threshold (0 for `Std`).
     pub tau_freq: f32,
+    /// The most hoisted triangles on a root path (0 for `Std`).
     pub max_t2rn: u32,
+    /// The scene the tree was built for.
     pub scene: SceneTag,
 }
 
@@ -156,10 +171,12 @@ impl Default for FileConfig {
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
+/// How [`write_file`] writes a tree.
 pub struct WriteOptions {
     /// Renumber triangles in Morton order of their centroids, so that the
     /// triangles of a leaf have nearby ids and most leaves fit 2-byte mode.
     pub reorder: bool,
+    /// What the header records of the build.
     pub config: FileConfig,
 }
 

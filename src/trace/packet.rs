@@ -29,9 +29,7 @@
 // Lane loops index several arrays by lane: the form LLVM vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use super::{
-    ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, NO_WORD, SourceNode, TraceStats, Walk,
-};
+use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, NO_WORD, SourceNode, TraceStats, Walk};
 use crate::geom::{Ray, RayPrecomp, edges_need_f64, intersect_triangle, t_needs_f64};
 use crate::tree::TriId;
 use arrayvec::ArrayVec;
