@@ -1,11 +1,13 @@
 //! The byte model of [`HoistRule::Bytes`](super::HoistRule::Bytes): what
-//! a subtree takes in the `.kd` file (8 bytes per node and per hoisted
-//! triangle, 2 or 4 per leaf index), for a built [`TreeIr`] and for a
+//! a subtree takes in the `.kd` file's version-1 layout (8 bytes per node,
+//! empty leaves included, and per hoisted triangle, 2 or 4 per leaf index;
+//! format version 2 stores empty leaves in no word and one triangle in its
+//! leaf's word, which the rule does not count yet), for a built [`TreeIr`] and for a
 //! range of the work tree, and the lower bound on a rebuilt subtree that
 //! lets the pass skip a rebuild.
 
 use super::work::{WNode, Work};
-use crate::format::node::leaf_index_bytes;
+use crate::format::node::fits_leaf16;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, TreeIr, TriId};
 
@@ -29,10 +31,11 @@ impl ByteModel {
         }
     }
 
+    /// A leaf's index bytes in the version-1 layout.
     fn leaf(&self, tris: &[TriId]) -> u64 {
         match &self.rank {
-            Some(r) => leaf_index_bytes(tris.len(), tris.iter().map(|t| r[t.0 as usize])),
-            None => leaf_index_bytes(tris.len(), tris.iter().map(|t| t.0)),
+            Some(r) => v1_index_bytes(tris.len(), tris.iter().map(|t| r[t.0 as usize])),
+            None => v1_index_bytes(tris.len(), tris.iter().map(|t| t.0)),
         }
     }
 
@@ -56,6 +59,11 @@ impl ByteModel {
             })
             .sum()
     }
+}
+
+/// 2 bytes per index if the leaf fits 2-byte mode, else 4.
+fn v1_index_bytes(len: usize, ids: impl IntoIterator<Item = u32>) -> u64 {
+    len as u64 * if fits_leaf16(len, ids) { 2 } else { 4 }
 }
 
 /// The fewest bytes a rebuilt subtree of `n_refs` references that can hold
