@@ -176,10 +176,10 @@ fn an_inner_node_with_two_empty_children_round_trips() {
     }
 }
 
-/// An empty leaf costs no word: the node section holds inner + 2·t-inner
-/// + leaves − (empty leaves without a word) words, and those are all the
-/// empty leaves but the left children of the nodes whose two children are
-/// empty (the hoisted bunny has both kinds).
+/// An empty leaf costs no word: the node section holds `inner +
+/// 2·t_inner + leaves − implicit_empty` words, and the empty leaves
+/// without a word are all the empty leaves but the left children of the
+/// nodes whose two children are empty (the hoisted bunny has both kinds).
 #[test]
 fn an_empty_leaf_costs_no_word() {
     let scene = load_scene("bunny_npm.obj");
