@@ -166,7 +166,9 @@ fn small_bases() -> Vec<Base> {
     let mut rng = Rng(11);
     let scene = random_small_scene(&mut rng, 24, 6);
     let tree = std_tree(&scene);
-    let scene2 = random_small_scene(&mut rng, 40, 8);
+    // Dense enough for leaves of several triangles (2-byte leaves; a leaf
+    // of one triangle has no index entry).
+    let scene2 = random_small_scene(&mut rng, 80, 4);
     let (tree2, hoisted) = hoist(&std_tree(&scene2), &scene2, 12, true);
     assert!(hoisted >= 3, "{hoisted} type II nodes");
     let scene3 = strip_scene(6);
@@ -199,7 +201,7 @@ fn small_bases() -> Vec<Base> {
         read(&b.bytes);
     }
     let f = read(&bases[2].bytes).figures();
-    assert!(f.t_inner >= 3 && f.idx16 > 0);
+    assert!(f.t_inner >= 3 && f.idx16 > 0, "{f:?}");
     assert!(read(&bases[3].bytes).figures().idx32 >= u64::from(LEAF16_LIMIT));
     bases
 }
@@ -223,7 +225,9 @@ enum Region {
     Endianness,
     /// Covered by the header checksum (the checksum itself included).
     Header,
-    /// Header bytes 340..384: reserved, zero.
+    /// Header bytes 340..384: the counts of empty leaves without a word and
+    /// of one-triangle leaves (outside the checksum, checked against the
+    /// nodes), then reserved zero bytes.
     Reserved,
     Section(Section),
     /// Zero padding after a section.
@@ -256,7 +260,7 @@ fn region(b: &[u8], pos: usize) -> Region {
 fn check_single_flip(b: &[u8], pos: usize, o: &Outcome) -> Result<(), String> {
     let ok = match (region(b, pos), o) {
         (Region::Magic, Outcome::Rejected(FormatError::BadMagic)) => true,
-        (Region::Version, Outcome::Rejected(FormatError::Version { expected: 1, .. })) => true,
+        (Region::Version, Outcome::Rejected(FormatError::Version { expected: 2, .. })) => true,
         (Region::Endianness, Outcome::Rejected(FormatError::Endianness)) => true,
         (Region::Header, Outcome::Rejected(FormatError::HeaderChecksum { .. })) => true,
         (Region::Reserved, Outcome::Rejected(FormatError::Header(_))) => true,
@@ -506,8 +510,8 @@ fn corrupt_overwrites() {
 }
 
 /// A node word likely to pass some of the reader's checks: a leaf with a
-/// range inside the index arrays, an inner node with a forward child block,
-/// a T-reference, or random bits.
+/// range inside the index arrays, an inner node with its right child at a
+/// later slot or empty, a one-triangle leaf, a T-reference, or random bits.
 fn plausible_word(
     rng: &mut Rng,
     i: usize,
@@ -529,10 +533,16 @@ fn plausible_word(
             node::encode_leaf32(count as u32, start as u32)
         }
         2 => {
-            let block = i + rng.below(n_words.saturating_sub(i) + 2);
+            // The right child at a later slot, or empty (0).
+            let right = if rng.chance(4) {
+                0
+            } else {
+                i + 1 + rng.below(n_words.saturating_sub(i) + 2)
+            };
             let pos = (rng.unit() - 0.25) * 12.0;
-            node::encode_inner(rng.below(3) as u8, rng.chance(3), block as u32, pos)
+            node::encode_inner(rng.below(3) as u8, rng.chance(3), right as u32, pos)
         }
+        3 if rng.chance(2) => node::encode_leaf1(tri),
         3 => node::encode_tref(tri),
         4 => {
             // Keep the word's type and move its split or range a little.
@@ -589,7 +599,7 @@ enum Want {
     Is(fn(&FormatError) -> bool),
     /// `Truncated` with these lengths.
     Truncated { needed: u64, got: u64 },
-    /// `Version`, expecting 1, with this version.
+    /// `Version`, expecting 2, with this version.
     Version(u32),
     /// `Section` naming this section.
     InSection(&'static str),
@@ -606,7 +616,7 @@ impl Want {
             (Truncated { needed, got }, FormatError::Truncated { needed: n, got: g }) => {
                 (needed, got) == (*n, *g)
             }
-            (Version(v), FormatError::Version { expected: 1, got }) => *got == v,
+            (Version(v), FormatError::Version { expected: 2, got }) => *got == v,
             (InSection(name), FormatError::Section { section, .. })
             | (InIndex(name), FormatError::Index { section, .. }) => *section == name,
             _ => false,
@@ -629,14 +639,20 @@ fn corrupt_targeted_edits() {
         let words: Vec<u64> = file.nodes().to_vec();
         let n = words.len();
         let decoded: Vec<NodeWord> = words.iter().map(|&w| node::decode(w).unwrap()).collect();
-        // Inner nodes with their child blocks, leaves, T-references.
-        let inners: Vec<(usize, bool, usize)> = decoded
+        // Inner nodes with their first child slot and slot field, leaves
+        // with an index list, one-triangle leaves, T-references.
+        let inners: Vec<(usize, usize, usize)> = decoded
             .iter()
             .enumerate()
             .filter_map(|(i, w)| match *w {
-                NodeWord::Inner { t_ref, block, .. } => Some((i, t_ref, block as usize)),
+                NodeWord::Inner { t_ref, right, .. } => {
+                    Some((i, i + 1 + usize::from(t_ref), right as usize))
+                }
                 _ => None,
             })
+            .collect();
+        let ones: Vec<usize> = (0..n)
+            .filter(|&i| matches!(decoded[i], NodeWord::Leaf1 { .. }))
             .collect();
         let leaves: Vec<usize> = (0..n)
             .filter(|&i| {
@@ -717,8 +733,9 @@ fn corrupt_targeted_edits() {
         );
         // One header field set (`wide`: 8 bytes), the checksum repaired.
         let flags = get_u32(orig, H_FLAGS);
-        let fields: [(&str, usize, u64, bool, Want); 20] = [
-            ("version 2", H_VERSION, 2, false, Version(2)),
+        let fields: [(&str, usize, u64, bool, Want); 26] = [
+            ("version 1", H_VERSION, 1, false, Version(1)),
+            ("version 3", H_VERSION, 3, false, Version(3)),
             ("version 0", H_VERSION, 0, false, Version(0)),
             (
                 "other byte order",
@@ -757,6 +774,42 @@ fn corrupt_targeted_edits() {
             ("node words + 1", H_WORDS, f.words + 1, true, header_err),
             ("leaves + 1", H_LEAVES, f.leaves + 1, true, header_err),
             ("inner + 1", H_INNER, f.inner + 1, true, header_err),
+            // The counts after the header checksum.
+            (
+                "implicit empty leaves + 1",
+                H_IMPLICIT_EMPTY,
+                f.implicit_empty + 1,
+                true,
+                header_err,
+            ),
+            (
+                "implicit empty leaves - 1",
+                H_IMPLICIT_EMPTY,
+                f.implicit_empty.wrapping_sub(1),
+                true,
+                header_err,
+            ),
+            (
+                "one-triangle leaves + 1",
+                H_ONE_LEAVES,
+                f.one_leaves + 1,
+                true,
+                header_err,
+            ),
+            (
+                "one-triangle leaves - 1",
+                H_ONE_LEAVES,
+                f.one_leaves.wrapping_sub(1),
+                true,
+                header_err,
+            ),
+            (
+                "every empty leaf counted as wordless",
+                H_IMPLICIT_EMPTY,
+                f.leaves - 1,
+                true,
+                header_err,
+            ),
             (
                 "triangles + 1",
                 H_TRIANGLES,
@@ -800,6 +853,18 @@ fn corrupt_targeted_edits() {
                 fix_header_crc(b);
             },
             InSection("nodes"),
+        );
+        add(
+            "counts add up with one more wordless empty leaf than the nodes have",
+            &|b| {
+                // One more inner node and leaf, two more wordless empty
+                // leaves: the same number of words.
+                set_u64(b, H_INNER, f.inner + 1);
+                set_u64(b, H_LEAVES, f.leaves + 1);
+                set_u64(b, H_IMPLICIT_EMPTY, f.implicit_empty + 2);
+                fix_header_crc(b);
+            },
+            Is(|e| matches!(e, FormatError::Header(m) if m.contains("do not match the nodes"))),
         );
         add(
             "a type I node counted as type II",
@@ -848,35 +913,186 @@ fn corrupt_targeted_edits() {
         }
 
         // Node words (nothing repaired).
-        let with_block = |i: usize, block: usize| {
+        let with_right = |i: usize, right: usize| {
             let (axis, t_ref, pos) = match decoded[i] {
                 NodeWord::Inner {
                     axis, t_ref, pos, ..
                 } => (axis, t_ref, pos),
                 _ => unreachable!(),
             };
-            node::encode_inner(axis, t_ref, block as u32, pos)
+            node::encode_inner(axis, t_ref, right as u32, pos)
         };
-        let (root_block, last) = (inners[0].2, inners[inners.len() - 1]);
-        // (what, inner node, its new child block)
-        let mut blocks = vec![
-            ("root's child block is itself", 0, 0),
-            ("child block past the end", 0, n - 1),
-            ("child block at 2^29 - 1", 0, (1 << 29) - 1),
-            ("child block shifted by one", 0, root_block + 1),
+        // Inner nodes with both children in words (the slot field after
+        // the first child slot).
+        let both: Vec<(usize, usize, usize)> = inners
+            .iter()
+            .copied()
+            .filter(|&(_, first, r)| r > first)
+            .collect();
+        assert!(!both.is_empty());
+        let (p, p_first, p_right) = both[0];
+        let last = both[both.len() - 1];
+        // (what, inner node, its new slot field)
+        let mut slots = vec![
+            ("right slot past the end", p, n),
+            ("right slot at the last word", p, n - 1),
+            ("right slot at 2^29 - 1", p, (1 << 29) - 1),
+            ("right slot skips a word", p, p_right + 1),
+            (
+                "right slot one early (into the left subtree)",
+                p,
+                p_right - 1,
+            ),
+            (
+                "right slot at the first child slot (the left child said empty)",
+                p,
+                p_first,
+            ),
+            // The right subtree's words are then referenced by nothing.
+            ("right child said empty", p, 0),
         ];
         if last.0 > 0 {
-            blocks.push(("child block backwards", last.0, last.0 - 1));
-            blocks.push(("child block pointing to itself", last.0, last.0));
-            blocks.push(("child block pointing to the root", last.0, 0));
+            slots.push(("right slot backwards", last.0, last.0 - 1));
+            slots.push(("right slot at itself", last.0, last.0));
+        }
+        // A second parent for a subtree: a right slot at a node inside
+        // the left subtree (a DAG).
+        if let Some(&(q, q_first, _)) = both
+            .iter()
+            .find(|&&(_, first, _)| matches!(decoded[first], NodeWord::Inner { .. }))
+        {
+            slots.push((
+                "right slot at the left child's left child (a shared subtree)",
+                q,
+                match decoded[q_first] {
+                    NodeWord::Inner { t_ref, .. } => q_first + 1 + usize::from(t_ref),
+                    _ => unreachable!(),
+                },
+            ));
         }
         if inners.len() >= 2 {
-            let (i, _, block) = inners[1];
-            blocks.push(("two parents for one block", i, root_block));
-            blocks.push(("child block skips a node", i, block + 1));
+            let (i, ..) = inners[1];
+            slots.push(("two parents for one right subtree", i, p_right));
         }
-        for (what, i, block) in blocks {
-            add(what, &|b| set_word(b, i, with_block(i, block)), node_err);
+        if let Some(&(q, ..)) = both.iter().find(|&&(i, first, _)| first == i + 2) {
+            slots.push(("right slot at the node's own T-reference", q, q + 1));
+        }
+        for (what, i, right) in slots {
+            add(what, &|b| set_word(b, i, with_right(i, right)), node_err);
+        }
+        // Words after the tree, with the counts adding up (one more inner
+        // node and leaf) or not.
+        add(
+            "two words after the tree, counts adding up",
+            &|b| {
+                *b = with_words_appended(b, &[words[0], node::encode_leaf1(0)]);
+                set_u64(b, H_INNER, f.inner + 1);
+                set_u64(b, H_LEAVES, f.leaves + 1);
+                fix_header_crc(b);
+            },
+            Is(
+                |e| matches!(e, FormatError::Node { message, .. } if message.contains("words after the tree")),
+            ),
+        );
+        add(
+            "a word after the tree",
+            &|b| *b = with_words_appended(b, &[node::encode_leaf1(0)]),
+            header_err,
+        );
+        // Empty leaves with a word: only the left child of a node whose
+        // right child is empty (R = 0) may be one, at start 0.
+        for &(i, first, right) in &inners {
+            let left_leaf = !matches!(decoded[first], NodeWord::Inner { .. });
+            let right_leaf = right > first && !matches!(decoded[right], NodeWord::Inner { .. });
+            if right > first && left_leaf {
+                add(
+                    "an empty left leaf word where the parent says both children have words",
+                    &|b| set_word(b, first, node::encode_leaf32(0, 0)),
+                    node_err,
+                );
+            }
+            if right_leaf {
+                add(
+                    "an empty right leaf word",
+                    &|b| set_word(b, right, node::encode_leaf32(0, 0)),
+                    node_err,
+                );
+            }
+            if right == first && left_leaf {
+                add(
+                    "an empty leaf word at the first child slot of a node whose left child is empty",
+                    &|b| set_word(b, first, node::encode_leaf32(0, 0)),
+                    node_err,
+                );
+            }
+            if right == 0 && left_leaf {
+                // (Start 1 lies past an empty idx32: refused as such;
+                // `an_empty_leaf_word_must_start_at_0` has one inside.)
+                add(
+                    "the left child of a node with an empty right child: empty leaf word at start 1",
+                    &|b| set_word(b, first, node::encode_leaf32(0, 1)),
+                    node_err,
+                );
+                add(
+                    "the left child of a node with an empty right child: empty 2-byte leaf word",
+                    &|b| set_word(b, first, node::encode_leaf16(0, 0, 0)),
+                    node_err,
+                );
+            }
+            if i == 0 && right == 0 && !left_leaf {
+                add(
+                    "the root's right child said empty, its left child an empty leaf word",
+                    &|b| set_word(b, first, node::encode_leaf32(0, 0)),
+                    node_err,
+                );
+            }
+        }
+        // One-triangle leaves.
+        for &l in &ones {
+            let NodeWord::Leaf1 { tri } = decoded[l] else {
+                unreachable!()
+            };
+            add(
+                "one-triangle leaf of a triangle out of range",
+                &|b| set_word(b, l, node::encode_leaf1(f.triangles as u32)),
+                node_err,
+            );
+            add(
+                "one-triangle leaf of triangle 2^32 - 1",
+                &|b| set_word(b, l, node::encode_leaf1(u32::MAX)),
+                node_err,
+            );
+            for bit in [5, 16, 31] {
+                add(
+                    &format!("one-triangle leaf with unused bit {bit} set"),
+                    &|b| set_word(b, l, node::encode_leaf1(tri) | (1 << bit)),
+                    node_err,
+                );
+            }
+            // Inside the index arrays where they have an entry, so that
+            // the count is what is refused.
+            add(
+                "one triangle in a 4-byte leaf",
+                &|b| set_word(b, l, node::encode_leaf32(1, 0)),
+                if f.idx32 > 0 {
+                    Is(
+                        |e| matches!(e, FormatError::Node { message, .. } if message.contains("one-triangle leaf with an index entry")),
+                    )
+                } else {
+                    node_err
+                },
+            );
+            add(
+                "one triangle in a 2-byte leaf",
+                &|b| set_word(b, l, node::encode_leaf16(1, 0, 0)),
+                if f.idx16 > 0 {
+                    Is(
+                        |e| matches!(e, FormatError::Node { message, .. } if message.contains("2-byte-mode leaf of 1")),
+                    )
+                } else {
+                    node_err
+                },
+            );
         }
         let leaf = leaves[0];
         let (i, ..) = inners[0];
@@ -923,7 +1139,7 @@ fn corrupt_targeted_edits() {
         }
         for &l in &leaves {
             match decoded[l] {
-                NodeWord::Leaf32 { count, start } => {
+                NodeWord::Leaf32 { count, start } if count > 0 => {
                     let past = f.idx32 as u32 - start + 1;
                     add(
                         "4-byte leaf range past idx32",
@@ -932,12 +1148,12 @@ fn corrupt_targeted_edits() {
                     );
                     add(
                         "4-byte leaf starting past idx32",
-                        &|b| set_word(b, l, node::encode_leaf32(1, f.idx32 as u32)),
+                        &|b| set_word(b, l, node::encode_leaf32(2, f.idx32 as u32)),
                         node_err,
                     );
                     add(
                         "4-byte leaf start near 2^32",
-                        &|b| set_word(b, l, node::encode_leaf32(count.max(1), u32::MAX)),
+                        &|b| set_word(b, l, node::encode_leaf32(count.max(2), u32::MAX)),
                         node_err,
                     );
                     add(
@@ -1074,4 +1290,63 @@ fn corrupt_targeted_edits() {
         Err(FormatError::Misaligned)
     ));
     suite.finish("targeted edits", 200);
+}
+
+/// The one empty leaf with a word (the left child of a node whose two
+/// children are empty) must read `Leaf32 { count: 0, start: 0 }`: a start
+/// inside idx32 other than 0 is refused as such, so the encoding stays
+/// canonical.
+#[test]
+fn an_empty_leaf_word_must_start_at_0() {
+    use slimkd::tree::{Node, NodeId, TreeIr, TriId};
+    let scene = strip_scene(6);
+    // A 4-byte leaf, as in `small_bases` (its ids repeat).
+    let mut big: Vec<TriId> = (0..LEAF16_LIMIT).map(|i| TriId(3 + i % 3)).collect();
+    big.sort_unstable();
+    let empty = Node::Leaf { start: 0, count: 0 };
+    let tree = TreeIr {
+        bounds: scene.bounds(),
+        nodes: vec![
+            Node::Inner {
+                axis: 0,
+                pos: 2.75,
+                right: NodeId(4),
+                t_ref: None,
+            },
+            // Triangle 1 spans x 1..1.5, across the split.
+            Node::Inner {
+                axis: 0,
+                pos: 1.25,
+                right: NodeId(3),
+                t_ref: Some(TriId(1)),
+            },
+            empty,
+            empty,
+            Node::Leaf {
+                start: 0,
+                count: LEAF16_LIMIT,
+            },
+        ],
+        leaf_tris: big,
+    };
+    let bytes = write(&tree, &scene, false);
+    let file = read(&bytes);
+    assert!(file.figures().idx32 >= 2);
+    // The root, the type II node and its T-reference, its left child.
+    assert_eq!(
+        node::decode(file.nodes()[3]),
+        Ok(NodeWord::Leaf32 { count: 0, start: 0 })
+    );
+    for start in [1, 2] {
+        let mut b = bytes.clone();
+        set_word(&mut b, 3, node::encode_leaf32(0, start));
+        fix_all_crcs(&mut b);
+        match KdFile::from_bytes(aligned_copy(&b)) {
+            Err(FormatError::Node { index: 3, message }) => {
+                assert!(message.contains("empty leaf"), "{message}")
+            }
+            Err(e) => panic!("start {start}: wrong error {e}"),
+            Ok(_) => panic!("start {start}: accepted"),
+        }
+    }
 }

@@ -1,8 +1,9 @@
 //! Structure-aware fuzzing of `.kd` files: valid files (small built scenes,
 //! std, hoisted type II and slim trees, plain and reordered, 2-byte and
 //! 4-byte leaves) are mutated field by field, as the layout names the
-//! fields (child offsets, leaf counts and first indices, type and mode
-//! bits, T-reference indices, split positions, header counts, offsets and
+//! fields (right-child slot fields, empty leaf words, one-triangle leaves,
+//! leaf counts and first indices, type and mode bits, T-reference indices,
+//! split positions, words after the tree, header counts, offsets and
 //! bounds, geometry, index arrays, the triangle map, reserved bytes), and
 //! then their checksums are repaired, so that each mutation reaches the
 //! structural checks of `KdFile::from_bytes` rather than stopping at a CRC.
@@ -72,26 +73,28 @@ impl Base {
         let mut inner = Vec::new();
         let mut leaves = Vec::new();
         let mut trefs = Vec::new();
-        let mut stack = vec![(0usize, file.bounds())];
+        let mut stack = vec![(Some(0u32), file.bounds())];
         while let Some((i, cell)) = stack.pop() {
-            match node::decode(words[i]).unwrap() {
+            // An empty child has no word to mutate.
+            let Some(i) = i else { continue };
+            match node::decode(words[i as usize]).unwrap() {
                 NodeWord::Inner {
                     axis,
                     t_ref,
-                    block,
+                    right,
                     pos,
                 } => {
                     let k = usize::from(axis);
-                    inner.push((i, k, cell));
-                    let first = block as usize + usize::from(t_ref);
+                    inner.push((i as usize, k, cell));
                     if t_ref {
-                        trefs.push(block as usize);
+                        trefs.push(i as usize + 1);
                     }
-                    let (l, r) = cell.split(k, pos);
-                    stack.push((first + 1, r));
-                    stack.push((first, l));
+                    let (lc, rc) = cell.split(k, pos);
+                    let (l, r) = node::children(i, t_ref, right);
+                    stack.push((r, rc));
+                    stack.push((l, lc));
                 }
-                _ => leaves.push(i),
+                _ => leaves.push(i as usize),
             }
         }
         let (rays, packets) = probes(&file.bounds(), seed);
@@ -188,6 +191,13 @@ fn bases() -> Vec<Base> {
     ];
     assert!(read(&out[5].bytes).figures().idx32 >= u64::from(LEAF16_LIMIT));
     assert!(out.iter().all(|b| !b.leaves.is_empty()));
+    // The v2 encodings the mutator works on: empty children without a
+    // word and one-triangle leaves.
+    assert!(
+        out.iter()
+            .any(|b| read(&b.bytes).figures().implicit_empty > 0)
+    );
+    assert!(out.iter().all(|b| read(&b.bytes).figures().one_leaves > 0));
     out
 }
 
@@ -216,22 +226,27 @@ fn covers_geometry<D: AsRef<[u8]>>(file: &KdFile<D>) -> bool {
             tri: TriId(t),
             bounds: Aabb::of_triangle(&scene.tri(t)),
         };
-        file.bounds().contains(&r.bounds) && reaches_only_listing(file, &scene, 0, file.bounds(), r)
+        file.bounds().contains(&r.bounds)
+            && reaches_only_listing(file, &scene, Some(0), file.bounds(), r)
     })
 }
 
 fn reaches_only_listing<D: AsRef<[u8]>>(
     file: &KdFile<D>,
     scene: &TriangleColumns,
-    i: usize,
+    i: Option<u32>,
     cell: Aabb,
     r: TriRef,
 ) -> bool {
-    let w = node::decode(file.nodes()[i]).unwrap();
+    // An empty child (no word) lists nothing.
+    let Some(i) = i else {
+        return false;
+    };
+    let w = node::decode(file.nodes()[i as usize]).unwrap();
     let NodeWord::Inner {
         axis,
         t_ref,
-        block,
+        right,
         pos,
     } = w
     else {
@@ -239,19 +254,19 @@ fn reaches_only_listing<D: AsRef<[u8]>>(
         file.leaf(w).for_each(|t| listed |= t == r.tri.0);
         return listed;
     };
-    if t_ref && node::decode(file.nodes()[block as usize]) == Ok(NodeWord::TRef { tri: r.tri.0 }) {
+    if t_ref && node::decode(file.nodes()[i as usize + 1]) == Ok(NodeWord::TRef { tri: r.tri.0 }) {
         return true;
     }
     let k = usize::from(axis);
     let (lc, rc) = cell.split(k, pos);
-    let first = block as usize + usize::from(t_ref);
+    let (left, right) = node::children(i, t_ref, right);
     let split = Split {
         cost: 0.0,
         axis,
         pos,
         planar: Side::Left,
     };
-    let go = |child: usize, c: Aabb, b: Aabb| {
+    let go = |child: Option<u32>, c: Aabb, b: Aabb| {
         reaches_only_listing(
             file,
             scene,
@@ -264,14 +279,14 @@ fn reaches_only_listing<D: AsRef<[u8]>>(
         )
     };
     if r.bounds.min[k] == pos && r.bounds.max[k] == pos {
-        return go(first, lc, r.bounds) || go(first + 1, rc, r.bounds);
+        return go(left, lc, r.bounds) || go(right, rc, r.bounds);
     }
     match classify(&r.bounds, &split) {
-        Placement::Left => go(first, lc, r.bounds),
-        Placement::Right => go(first + 1, rc, r.bounds),
+        Placement::Left => go(left, lc, r.bounds),
+        Placement::Right => go(right, rc, r.bounds),
         Placement::Both => {
             let (l, rr) = clip_straddler(scene, &r, &split, &lc, &rc);
-            l.is_none_or(|b| go(first, lc, b)) && rr.is_none_or(|b| go(first + 1, rc, b))
+            l.is_none_or(|b| go(left, lc, b)) && rr.is_none_or(|b| go(right, rc, b))
         }
     }
 }
@@ -347,7 +362,8 @@ fn check_plausible(
 /// the hits; `Ok(covering)`.
 fn check_accepted<D: AsRef<[u8]> + Sync>(file: &KdFile<D>, base: &Base) -> Result<bool, String> {
     let n_words = file.nodes().len() as u64;
-    let n_idx = file.figures().idx32 + file.figures().idx16;
+    // Triangle references: index entries and one-triangle leaves.
+    let n_idx = file.figures().references();
     let n_hoisted = file.figures().t_inner;
     let mut stats = TraceStats::default();
     for ray in &base.rays {
@@ -410,7 +426,10 @@ struct Mutation {
 
 #[derive(Clone, Copy, Debug)]
 enum Kind {
-    ChildOffset,
+    SlotField,
+    EmptyLeaf,
+    OneLeaf,
+    AppendWords,
     LeafCount,
     LeafStart,
     LeafMode,
@@ -431,8 +450,11 @@ enum Kind {
     Length,
 }
 
-const KINDS: [Kind; 19] = [
-    Kind::ChildOffset,
+const KINDS: [Kind; 22] = [
+    Kind::SlotField,
+    Kind::EmptyLeaf,
+    Kind::OneLeaf,
+    Kind::AppendWords,
     Kind::LeafCount,
     Kind::LeafStart,
     Kind::LeafMode,
@@ -541,30 +563,112 @@ fn mutate(b: &mut Vec<u8>, base: &Base, m: Mutation) {
         }
     };
     match kind {
-        Kind::ChildOffset => {
+        Kind::SlotField => {
             let Some((slot, _, _)) = pick(&base.inner, a) else {
                 return;
             };
             let Some((_, w)) = word_at(b, slot) else {
                 return;
             };
-            let block = (w as u32 >> 3) as u64;
+            let right = (w as u32 >> 3) as u64;
+            let first = slot as u64 + 1 + u64::from(w & node::A_TYPE2 != 0);
             let other = pick(&base.inner, v >> 8)
                 .and_then(|(s, _, _)| word_at(b, s))
-                .map_or(block, |(_, w)| (w as u32 >> 3) as u64);
-            let new = match v % 10 {
+                .map_or(right, |(_, w)| (w as u32 >> 3) as u64);
+            // A slot inside the left subtree (a second parent for it).
+            let inside_left = if right > first {
+                first + (v >> 8) % (right - first)
+            } else {
+                first + 1
+            };
+            let new = match v % 13 {
                 0 => (slot as u64).saturating_sub(1),
                 1 => slot as u64,
+                // The right child empty: its subtree's words are left over.
                 2 => 0,
                 3 => n.saturating_sub(1),
                 4 => n,
                 5 => n + 1,
                 6 => MAX_NODES - 1,
                 7 => other,
-                8 => block + 1,
-                _ => block.saturating_sub(1),
+                8 => right + 1,
+                9 => right.saturating_sub(1),
+                // The left child empty: the right one said to be at `first`.
+                10 => first,
+                11 => inside_left,
+                _ => first + 1,
             } & (MAX_NODES - 1);
             set_word(b, slot, (w & !(u64::from(u32::MAX) & !0b111)) | (new << 3));
+        }
+        Kind::EmptyLeaf => {
+            let Some(slot) = pick(&base.leaves, a) else {
+                return;
+            };
+            // An empty leaf with a word: only the left child of a node
+            // whose slot field says its right child is empty may be one,
+            // and only at start 0.
+            let start = [0, 1, (v >> 8) as u32][(v % 3) as usize];
+            let w = match (v >> 2) % 4 {
+                0 | 1 => node::encode_leaf32(0, start),
+                2 => node::encode_leaf16(0, 0, start),
+                _ => node::encode_leaf16(1, 0, start),
+            };
+            set_word(b, slot, w);
+            // Sometimes its parent is also told that its right child is
+            // empty (which it is only if there was none).
+            if v % 5 == 0
+                && let Some((p, _, _)) = base.inner.iter().find(|(p, _, _)| {
+                    word_at(b, *p).is_some_and(|(_, w)| {
+                        *p as u64 + 1 + u64::from(w & node::A_TYPE2 != 0) == slot as u64
+                    })
+                })
+                && let Some((_, pw)) = word_at(b, *p)
+            {
+                set_word(b, *p, pw & !(u64::from(u32::MAX) & !0b111));
+            }
+        }
+        Kind::OneLeaf => {
+            let Some(slot) = pick(&base.leaves, a) else {
+                return;
+            };
+            let Some((_, w)) = word_at(b, slot) else {
+                return;
+            };
+            let n_tris = get_u64(b, H_TRIANGLES);
+            let tri = (w >> 32) as u32;
+            let new = match v % 7 {
+                0 => node::encode_leaf1(((v >> 8) % n_tris.max(1)) as u32),
+                1 => node::encode_leaf1(n_tris as u32),
+                2 => node::encode_leaf1(u32::MAX),
+                // Unused bits of a one-triangle leaf.
+                3 => node::encode_leaf1(tri) | (1 << (5 + (v >> 8) % 27)),
+                // One triangle with an index entry.
+                4 => node::encode_leaf32(1, tri),
+                5 => node::encode_leaf16(1, (v >> 8) as u16, tri),
+                _ => node::encode_leaf16(2, 0, tri),
+            };
+            set_word(b, slot, new);
+        }
+        Kind::AppendWords => {
+            // Words after the tree; with the counts kept adding up when
+            // `v` is odd (one more inner node and leaf: two words).
+            let words: Vec<u64> = (0..1 + v % 2)
+                .map(|k| match (v >> (8 + k)) % 3 {
+                    0 => word_at(b, ((a >> 8) % n.max(1)) as usize).map_or(0, |(_, w)| w),
+                    1 => node::encode_leaf1(0),
+                    _ => node::encode_leaf32(0, 0),
+                })
+                .collect();
+            if Section::ALL.iter().any(|&s| section_in(b, s).is_none()) {
+                return;
+            }
+            let mut out = with_words_appended(b, &words);
+            if v % 2 == 1 {
+                let (inner, leaves) = (get_u64(&out, H_INNER), get_u64(&out, H_LEAVES));
+                set_u64(&mut out, H_INNER, inner.wrapping_add(1));
+                set_u64(&mut out, H_LEAVES, leaves.wrapping_add(1));
+            }
+            *b = out;
         }
         Kind::LeafCount | Kind::LeafStart | Kind::LeafMode => {
             let Some(slot) = pick(&base.leaves, a) else {
@@ -683,7 +787,13 @@ fn mutate(b: &mut Vec<u8>, base: &Base, m: Mutation) {
             }
         }
         Kind::HeaderCount => {
-            let at = H_WORDS + 8 * (a % 8) as usize;
+            // The eight checksummed counts, and the two after the checksum
+            // (empty leaves without a word, one-triangle leaves).
+            let at = match a % 10 {
+                8 => H_IMPLICIT_EMPTY,
+                9 => H_ONE_LEAVES,
+                k => H_WORDS + 8 * k as usize,
+            };
             let c = get_u64(b, at);
             let new = [
                 c + 1,
@@ -813,7 +923,7 @@ fn mutate(b: &mut Vec<u8>, base: &Base, m: Mutation) {
             let at = match a % 4 {
                 0 => 160 + (v % 32) as usize,
                 1 => H_TABLE + H_ENTRY * (v % 6) as usize + 20 + ((v >> 8) % 4) as usize,
-                2 => 340 + (v % 44) as usize,
+                2 => 356 + (v % 28) as usize,
                 _ => {
                     // A padding byte after a section, if it has any.
                     let Some(r) = section_in(b, Section::ALL[(v % 6) as usize]) else {
@@ -1250,9 +1360,11 @@ fn bounds_not_containing_a_vertex_are_rejected() {
     ));
 }
 
-/// Reserved fields are documented as zero (header bytes 340..384 after the
+/// Reserved fields are documented as zero (header bytes 356..384 after the
 /// header checksum, and the reserved word of each section-table entry) but
-/// were accepted non-zero.
+/// were accepted non-zero; the two counts before them (340..356, empty
+/// leaves without a word and one-triangle leaves) lie outside the header
+/// checksum too, and are checked against the nodes.
 #[test]
 fn reserved_header_bytes_and_section_words_must_be_zero() {
     let (_, _, bytes) = grid_file();
@@ -1260,9 +1372,8 @@ fn reserved_header_bytes_and_section_words_must_be_zero() {
         let e = H_TABLE + s * H_ENTRY + 20;
         e..e + 4
     });
-    // Header bytes 160..192 are the scene tag; 340..384 follow the header
-    // checksum.
-    for at in (340..384).chain(section_words) {
+    // Header bytes 160..192 are the scene tag.
+    for at in (356..384).chain(section_words) {
         let mut b = bytes.clone();
         b[at] = 0x40;
         fix_header_crc(&mut b);
@@ -1270,6 +1381,19 @@ fn reserved_header_bytes_and_section_words_must_be_zero() {
             Err(FormatError::Header(m)) => assert!(m.contains("reserved"), "byte {at}: {m}"),
             Err(e) => panic!("byte {at}: wrong error {e}"),
             Ok(_) => panic!("byte {at}: a non-zero reserved byte was accepted"),
+        }
+    }
+    for at in 340..356 {
+        for bit in 0..8 {
+            let mut b = bytes.clone();
+            b[at] ^= 1 << bit;
+            match open(&b) {
+                Err(FormatError::Header(m)) => {
+                    assert!(m.contains("node counts"), "byte {at} bit {bit}: {m}")
+                }
+                Err(e) => panic!("byte {at} bit {bit}: wrong error {e}"),
+                Ok(_) => panic!("byte {at} bit {bit}: a wrong count was accepted"),
+            }
         }
     }
 }

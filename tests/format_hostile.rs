@@ -49,7 +49,9 @@ fn leaf_ranges_must_not_overlap_or_leave_gaps() {
         // Two non-empty leaves of the same mode.
         let full: Vec<_> = leaves
             .iter()
-            .filter(|(_, w)| matches!(w, NodeWord::Leaf16 { count, .. } | NodeWord::Leaf32 { count, .. } if *count >= 2))
+            // At least 3 indices: one fewer is still a leaf with an index
+            // list (a one-triangle leaf has none).
+            .filter(|(_, w)| matches!(w, NodeWord::Leaf16 { count, .. } | NodeWord::Leaf32 { count, .. } if *count >= 3))
             .collect();
         let (a, b) = full
             .iter()
@@ -106,10 +108,11 @@ fn leaf_ranges_must_not_overlap_or_leave_gaps() {
 }
 
 /// A mapped file rewritten in place after it was opened can hold anything:
-/// here every inner node becomes its own child and every leaf lists a
-/// range past its index array. The traversers read such words as empty
-/// leaves, so a ray ends (it used to spin forever on the self-loop) and
-/// never panics.
+/// here every inner node's right slot points at itself or backwards (a
+/// loop) and every leaf lists a range past its index array or a triangle
+/// past the last. The traversers read such a right child as empty and
+/// such leaves as empty, so a ray ends (it would spin forever on the loop)
+/// and never hits or panics.
 #[test]
 fn a_mapped_file_changed_in_place_never_loops() {
     use slimkd::format::Section;
@@ -138,7 +141,9 @@ fn a_mapped_file_changed_in_place_never_loops() {
             node::A_TREF => w,
             _ => {
                 loops += 1;
-                (w & !(0x1fff_ffffu64 << 3)) | ((i as u64) << 3)
+                // Itself, or the slot before (the root: itself).
+                let to = if i % 2 == 0 { i } else { i - 1 };
+                (w & !(0x1fff_ffffu64 << 3)) | ((to as u64) << 3)
             }
         };
         set_u64(&mut changed, at, new);
@@ -181,7 +186,7 @@ fn a_mapped_file_changed_in_place_never_loops() {
     let (single, packet, any) = finished
         .recv_timeout(std::time::Duration::from_secs(10))
         .expect("traversal of the changed file ended within 10 s");
-    // The root is its own child now: every walk reads it as an empty leaf.
+    // Every walk goes down left children to a leaf that holds nothing.
     assert!(single.iter().chain(&packet).all(|h| !h.is_hit()));
     assert!(any.iter().all(|&a| !a));
     std::fs::remove_dir_all(&dir).ok();
@@ -226,4 +231,56 @@ fn a_file_read_into_memory_survives_truncation() {
         "the truncated file is refused"
     );
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A file of a few words whose slot fields make a DAG (each inner node's
+/// right child is its left child's left child, so a walk would visit 2^k
+/// paths), with counts that add up, is refused at open: every node must
+/// lie where its parent's pre-order says.
+#[test]
+fn shared_subtrees_are_refused() {
+    let scene = strip_scene(2);
+    let template = write(
+        &strip_tree(&scene, &[vec![0], vec![1]], false),
+        &scene,
+        false,
+    );
+    let k = 60u64;
+    let pos = 0.75f32;
+    let mut nodes: Vec<u64> = (0..k)
+        .map(|j| node::encode_inner(0, false, j as u32 + 2, pos))
+        .collect();
+    nodes.extend([node::encode_leaf1(0), node::encode_leaf1(1)]);
+    let mut sections =
+        slimkd::format::Section::ALL.map(|s| template[section(&template, s)].to_vec());
+    sections[0] = nodes.iter().flat_map(|w| w.to_le_bytes()).collect();
+    let mut b = template.clone();
+    // k inner nodes, k + 1 leaves, k + 2 words: k - 1 empty leaves
+    // without a word, two one-triangle leaves.
+    set_u64(&mut b, H_WORDS, k + 2);
+    set_u64(&mut b, H_INNER, k);
+    set_u64(&mut b, H_LEAVES, k + 1);
+    set_u64(&mut b, H_IMPLICIT_EMPTY, k - 1);
+    set_u64(&mut b, H_ONE_LEAVES, 2);
+    set_u32(&mut b, H_MAX_DEPTH, k as u32 + 1);
+    let b = with_sections(&b, &sections);
+    match KdFile::from_bytes(aligned_copy(&b)) {
+        Err(FormatError::Node { message, .. }) => {
+            assert!(message.contains("pre-order"), "{message}")
+        }
+        Err(e) => panic!("wrong error: {e}"),
+        Ok(_) => panic!("a DAG was accepted"),
+    }
+    // The same words as a tree (each right child an empty leaf without a
+    // word, the last node's two leaves): accepted, so the refusal above is
+    // the DAG's.
+    let mut tree_nodes: Vec<u64> = (0..k - 1)
+        .map(|_| node::encode_inner(0, false, 0, pos))
+        .collect();
+    tree_nodes.push(node::encode_inner(0, false, k as u32 + 1, pos));
+    tree_nodes.extend([node::encode_leaf1(0), node::encode_leaf1(1)]);
+    sections[0] = tree_nodes.iter().flat_map(|w| w.to_le_bytes()).collect();
+    let t = with_sections(&b, &sections);
+    let file = KdFile::from_bytes(aligned_copy(&t)).unwrap();
+    file.verify().unwrap();
 }

@@ -57,42 +57,50 @@ fn leaf_modes_around_the_65536_boundary() {
         63_000..65_000,
         65_000..65_600,
         65_600..67_647,
-        67_647..67_648,
-        67_648..69_696,
+        67_647..67_649,
+        67_649..67_650,
+        67_650..69_698,
     ];
-    let scene = strip_scene(69_696);
+    let scene = strip_scene(69_698);
     let leaves: Vec<Vec<u32>> = ranges.iter().map(|r| r.clone().collect()).collect();
     let tree = strip_tree(&scene, &leaves, false);
     tree.validate(&scene).unwrap();
     let file = read(&write(&tree, &scene, false));
-    let modes: Vec<(bool, u32, u16)> = file_leaf_words(&file)
+    // (index bytes, count, upper bits); a one-triangle leaf has no index
+    // entry, whatever its id.
+    let modes: Vec<(u8, u32, u32)> = file_leaf_words(&file)
         .into_iter()
         .map(|w| match w {
-            NodeWord::Leaf32 { count, .. } => (false, count, 0),
-            NodeWord::Leaf16 { count, upper, .. } => (true, count, upper),
+            NodeWord::Leaf32 { count, .. } => (4, count, 0),
+            NodeWord::Leaf16 { count, upper, .. } => (2, count, u32::from(upper)),
+            NodeWord::Leaf1 { tri } => (0, 1, tri >> 16),
             other => panic!("{other:?}"),
         })
         .collect();
     assert_eq!(
         modes,
         [
-            (false, 63_000, 0),
-            (true, 2000, 0),
-            (false, 600, 0),
-            (true, 2047, 1),
-            (true, 1, 1),
-            (false, 2048, 0),
+            (4, 63_000, 0),
+            (2, 2000, 0),
+            (4, 600, 0),
+            (2, 2047, 1),
+            (2, 2, 1),
+            (0, 1, 1),
+            (4, 2048, 0),
         ]
     );
     let f = file.figures();
-    assert_eq!(f.idx16, 2000 + 2047 + 1);
+    assert_eq!(f.idx16, 2000 + 2047 + 2);
     assert_eq!(f.idx32, 63_000 + 600 + 2048);
+    assert_eq!(f.one_leaves, 1);
     assert_eq!(file_shape(&file), ir_shape(&tree));
     assert_figures(&file, &tree, &scene);
     let mut rng = Rng(4);
     let mut rays = strip_rays(&scene, &mut rng, 40);
     // Aim some rays at the leaves with upper bits 1.
-    for t in [65_535u32, 65_536, 65_537, 67_646, 67_647, 67_648, 69_695] {
+    for t in [
+        65_535u32, 65_536, 65_537, 67_646, 67_647, 67_648, 67_649, 67_650, 69_697,
+    ] {
         let [a, b, c] = scene.tri(t);
         let target = (a + b + c) / 3.0;
         let o = target + Vec3::new(0.3, -2.0, 3.0);

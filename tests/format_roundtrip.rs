@@ -8,11 +8,12 @@ use common::kd::*;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
+use slimkd::format::node::{self, NodeWord};
 use slimkd::format::{self, FormatError, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
 use slimkd::trace;
-use slimkd::tree::TreeIr;
+use slimkd::tree::{Node, NodeId, TreeIr, TriId};
 use std::path::Path;
 
 // ---------------------------------------------------------------------
@@ -104,6 +105,115 @@ fn round_trip_bunny_through_mmap() {
         }
     }
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An inner node whose two children are both empty (a hoisted triangle
+/// above two empty leaves) keeps its left child as an empty leaf word and
+/// says its right child is empty (slot field 0); the tree round-trips and
+/// traces as brute force does, at the root's left and right.
+#[test]
+fn an_inner_node_with_two_empty_children_round_trips() {
+    let scene = strip_scene(3);
+    let inner = |pos: f32, right: u32, t_ref: Option<u32>| Node::Inner {
+        axis: 0,
+        pos,
+        right: NodeId(right),
+        t_ref: t_ref.map(TriId),
+    };
+    let empty = Node::Leaf { start: 0, count: 0 };
+    let tree = TreeIr {
+        bounds: scene.bounds(),
+        nodes: vec![
+            inner(0.75, 4, None),
+            inner(0.25, 3, Some(0)),
+            empty,
+            empty,
+            inner(1.75, 6, None),
+            Node::Leaf { start: 0, count: 1 },
+            inner(2.25, 8, Some(2)),
+            Node::Leaf { start: 1, count: 0 },
+            Node::Leaf { start: 1, count: 0 },
+        ],
+        leaf_tris: vec![TriId(1)],
+    };
+    tree.validate(&scene).unwrap();
+    let mut rng = Rng(9);
+    let mut rays = strip_rays(&scene, &mut rng, 40);
+    rays.extend(rays_at(&scene.bounds(), &mut rng, 40));
+    let packets = packets_at(&scene.bounds(), &mut rng, 4);
+    assert!(
+        rays.iter()
+            .filter(|r| trace::brute_force(&scene, r).is_hit())
+            .count()
+            > 20
+    );
+    for reorder in [false, true] {
+        let file = read(&write(&tree, &scene, reorder));
+        assert_eq!(file_shape(&file), ir_shape(&tree));
+        assert_figures(&file, &tree, &scene);
+        let f = file.figures();
+        // Two both-empty nodes: each keeps one empty leaf word.
+        assert_eq!((f.leaves, f.implicit_empty, f.one_leaves), (5, 2, 1));
+        let words: Vec<NodeWord> = file
+            .nodes()
+            .iter()
+            .map(|&w| node::decode(w).unwrap())
+            .collect();
+        let both_empty: Vec<usize> = (0..words.len())
+            .filter(|&i| {
+                matches!(
+                    words[i],
+                    NodeWord::Inner {
+                        t_ref: true,
+                        right: 0,
+                        ..
+                    }
+                ) && words[i + 2] == NodeWord::Leaf32 { count: 0, start: 0 }
+            })
+            .collect();
+        assert_eq!(both_empty.len(), 2, "{words:?}");
+        assert_all_agree(&tree, &scene, &file, &rays, &packets);
+    }
+}
+
+/// An empty leaf costs no word: the node section holds `inner +
+/// 2·t_inner + leaves − implicit_empty` words, and the empty leaves
+/// without a word are all the empty leaves but the left children of the
+/// nodes whose two children are empty (the hoisted bunny has both kinds).
+#[test]
+fn an_empty_leaf_costs_no_word() {
+    let scene = load_scene("bunny_npm.obj");
+    let std = std_tree(&scene);
+    let (hoisted, _) = hoist(&std, &scene, 7, true);
+    let mut saw_both_empty = false;
+    for tree in [&std, &hoisted] {
+        let is_empty = |i: usize| matches!(tree.nodes[i], Node::Leaf { count: 0, .. });
+        let n_empty = (0..tree.nodes.len()).filter(|&i| is_empty(i)).count() as u64;
+        let both_empty = (0..tree.nodes.len())
+            .filter(|&i| match tree.nodes[i] {
+                Node::Inner { right, .. } => is_empty(i + 1) && is_empty(right.0 as usize),
+                Node::Leaf { .. } => false,
+            })
+            .count() as u64;
+        saw_both_empty |= both_empty > 0;
+        let file = read(&write(tree, &scene, true));
+        let f = file.figures();
+        assert!(n_empty > 100, "{n_empty} empty leaves");
+        assert_eq!(f.implicit_empty, n_empty - both_empty);
+        assert_eq!(
+            f.words,
+            f.inner + 2 * f.t_inner + f.leaves - f.implicit_empty
+        );
+        assert_eq!(file.nodes().len() as u64, f.words);
+        // The walk meets exactly that many children without a word.
+        let mut wordless = 0;
+        walk_file(&file, |i, _| wordless += u64::from(i.is_none()));
+        assert_eq!(wordless, f.implicit_empty);
+    }
+    assert!(
+        saw_both_empty,
+        "the hoisted bunny has a node with two empty children"
+    );
 }
 
 // ---------------------------------------------------------------------

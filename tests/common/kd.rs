@@ -36,6 +36,10 @@ pub const H_BOUNDS: usize = 136;
 pub const H_TABLE: usize = 192;
 pub const H_ENTRY: usize = 24;
 pub const H_CRC: usize = 336;
+/// After the checksummed part: the empty leaves without a word, and the
+/// one-triangle leaves (u64 each).
+pub const H_IMPLICIT_EMPTY: usize = 340;
+pub const H_ONE_LEAVES: usize = 348;
 
 // ---------------------------------------------------------------------
 // Small helpers: a deterministic random generator, byte fields, sections.
@@ -349,24 +353,55 @@ pub fn assert_all_agree<D: AsRef<[u8]> + Sync>(
     }
 }
 
-/// Asserts the counts a file reports against the tree it was written from.
+/// What the writer makes of a tree's leaves: `(empty leaves without a
+/// word, one-triangle leaves)`. Every empty leaf but an empty root and the
+/// left child of an inner node whose two children are both empty goes
+/// without a word.
+pub fn ir_leaf_counts(tree: &TreeIr) -> (u64, u64) {
+    let empty = |i: usize| matches!(tree.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
+    let (mut implicit, mut ones) = (0, 0);
+    for (i, n) in tree.nodes.iter().enumerate() {
+        match *n {
+            Node::Inner { right, .. } => {
+                let (l, r) = (empty(i + 1), empty(right.0 as usize));
+                implicit += u64::from(l) + u64::from(r) - u64::from(l && r);
+            }
+            Node::Leaf { count, .. } => ones += u64::from(count == 1),
+        }
+    }
+    (implicit, ones)
+}
+
+/// Asserts the counts a file reports against the tree it was written from:
+/// an empty leaf costs no word ([`ir_leaf_counts`]), a one-triangle leaf no
+/// index entry.
 pub fn assert_figures<D: AsRef<[u8]>>(file: &KdFile<D>, tree: &TreeIr, scene: &TriangleColumns) {
     let f = file.figures();
     let t_inner = tree.n_t_inner() as u64;
+    let (implicit, ones) = ir_leaf_counts(tree);
     assert_eq!(f.t_inner, t_inner);
     assert_eq!(f.inner, tree.n_inner() as u64 - t_inner);
     assert_eq!(f.leaves, tree.n_leaves() as u64);
-    assert_eq!(f.words, f.inner + f.t_inner + f.leaves + f.t_inner);
+    assert_eq!(f.implicit_empty, implicit);
+    assert_eq!(f.one_leaves, ones);
+    assert_eq!(
+        f.words,
+        f.inner + f.t_inner + f.leaves + f.t_inner - f.implicit_empty
+    );
     assert_eq!(f.words, file.nodes().len() as u64);
     assert_eq!(f.nodes(), tree.nodes.len() as u64);
     assert_eq!(f.idx32, file.idx32().len() as u64);
     assert_eq!(f.idx16, file.idx16().len() as u64);
-    assert_eq!(f.idx32 + f.idx16, tree.leaf_tris.len() as u64);
+    assert_eq!(
+        f.idx32 + f.idx16 + f.one_leaves,
+        tree.leaf_tris.len() as u64
+    );
+    assert_eq!(f.references(), tree.leaf_tris.len() as u64);
     assert_eq!(f.triangles, scene.len() as u64);
     assert_eq!(f.vertices, scene.positions().len() as u64);
     assert_eq!(
         f.tree_bytes(),
-        8 * (f.nodes() + f.t_inner) + 4 * f.idx32 + 2 * f.idx16
+        8 * (f.nodes() + f.t_inner - f.implicit_empty) + 4 * f.idx32 + 2 * f.idx16
     );
     assert_eq!(f.tree_bytes(), 8 * f.words + 4 * f.idx32 + 2 * f.idx16);
     assert_eq!(file.bounds(), tree.bounds);
@@ -526,4 +561,37 @@ pub fn packet_strategy(g: i32) -> impl Strategy<Value = [Ray; 16]> {
     let point = move || (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
     (point(), point(), 1..4i32, 0..3usize)
         .prop_map(|(o, t, step, axis)| fan_packet(o, t, 0.5 * step as f32, axis))
+}
+
+/// The file `b` with its sections replaced by `sections` (in
+/// [`Section::ALL`] order) and laid out as the writer lays them out (each
+/// 64-byte aligned after the previous one, zero padding); the header's
+/// section table and every checksum follow, the counts do not.
+pub fn with_sections(b: &[u8], sections: &[Vec<u8>; 6]) -> Vec<u8> {
+    let mut out = b[..format::HEADER_SIZE].to_vec();
+    for s in Section::ALL {
+        let ofs = out.len().next_multiple_of(64);
+        out.resize(ofs, 0);
+        out.extend_from_slice(&sections[s as usize]);
+        let e = H_TABLE + s as usize * H_ENTRY;
+        set_u64(&mut out, e, ofs as u64);
+        set_u64(&mut out, e + 8, sections[s as usize].len() as u64);
+    }
+    out.resize(out.len().next_multiple_of(64), 0);
+    fix_all_crcs(&mut out);
+    out
+}
+
+/// The file `b` with `words` appended to its node section (the node count
+/// raised to match, every checksum repaired; the other counts as they
+/// were).
+pub fn with_words_appended(b: &[u8], words: &[u64]) -> Vec<u8> {
+    let mut sections = Section::ALL.map(|s| b[section(b, s)].to_vec());
+    for w in words {
+        sections[Section::Nodes as usize].extend_from_slice(&w.to_le_bytes());
+    }
+    let mut out = b.to_vec();
+    let n = get_u64(b, H_WORDS);
+    set_u64(&mut out, H_WORDS, n + words.len() as u64);
+    with_sections(&out, &sections)
 }

@@ -431,7 +431,7 @@ impl SceneReport {
     /// index, `8·nodes + 4·refs`.
     pub fn classic_std_bytes(&self) -> u64 {
         let f = &self.table3a[0].figures;
-        8 * f.nodes() + 4 * (f.idx32 + f.idx16)
+        8 * f.nodes() + 4 * f.references()
     }
 
     /// Size reduction of `tree` against std in the same format, %.
