@@ -3,6 +3,7 @@
 //! Table 3 and Figure 6, for the standard tree).
 
 pub mod bytes;
+pub mod calibrate;
 pub mod plot;
 pub mod report;
 

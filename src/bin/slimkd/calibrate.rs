@@ -1,0 +1,325 @@
+//! `slimkd calibrate`: the cost of a traversal step and of a ray–triangle
+//! test on this machine's traverser, fitted per scene and pooled
+//! ([`slimkd::stats::calibrate`]).
+
+use crate::*;
+use serde::Serialize;
+use slimkd::stats::calibrate::{self as cal, Fit, Mode, SceneMeasurement};
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub(crate) struct CalibrateArgs {
+    /// OBJ files or scene caches (.kds), or `default` (the embedded scene,
+    /// also when none is given).
+    pub(crate) scenes: Vec<PathBuf>,
+    /// Views file; each scene is matched by its name, the file's stem
+    /// (views 1–3). Without it the embedded views are used; a scene
+    /// without views is traced from the default camera.
+    #[arg(long)]
+    pub(crate) views: Option<PathBuf>,
+    /// Primary rays per scene, split over its views; about as many
+    /// ambient-occlusion rays go with them.
+    #[arg(long, default_value_t = 1 << 16, value_parser = parse_positive)]
+    pub(crate) rays_per_scene: usize,
+    /// Timed repetitions after one warm-up (at least 1); the median is
+    /// fitted.
+    #[arg(long, default_value_t = 7, value_parser = parse_positive)]
+    pub(crate) reps: usize,
+    /// The K_T values the trees are built with, comma-separated (at least
+    /// two distinct).
+    #[arg(long, value_delimiter = ',', value_parser = parse_cost,
+          default_values_t = cal::DEFAULT_KT_VALUES.to_vec())]
+    pub(crate) kt: Vec<f64>,
+    /// K_I of every tree; the implied K_T is scaled to it.
+    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
+    pub(crate) ki: f64,
+    /// Worker threads (default: all cores).
+    #[arg(short = 'j', long, value_parser = parse_positive)]
+    pub(crate) threads: Option<usize>,
+}
+
+/// `slimkd calibrate --json`.
+#[derive(Serialize)]
+struct CalibrateJson {
+    threads: usize,
+    simd: &'static str,
+    reps: usize,
+    rays_per_scene: usize,
+    k_i: f64,
+    kt_values: Vec<f64>,
+    scenes: Vec<SceneCalJson>,
+    /// Every scene's samples, per mode.
+    pooled: FitsJson,
+}
+
+#[derive(Serialize)]
+struct SceneCalJson {
+    name: String,
+    triangles: usize,
+    views: Vec<String>,
+    trees: Vec<TreeCalJson>,
+    samples: Vec<SampleJson>,
+    fits: FitsJson,
+}
+
+#[derive(Serialize)]
+struct TreeCalJson {
+    k_t: f64,
+    nodes_total: u64,
+    tree_bytes: u64,
+}
+
+#[derive(Serialize)]
+struct SampleJson {
+    k_t: f64,
+    rays: &'static str,
+    mode: &'static str,
+    n_rays: usize,
+    ns_per_ray: f64,
+    ns_per_ray_reps: Vec<f64>,
+    wall_ns_per_ray: f64,
+    steps_per_ray: f64,
+    tests_per_ray: f64,
+    leaves_per_ray: f64,
+}
+
+#[derive(Serialize)]
+struct FitsJson {
+    packet: Option<FitJson>,
+    single: Option<FitJson>,
+}
+
+#[derive(Serialize)]
+struct FitJson {
+    samples: usize,
+    a_ns_per_step: f64,
+    b_ns_per_test: f64,
+    c_ns_per_ray: f64,
+    k_t_over_k_i: f64,
+    implied_k_t: f64,
+    r2: f64,
+    rms_residual_ns: f64,
+    residuals_ns: Vec<f64>,
+}
+
+impl FitJson {
+    fn of(f: &Fit, samples: usize, k_i: f64) -> FitJson {
+        FitJson {
+            samples,
+            a_ns_per_step: f.a,
+            b_ns_per_test: f.b,
+            c_ns_per_ray: f.c,
+            k_t_over_k_i: f.implied_k_t(1.0),
+            implied_k_t: f.implied_k_t(k_i),
+            r2: f.r2,
+            rms_residual_ns: f.rms_residual,
+            residuals_ns: f.residuals.clone(),
+        }
+    }
+}
+
+/// The fits of one set of samples, per mode.
+struct Fits([(Mode, Option<Fit>, usize); 2]);
+
+impl Fits {
+    fn of<'a>(samples: impl Iterator<Item = &'a cal::Sample> + Clone) -> Fits {
+        Fits(Mode::ALL.map(|m| {
+            let obs = cal::observations(samples.clone(), m);
+            (m, cal::fit(&obs), obs.len())
+        }))
+    }
+
+    fn json(&self, k_i: f64) -> FitsJson {
+        let get = |mode: Mode| {
+            self.0
+                .iter()
+                .find(|(m, _, _)| *m == mode)
+                .and_then(|(_, f, n)| f.as_ref().map(|f| FitJson::of(f, *n, k_i)))
+        };
+        FitsJson {
+            packet: get(Mode::Packet),
+            single: get(Mode::Single),
+        }
+    }
+}
+
+pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
+    let mut distinct = args.kt.clone();
+    distinct.sort_by(f64::total_cmp);
+    distinct.dedup();
+    if distinct.len() < 2 {
+        return Err(Usage(
+            "--kt needs at least two distinct values (the fit needs trees whose ratio of \
+             steps to tests differs)"
+                .into(),
+        )
+        .into());
+    }
+    let views = match &args.views {
+        Some(file) => {
+            let mut text = String::new();
+            slimkd::fsio::open_regular(file)
+                .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
+                .map_err(|e| format!("{}: {e}", file.display()))?;
+            slimkd::render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
+        }
+        None => slimkd::render::parse_views(DEFAULT_VIEWS)?,
+    };
+    let scenes = if args.scenes.is_empty() {
+        vec![PathBuf::from(DEFAULT_ARG)]
+    } else {
+        args.scenes.clone()
+    };
+    let pool = pool(args.threads)?;
+    let threads = pool.current_num_threads();
+    let options = cal::CalibrateOptions {
+        kt_values: args.kt.clone(),
+        k_i: args.ki,
+        rays_per_scene: args.rays_per_scene,
+        reps: args.reps,
+    };
+    let mut measured: Vec<SceneMeasurement> = Vec::new();
+    for path in &scenes {
+        let loaded = load(path, ui.bars_off())?;
+        let name = loaded.name();
+        let m = pool.install(|| {
+            cal::measure_scene(&name, &loaded.scene, &views, &options, &mut |line| {
+                if !ui.quiet && !ui.json {
+                    eprintln!("{line}");
+                }
+            })
+        })?;
+        measured.push(m);
+    }
+    let simd = slimkd::trace::packet::SimdLevel::detect().name();
+    let pooled = Fits::of(measured.iter().flat_map(|m| m.samples.iter()));
+    if ui.json {
+        return print_json(
+            "calibrate",
+            CalibrateJson {
+                threads,
+                simd,
+                reps: args.reps,
+                rays_per_scene: args.rays_per_scene,
+                k_i: args.ki,
+                kt_values: args.kt.clone(),
+                scenes: measured
+                    .iter()
+                    .map(|m| SceneCalJson {
+                        name: m.name.clone(),
+                        triangles: m.triangles,
+                        views: m.views.clone(),
+                        trees: m
+                            .trees
+                            .iter()
+                            .map(|t| TreeCalJson {
+                                k_t: t.k_t,
+                                nodes_total: t.nodes,
+                                tree_bytes: t.tree_bytes,
+                            })
+                            .collect(),
+                        samples: m
+                            .samples
+                            .iter()
+                            .map(|s| SampleJson {
+                                k_t: s.k_t,
+                                rays: s.rays.name(),
+                                mode: s.mode.name(),
+                                n_rays: s.n_rays,
+                                ns_per_ray: s.ns_per_ray,
+                                ns_per_ray_reps: s.ns_per_ray_reps.clone(),
+                                wall_ns_per_ray: s.wall_ns_per_ray,
+                                steps_per_ray: s.steps_per_ray,
+                                tests_per_ray: s.tests_per_ray,
+                                leaves_per_ray: s.leaves_per_ray,
+                            })
+                            .collect(),
+                        fits: Fits::of(m.samples.iter()).json(args.ki),
+                    })
+                    .collect(),
+                pooled: pooled.json(args.ki),
+            },
+        );
+    }
+    if ui.quiet {
+        return Ok(());
+    }
+    println!(
+        "calibrate: {threads} threads ({simd} packets), trees with K_T {} and K_I {}, {} primary rays \
+         per scene and about as many AO rays, median of {} repetitions; processor ns per ray",
+        args.kt
+            .iter()
+            .map(|k| k.to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        args.ki,
+        args.rays_per_scene,
+        args.reps
+    );
+    if ui.verbose {
+        println!(
+            "{:<24} {:>6} {:<8} {:<7} {:>8} {:>10} {:>10} {:>10} {:>10}",
+            "scene", "K_T", "rays", "mode", "n", "ns/ray", "steps/ray", "tests/ray", "tree bytes"
+        );
+        for m in &measured {
+            for s in &m.samples {
+                let bytes = m
+                    .trees
+                    .iter()
+                    .find(|t| t.k_t == s.k_t)
+                    .map_or(0, |t| t.tree_bytes);
+                println!(
+                    "{:<24} {:>6} {:<8} {:<7} {:>8} {:>10.1} {:>10.2} {:>10.2} {:>10}",
+                    m.name,
+                    s.k_t,
+                    s.rays.name(),
+                    s.mode.name(),
+                    s.n_rays,
+                    s.ns_per_ray,
+                    s.steps_per_ray,
+                    s.tests_per_ray,
+                    bytes
+                );
+            }
+        }
+        println!();
+    }
+    println!(
+        "{:<24} {:<7} {:>7} {:>12} {:>12} {:>11} {:>9} {:>14} {:>7} {:>13}",
+        "scene",
+        "mode",
+        "samples",
+        "a (ns/step)",
+        "b (ns/test)",
+        "c (ns/ray)",
+        "a/b",
+        format!("K_T at K_I {}", args.ki),
+        "R²",
+        "rms resid (ns)"
+    );
+    let rows = measured
+        .iter()
+        .map(|m| (m.name.clone(), Fits::of(m.samples.iter())))
+        .chain(std::iter::once(("pooled".to_string(), pooled)));
+    for (name, fits) in rows {
+        for (mode, fit, n) in &fits.0 {
+            match fit {
+                Some(f) => println!(
+                    "{:<24} {:<7} {:>7} {:>12.3} {:>12.3} {:>11.2} {:>9.3} {:>14.1} {:>7.3} {:>13.2}",
+                    name,
+                    mode.name(),
+                    n,
+                    f.a,
+                    f.b,
+                    f.c,
+                    f.implied_k_t(1.0),
+                    f.implied_k_t(args.ki),
+                    f.r2,
+                    f.rms_residual
+                ),
+                None => println!("{name:<24} {:<7} {n:>7} (no samples)", mode.name()),
+            }
+        }
+    }
+    Ok(())
+}
