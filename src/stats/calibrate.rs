@@ -225,7 +225,10 @@ pub fn measure_scene(
     let mut files: Vec<KdFile<AlignedBytes>> = Vec::new();
     let mut trees = Vec::new();
     for &k_t in &options.kt_values {
-        progress(&format!("{name}: building with K_T {k_t}, K_I {}", options.k_i));
+        progress(&format!(
+            "{name}: building with K_T {k_t}, K_I {}",
+            options.k_i
+        ));
         let mut config = BuildConfig::default();
         config.sah.k_t = k_t;
         config.sah.k_i = options.k_i;
@@ -361,22 +364,26 @@ pub fn measure_scene(
     })
 }
 
-/// A least-squares fit of `ns = a·steps + b·tests + c` per ray with
-/// `a, b, c ≥ 0`.
+/// A least-squares fit of `ns = a·steps + b·tests + c_g` per ray with
+/// `a, b ≥ 0` and one intercept `c_g` per group of observations.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Fit {
     /// Nanoseconds per traversal step.
     pub a: f64,
     /// Nanoseconds per ray–triangle test.
     pub b: f64,
-    /// Nanoseconds per ray besides (setup, clipping to the scene's box).
-    pub c: f64,
-    /// `1 − SSR/SST` (SST about the mean; 1 when the times are all equal
-    /// and fitted exactly).
+    /// Nanoseconds per ray besides, per group (setup, clipping to the
+    /// scene's box, and what a group's rays cost more per step and test
+    /// than another's: ambient-occlusion rays miss the caches that
+    /// coherent primary rays share). Not constrained in sign.
+    pub c: Vec<f64>,
+    /// `1 − SSR/SST` with SST about each group's mean: the share of the
+    /// variation within the groups (from tree to tree) that steps and
+    /// tests explain; 1 when there is none and the fit is exact.
     pub r2: f64,
     /// The root mean square of the residuals, ns.
     pub rms_residual: f64,
-    /// Measured minus fitted, ns, per sample in the order given.
+    /// Measured minus fitted, ns, per observation in the order given.
     pub residuals: Vec<f64>,
 }
 
@@ -388,134 +395,122 @@ impl Fit {
     }
 }
 
-/// One observation of the fit: work per ray and time per ray.
+/// One observation of the fit: work per ray and time per ray, and its
+/// group (which intercept it takes).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Observation {
     pub steps: f64,
     pub tests: f64,
     pub ns: f64,
+    pub group: usize,
 }
 
-/// Solves the `n`×`n` system `m·x = v` by Gaussian elimination with partial
-/// pivoting; `None` if it is singular (a pivot below 10⁻¹² of the largest
-/// entry).
-fn solve(mut m: [[f64; 3]; 3], mut v: [f64; 3], n: usize) -> Option<[f64; 3]> {
-    let scale = m
-        .iter()
-        .take(n)
-        .flat_map(|r| r.iter().take(n))
-        .fold(0.0f64, |s, x| s.max(x.abs()));
-    if scale == 0.0 {
-        return None;
-    }
-    for col in 0..n {
-        let pivot = (col..n).max_by(|&i, &j| m[i][col].abs().total_cmp(&m[j][col].abs()))?;
-        if m[pivot][col].abs() <= 1e-12 * scale {
-            return None;
-        }
-        m.swap(col, pivot);
-        v.swap(col, pivot);
-        for row in col + 1..n {
-            let f = m[row][col] / m[col][col];
-            for k in col..n {
-                m[row][k] -= f * m[col][k];
-            }
-            v[row] -= f * v[col];
-        }
-    }
-    let mut x = [0.0; 3];
-    for row in (0..n).rev() {
-        let mut s = v[row];
-        for k in row + 1..n {
-            s -= m[row][k] * x[k];
-        }
-        x[row] = s / m[row][row];
-    }
-    Some(x)
-}
-
-/// The non-negative least-squares fit of `ns = a·steps + b·tests + c`.
+/// The fit of `ns = a·steps + b·tests + c_g` with `a, b ≥ 0`, by least
+/// squares.
 ///
-/// With three unknowns the exact non-negative solution is the best of the
-/// unconstrained least-squares solutions over every subset of them (the
-/// others held at 0) whose coefficients are all non-negative: the optimum
-/// of a convex problem lies on the face of the orthant spanned by its
-/// positive coefficients, where it is that face's unconstrained optimum.
-/// Each subset is solved by its normal equations. `None` for no
-/// observations.
+/// The intercepts go first (Frisch–Waugh): within each group, steps, tests
+/// and times are taken about the group's means, which leaves `a` and `b`
+/// to fit without intercept. With two unknowns the non-negative solution
+/// is the best of the unconstrained solutions over `{a, b}`, `{a}`, `{b}`
+/// and none whose coefficients are all non-negative (the optimum of a
+/// convex problem is its face's unconstrained optimum); each is solved by
+/// its normal equations. Then `c_g` is the group's mean time less
+/// `a·steps + b·tests` at its means. `None` for no observations.
 pub fn fit(obs: &[Observation]) -> Option<Fit> {
     if obs.is_empty() {
         return None;
     }
-    let features = |o: &Observation| [o.steps, o.tests, 1.0];
-    let ssr_of = |x: &[f64; 3]| {
-        obs.iter()
-            .map(|o| {
-                let f = features(o);
-                let r = o.ns - (x[0] * f[0] + x[1] * f[1] + x[2] * f[2]);
-                r * r
-            })
-            .sum::<f64>()
-    };
-    let mut best = ([0.0; 3], ssr_of(&[0.0; 3]));
-    for subset in 1u32..8 {
-        let vars: Vec<usize> = (0..3).filter(|i| subset & (1 << i) != 0).collect();
-        let n = vars.len();
-        let mut m = [[0.0; 3]; 3];
-        let mut v = [0.0; 3];
-        for o in obs {
-            let f = features(o);
-            for (i, &p) in vars.iter().enumerate() {
-                for (j, &q) in vars.iter().enumerate() {
-                    m[i][j] += f[p] * f[q];
-                }
-                v[i] += f[p] * o.ns;
+    let groups = obs.iter().map(|o| o.group).max().unwrap_or(0) + 1;
+    let mut sums = vec![[0.0f64; 4]; groups];
+    for o in obs {
+        let g = &mut sums[o.group];
+        g[0] += o.steps;
+        g[1] += o.tests;
+        g[2] += o.ns;
+        g[3] += 1.0;
+    }
+    let means: Vec<[f64; 3]> = sums
+        .iter()
+        .map(|g| {
+            let n = g[3].max(1.0);
+            [g[0] / n, g[1] / n, g[2] / n]
+        })
+        .collect();
+    // Centred columns: x = (steps, tests), y = ns.
+    let centred: Vec<([f64; 2], f64)> = obs
+        .iter()
+        .map(|o| {
+            let m = means[o.group];
+            ([o.steps - m[0], o.tests - m[1]], o.ns - m[2])
+        })
+        .collect();
+    let (mut sxx, mut sxy, mut syy) = ([[0.0f64; 2]; 2], [0.0f64; 2], 0.0f64);
+    for (x, y) in &centred {
+        for i in 0..2 {
+            for j in 0..2 {
+                sxx[i][j] += x[i] * x[j];
             }
+            sxy[i] += x[i] * y;
         }
-        let Some(sol) = solve(m, v, n) else { continue };
-        if sol.iter().take(n).any(|&c| c < 0.0 || !c.is_finite()) {
-            continue;
-        }
-        let mut x = [0.0; 3];
-        for (i, &p) in vars.iter().enumerate() {
-            x[p] = sol[i];
-        }
-        let ssr = ssr_of(&x);
-        if ssr < best.1 {
-            best = (x, ssr);
+        syy += y * y;
+    }
+    // SSR of (a, b) from the sums: Σ(y − a·x0 − b·x1)².
+    let ssr_of = |a: f64, b: f64| {
+        (syy - 2.0 * (a * sxy[0] + b * sxy[1])
+            + a * a * sxx[0][0]
+            + 2.0 * a * b * sxx[0][1]
+            + b * b * sxx[1][1])
+            .max(0.0)
+    };
+    let scale = sxx[0][0].max(sxx[1][1]);
+    let mut candidates = vec![(0.0, 0.0)];
+    for i in 0..2 {
+        if sxx[i][i] > 1e-12 * scale {
+            let v = sxy[i] / sxx[i][i];
+            candidates.push(if i == 0 { (v, 0.0) } else { (0.0, v) });
         }
     }
-    let (x, ssr) = best;
-    let mean = obs.iter().map(|o| o.ns).sum::<f64>() / obs.len() as f64;
-    let sst: f64 = obs.iter().map(|o| (o.ns - mean) * (o.ns - mean)).sum();
-    let r2 = if sst > 0.0 {
-        1.0 - ssr / sst
-    } else if ssr == 0.0 {
+    let det = sxx[0][0] * sxx[1][1] - sxx[0][1] * sxx[0][1];
+    if det > 1e-12 * scale * scale {
+        candidates.push((
+            (sxy[0] * sxx[1][1] - sxy[1] * sxx[0][1]) / det,
+            (sxy[1] * sxx[0][0] - sxy[0] * sxx[0][1]) / det,
+        ));
+    }
+    let (a, b) = candidates
+        .into_iter()
+        .filter(|&(a, b)| a >= 0.0 && b >= 0.0 && a.is_finite() && b.is_finite())
+        .min_by(|x, y| ssr_of(x.0, x.1).total_cmp(&ssr_of(y.0, y.1)))
+        .unwrap_or((0.0, 0.0));
+    let c: Vec<f64> = means.iter().map(|m| m[2] - a * m[0] - b * m[1]).collect();
+    let residuals: Vec<f64> = obs
+        .iter()
+        .map(|o| o.ns - (a * o.steps + b * o.tests + c[o.group]))
+        .collect();
+    let ssr: f64 = residuals.iter().map(|r| r * r).sum();
+    let r2 = if syy > 0.0 {
+        1.0 - ssr / syy
+    } else if ssr <= 1e-18 {
         1.0
     } else {
         f64::NAN
     };
-    let residuals = obs
-        .iter()
-        .map(|o| {
-            let f = features(o);
-            o.ns - (x[0] * f[0] + x[1] * f[1] + x[2] * f[2])
-        })
-        .collect();
     Some(Fit {
-        a: x[0],
-        b: x[1],
-        c: x[2],
+        a,
+        b,
+        c,
         r2,
         rms_residual: (ssr / obs.len() as f64).sqrt(),
         residuals,
     })
 }
 
-/// The observations of the samples of `mode` (those with a finite time).
+/// The observations of the samples of `mode` with a finite time, grouped
+/// by `group` (e.g. the ray set, or the scene and the ray set).
 pub fn observations<'a>(
     samples: impl IntoIterator<Item = &'a Sample>,
     mode: Mode,
+    group: impl Fn(&Sample) -> usize,
 ) -> Vec<Observation> {
     samples
         .into_iter()
@@ -524,6 +519,7 @@ pub fn observations<'a>(
             steps: s.steps_per_ray,
             tests: s.tests_per_ray,
             ns: s.ns_per_ray,
+            group: group(s),
         })
         .collect()
 }
@@ -532,17 +528,19 @@ pub fn observations<'a>(
 mod tests {
     use super::*;
 
-    fn synthetic(a: f64, b: f64, c: f64) -> Vec<Observation> {
-        // Steps and tests that vary independently, as trees of different
-        // K_T and ray sets make them.
+    /// Steps and tests that vary independently, as trees of different K_T
+    /// and ray sets make them, in `groups` groups with intercepts `c`.
+    fn synthetic(a: f64, b: f64, c: &[f64]) -> Vec<Observation> {
         (0..12)
             .map(|i| {
                 let steps = 20.0 + 7.0 * i as f64;
                 let tests = 5.0 + 3.0 * ((i * 5) % 7) as f64;
+                let group = i % c.len();
                 Observation {
                     steps,
                     tests,
-                    ns: a * steps + b * tests + c,
+                    ns: a * steps + b * tests + c[group],
+                    group,
                 }
             })
             .collect()
@@ -550,11 +548,19 @@ mod tests {
 
     #[test]
     fn fit_recovers_known_coefficients() {
-        for (a, b, c) in [(2.5, 9.0, 30.0), (1.0, 0.25, 0.0), (0.0, 4.0, 12.0)] {
-            let f = fit(&synthetic(a, b, c)).unwrap();
+        for (a, b, c) in [
+            (2.5, 9.0, vec![30.0]),
+            (1.0, 0.25, vec![0.0]),
+            (0.0, 4.0, vec![12.0]),
+            (3.0, 11.0, vec![40.0, -15.0, 100.0]),
+        ] {
+            let f = fit(&synthetic(a, b, &c)).unwrap();
             assert!((f.a - a).abs() < 1e-9, "{f:?}");
             assert!((f.b - b).abs() < 1e-9, "{f:?}");
-            assert!((f.c - c).abs() < 1e-7, "{f:?}");
+            for (got, want) in f.c.iter().zip(&c) {
+                assert!((got - want).abs() < 1e-7, "{f:?}");
+            }
+            assert_eq!(f.c.len(), c.len());
             assert!((f.r2 - 1.0).abs() < 1e-12, "{f:?}");
             assert!(f.rms_residual < 1e-7, "{f:?}");
             assert!((f.implied_k_t(20.0) - 20.0 * a / b).abs() < 1e-9);
@@ -563,7 +569,7 @@ mod tests {
 
     #[test]
     fn fit_with_noise_is_close_and_reports_it() {
-        let mut obs = synthetic(3.0, 10.0, 20.0);
+        let mut obs = synthetic(3.0, 10.0, &[20.0]);
         for (i, o) in obs.iter_mut().enumerate() {
             o.ns += if i % 2 == 0 { 1.0 } else { -1.0 };
         }
@@ -578,18 +584,17 @@ mod tests {
     #[test]
     fn fit_keeps_coefficients_non_negative() {
         // Time falls with the tests: unconstrained, b would be negative.
-        let obs = synthetic(2.0, -1.5, 40.0);
+        let obs = synthetic(2.0, -1.5, &[40.0]);
         let f = fit(&obs).unwrap();
         assert_eq!(f.b, 0.0, "{f:?}");
-        assert!(f.a >= 0.0 && f.c >= 0.0);
+        assert!(f.a > 0.0);
         // The best fit with b = 0 is the unconstrained fit in steps alone.
-        let g = fit(
-            &obs.iter()
-                .map(|o| Observation { tests: 0.0, ..*o })
-                .collect::<Vec<_>>(),
-        )
+        let g = fit(&obs
+            .iter()
+            .map(|o| Observation { tests: 0.0, ..*o })
+            .collect::<Vec<_>>())
         .unwrap();
-        assert!((f.a - g.a).abs() < 1e-9 && (f.c - g.c).abs() < 1e-7);
+        assert!((f.a - g.a).abs() < 1e-9 && (f.c[0] - g.c[0]).abs() < 1e-7);
         assert!(fit(&[]).is_none());
     }
 }

@@ -50,6 +50,9 @@ struct CalibrateJson {
     scenes: Vec<SceneCalJson>,
     /// Every scene's samples, per mode.
     pooled: FitsJson,
+    /// Every scene's samples of one ray set, per mode.
+    pooled_primary: FitsJson,
+    pooled_ao: FitsJson,
 }
 
 #[derive(Serialize)]
@@ -94,7 +97,8 @@ struct FitJson {
     samples: usize,
     a_ns_per_step: f64,
     b_ns_per_test: f64,
-    c_ns_per_ray: f64,
+    /// Per ray set (`primary`, `ao`; pooled: per scene and ray set).
+    c_ns_per_ray: Vec<f64>,
     k_t_over_k_i: f64,
     implied_k_t: f64,
     r2: f64,
@@ -108,7 +112,7 @@ impl FitJson {
             samples,
             a_ns_per_step: f.a,
             b_ns_per_test: f.b,
-            c_ns_per_ray: f.c,
+            c_ns_per_ray: f.c.clone(),
             k_t_over_k_i: f.implied_k_t(1.0),
             implied_k_t: f.implied_k_t(k_i),
             r2: f.r2,
@@ -122,11 +126,42 @@ impl FitJson {
 struct Fits([(Mode, Option<Fit>, usize); 2]);
 
 impl Fits {
-    fn of<'a>(samples: impl Iterator<Item = &'a cal::Sample> + Clone) -> Fits {
+    /// The fits of `obs(mode)`, the observations of each mode.
+    fn of(obs: impl Fn(Mode) -> Vec<cal::Observation>) -> Fits {
         Fits(Mode::ALL.map(|m| {
-            let obs = cal::observations(samples.clone(), m);
-            (m, cal::fit(&obs), obs.len())
+            let o = obs(m);
+            (m, cal::fit(&o), o.len())
         }))
+    }
+
+    /// One scene's fits: an intercept per ray set.
+    fn scene(m: &SceneMeasurement) -> Fits {
+        Fits::of(|mode| cal::observations(&m.samples, mode, |s| s.rays as usize))
+    }
+
+    /// The fits of every scene's samples (of the ray set `only`, or of
+    /// all): an intercept per scene and ray set, so that `a` and `b` come
+    /// from how time changes with the tree.
+    fn pooled(all: &[SceneMeasurement], only: Option<cal::RaySet>) -> Fits {
+        Fits::of(|mode| {
+            all.iter()
+                .enumerate()
+                .flat_map(|(i, m)| {
+                    let samples = m
+                        .samples
+                        .iter()
+                        .filter(|s| only.is_none_or(|r| s.rays == r));
+                    let sets = if only.is_some() {
+                        1
+                    } else {
+                        cal::RaySet::ALL.len()
+                    };
+                    cal::observations(samples, mode, move |s| {
+                        i * sets + if only.is_some() { 0 } else { s.rays as usize }
+                    })
+                })
+                .collect()
+        })
     }
 
     fn json(&self, k_i: f64) -> FitsJson {
@@ -192,7 +227,9 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
         measured.push(m);
     }
     let simd = slimkd::trace::packet::SimdLevel::detect().name();
-    let pooled = Fits::of(measured.iter().flat_map(|m| m.samples.iter()));
+    let pooled = Fits::pooled(&measured, None);
+    let pooled_primary = Fits::pooled(&measured, Some(cal::RaySet::Primary));
+    let pooled_ao = Fits::pooled(&measured, Some(cal::RaySet::Ao));
     if ui.json {
         return print_json(
             "calibrate",
@@ -234,10 +271,12 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
                                 leaves_per_ray: s.leaves_per_ray,
                             })
                             .collect(),
-                        fits: Fits::of(m.samples.iter()).json(args.ki),
+                        fits: Fits::scene(m).json(args.ki),
                     })
                     .collect(),
                 pooled: pooled.json(args.ki),
+                pooled_primary: pooled_primary.json(args.ki),
+                pooled_ao: pooled_ao.json(args.ki),
             },
         );
     }
@@ -285,13 +324,13 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
         println!();
     }
     println!(
-        "{:<24} {:<7} {:>7} {:>12} {:>12} {:>11} {:>9} {:>14} {:>7} {:>13}",
+        "{:<24} {:<7} {:>7} {:>12} {:>12} {:>15} {:>9} {:>14} {:>7} {:>13}",
         "scene",
         "mode",
         "samples",
         "a (ns/step)",
         "b (ns/test)",
-        "c (ns/ray)",
+        "c pri/ao (ns)",
         "a/b",
         format!("K_T at K_I {}", args.ki),
         "R²",
@@ -299,19 +338,27 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
     );
     let rows = measured
         .iter()
-        .map(|m| (m.name.clone(), Fits::of(m.samples.iter())))
-        .chain(std::iter::once(("pooled".to_string(), pooled)));
+        .map(|m| (m.name.clone(), Fits::scene(m)))
+        .chain([
+            ("pooled".to_string(), pooled),
+            ("pooled, primary rays".to_string(), pooled_primary),
+            ("pooled, AO rays".to_string(), pooled_ao),
+        ]);
     for (name, fits) in rows {
         for (mode, fit, n) in &fits.0 {
             match fit {
                 Some(f) => println!(
-                    "{:<24} {:<7} {:>7} {:>12.3} {:>12.3} {:>11.2} {:>9.3} {:>14.1} {:>7.3} {:>13.2}",
+                    "{:<24} {:<7} {:>7} {:>12.3} {:>12.3} {:>15} {:>9.3} {:>14.1} {:>7.3} {:>13.2}",
                     name,
                     mode.name(),
                     n,
                     f.a,
                     f.b,
-                    f.c,
+                    if f.c.len() == cal::RaySet::ALL.len() {
+                        format!("{:.1}/{:.1}", f.c[0], f.c[1])
+                    } else {
+                        "per scene".to_string()
+                    },
                     f.implied_k_t(1.0),
                     f.implied_k_t(args.ki),
                     f.r2,
