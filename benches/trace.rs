@@ -21,7 +21,6 @@
 
 mod common;
 
-use glam::Vec3;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
