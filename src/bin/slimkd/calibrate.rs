@@ -101,13 +101,15 @@ struct FitJson {
     c_ns_per_ray: Vec<f64>,
     k_t_over_k_i: f64,
     implied_k_t: f64,
+    steps_per_visit: f64,
+    implied_k_t_per_visit: f64,
     r2: f64,
     rms_residual_ns: f64,
     residuals_ns: Vec<f64>,
 }
 
 impl FitJson {
-    fn of(f: &Fit, samples: usize, k_i: f64) -> FitJson {
+    fn of(f: &Fit, samples: usize, k_i: f64, steps_per_visit: f64) -> FitJson {
         FitJson {
             samples,
             a_ns_per_step: f.a,
@@ -115,6 +117,8 @@ impl FitJson {
             c_ns_per_ray: f.c.clone(),
             k_t_over_k_i: f.implied_k_t(1.0),
             implied_k_t: f.implied_k_t(k_i),
+            steps_per_visit,
+            implied_k_t_per_visit: f.implied_k_t(k_i) * steps_per_visit,
             r2: f.r2,
             rms_residual_ns: f.rms_residual,
             residuals_ns: f.residuals.clone(),
@@ -122,54 +126,82 @@ impl FitJson {
     }
 }
 
-/// The fits of one set of samples, per mode.
-struct Fits([(Mode, Option<Fit>, usize); 2]);
+/// The fits of one set of samples, per mode, and the packets' mean node
+/// steps per ray visit over those samples (1 for single rays).
+struct Fits {
+    fits: [(Mode, Option<Fit>, usize); 2],
+    packet_steps_per_visit: f64,
+}
 
 impl Fits {
     /// The fits of `obs(mode)`, the observations of each mode.
-    fn of(obs: impl Fn(Mode) -> Vec<cal::Observation>) -> Fits {
-        Fits(Mode::ALL.map(|m| {
-            let o = obs(m);
-            (m, cal::fit(&o), o.len())
-        }))
+    fn of(obs: impl Fn(Mode) -> Vec<cal::Observation>, ratios: &[f64]) -> Fits {
+        Fits {
+            fits: Mode::ALL.map(|m| {
+                let o = obs(m);
+                (m, cal::fit(&o), o.len())
+            }),
+            packet_steps_per_visit: ratios.iter().sum::<f64>() / ratios.len().max(1) as f64,
+        }
     }
 
     /// One scene's fits: an intercept per ray set.
     fn scene(m: &SceneMeasurement) -> Fits {
-        Fits::of(|mode| cal::observations(&m.samples, mode, |s| s.rays as usize))
+        Fits::of(
+            |mode| cal::observations(&m.samples, mode, |s| s.rays as usize),
+            &cal::packet_steps_per_visit(&m.samples, None),
+        )
     }
 
     /// The fits of every scene's samples (of the ray set `only`, or of
     /// all): an intercept per scene and ray set, so that `a` and `b` come
     /// from how time changes with the tree.
     fn pooled(all: &[SceneMeasurement], only: Option<cal::RaySet>) -> Fits {
-        Fits::of(|mode| {
-            all.iter()
-                .enumerate()
-                .flat_map(|(i, m)| {
-                    let samples = m
-                        .samples
-                        .iter()
-                        .filter(|s| only.is_none_or(|r| s.rays == r));
-                    let sets = if only.is_some() {
-                        1
-                    } else {
-                        cal::RaySet::ALL.len()
-                    };
-                    cal::observations(samples, mode, move |s| {
-                        i * sets + if only.is_some() { 0 } else { s.rays as usize }
+        let ratios: Vec<f64> = all
+            .iter()
+            .flat_map(|m| cal::packet_steps_per_visit(&m.samples, only))
+            .collect();
+        Fits::of(
+            |mode| {
+                all.iter()
+                    .enumerate()
+                    .flat_map(|(i, m)| {
+                        let samples = m
+                            .samples
+                            .iter()
+                            .filter(|s| only.is_none_or(|r| s.rays == r));
+                        let sets = if only.is_some() {
+                            1
+                        } else {
+                            cal::RaySet::ALL.len()
+                        };
+                        cal::observations(samples, mode, move |s| {
+                            i * sets + if only.is_some() { 0 } else { s.rays as usize }
+                        })
                     })
-                })
-                .collect()
-        })
+                    .collect()
+            },
+            &ratios,
+        )
+    }
+
+    /// Node steps per ray visit in `mode`.
+    fn steps_per_visit(&self, mode: Mode) -> f64 {
+        match mode {
+            Mode::Packet => self.packet_steps_per_visit,
+            Mode::Single => 1.0,
+        }
     }
 
     fn json(&self, k_i: f64) -> FitsJson {
         let get = |mode: Mode| {
-            self.0
+            self.fits
                 .iter()
                 .find(|(m, _, _)| *m == mode)
-                .and_then(|(_, f, n)| f.as_ref().map(|f| FitJson::of(f, *n, k_i)))
+                .and_then(|(_, f, n)| {
+                    f.as_ref()
+                        .map(|f| FitJson::of(f, *n, k_i, self.steps_per_visit(mode)))
+                })
         };
         FitsJson {
             packet: get(Mode::Packet),
@@ -324,7 +356,7 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
         println!();
     }
     println!(
-        "{:<24} {:<7} {:>7} {:>12} {:>12} {:>15} {:>9} {:>14} {:>7} {:>13}",
+        "{:<24} {:<7} {:>7} {:>12} {:>12} {:>15} {:>9} {:>14} {:>10} {:>7} {:>13}",
         "scene",
         "mode",
         "samples",
@@ -333,6 +365,7 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
         "c pri/ao (ns)",
         "a/b",
         format!("K_T at K_I {}", args.ki),
+        "per visit",
         "R²",
         "rms resid (ns)"
     );
@@ -345,10 +378,10 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
             ("pooled, AO rays".to_string(), pooled_ao),
         ]);
     for (name, fits) in rows {
-        for (mode, fit, n) in &fits.0 {
+        for (mode, fit, n) in &fits.fits {
             match fit {
                 Some(f) => println!(
-                    "{:<24} {:<7} {:>7} {:>12.3} {:>12.3} {:>15} {:>9.3} {:>14.1} {:>7.3} {:>13.2}",
+                    "{:<24} {:<7} {:>7} {:>12.3} {:>12.3} {:>15} {:>9.3} {:>14.1} {:>10.1} {:>7.3} {:>13.2}",
                     name,
                     mode.name(),
                     n,
@@ -361,6 +394,7 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
                     },
                     f.implied_k_t(1.0),
                     f.implied_k_t(args.ki),
+                    f.implied_k_t(args.ki) * fits.steps_per_visit(*mode),
                     f.r2,
                     f.rms_residual
                 ),
@@ -368,5 +402,10 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
             }
         }
     }
+    println!(
+        "c: per ray set (primary/ao), per scene and ray set when pooled; per visit: the K_T per \
+         node visit of one ray, what the SAH prices (a packet step is shared by its lanes: \
+         K_T × packet steps per visit)"
+    );
     Ok(())
 }
