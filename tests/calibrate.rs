@@ -124,6 +124,47 @@ fn calibrate_on_the_embedded_scene_prints_fits_per_scene_and_pooled() {
     );
 }
 
+/// Where no primary ray hits, the AO set is empty: its samples have no
+/// time, and the fits come from the primary rays alone.
+#[test]
+fn calibrate_with_views_that_miss_has_no_ao_samples_timed() {
+    let dir = fresh_temp_dir("calibrate-miss");
+    let views = dir.join("views.txt");
+    std::fs::write(
+        &views,
+        "nexuiz_dieselpower 1 eye=100000,100000,100000 at=200000,200000,200000 up=0,0,1 fov=60\n",
+    )
+    .unwrap();
+    let j = json(&slimkd(&[
+        "calibrate",
+        "--views",
+        views.to_str().unwrap(),
+        "--rays-per-scene",
+        "64",
+        "--reps",
+        "1",
+        "--kt",
+        "10,40",
+        "-j",
+        "1",
+        "--json",
+    ]));
+    let s = &j["scenes"][0];
+    assert_eq!(s["views"], serde_json::json!(["1"]));
+    for smp in s["samples"].as_array().unwrap() {
+        if smp["rays"] == "ao" {
+            assert_eq!(smp["n_rays"], 0, "{smp}");
+            assert!(smp["ns_per_ray"].is_null(), "{smp}");
+        } else {
+            assert!(smp["n_rays"].as_u64().unwrap() > 0, "{smp}");
+        }
+    }
+    for mode in ["packet", "single"] {
+        check_fit(&s["fits"][mode], 2, 1);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn calibrate_usage_errors_exit_2() {
     for bad in [

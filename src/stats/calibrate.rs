@@ -324,6 +324,12 @@ pub fn measure_scene(
         for j in 0..files.len() {
             let k = (rep + j) % files.len();
             for (s, (set, rays)) in sets.iter().enumerate() {
+                // No AO rays where no primary ray hits: nothing to time
+                // (the warm-up would ask for tens of thousands of passes
+                // over no rays to fill MIN_SECONDS).
+                if rays.is_empty() {
+                    continue;
+                }
                 for (m, mode) in Mode::ALL.into_iter().enumerate() {
                     let tracer: &dyn ClosestHit = match mode {
                         Mode::Packet => &packets[k],
@@ -342,7 +348,7 @@ pub fn measure_scene(
                         .map(|(a, b)| b - a);
                     if rep == 0 {
                         passes[i] = (MIN_SECONDS / seconds.max(1e-9)).ceil().max(1.0) as usize;
-                    } else if !rays.is_empty() {
+                    } else {
                         let traced = (passes[i] * rays.len()) as f64;
                         let wall_ns = seconds * 1e9 * threads as f64 / traced;
                         samples[i].wall_ns_per_ray_reps.push(wall_ns);
