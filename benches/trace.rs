@@ -21,7 +21,6 @@
 
 mod common;
 
-use glam::Vec3;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
@@ -44,52 +43,7 @@ fn ray_sets(
     let primary: Vec<Ray> = (0..SIZE * SIZE)
         .map(|i| camera.ray(i % SIZE, i / SIZE))
         .collect();
-    let b = scene.bounds();
-    let diag = (b.max - b.min).length();
-    let eye = primary[0].origin;
-    let light = eye + Vec3::new(0.05, 0.05, 0.0) * diag;
-    let mut shadow = Vec::new();
-    let mut ao = Vec::new();
-    // A fixed-seed splitmix64, so that every run traces the same rays.
-    let mut seed = 0x5eed_u64;
-    let mut uniform = move || {
-        seed = seed.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = seed;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    };
-    for r in &primary {
-        let hit = tracer.closest_hit(r);
-        if !hit.is_hit() {
-            continue;
-        }
-        let mut n = scene.normal(hit.tri.0).normalize();
-        if n.dot(r.dir) > 0.0 {
-            n = -n;
-        }
-        let p = r.origin + r.dir * hit.t + n * (1e-4 * diag);
-        let to_light = light - p;
-        shadow.push(Ray {
-            origin: p,
-            dir: to_light.normalize(),
-            tmin: 0.0,
-            tmax: to_light.length() * (1.0 - 1e-5),
-        });
-        let (t1, t2) = n.any_orthonormal_pair();
-        for _ in 0..4 {
-            let (u1, u2) = (uniform(), uniform());
-            let (rad, phi) = (u1.sqrt(), std::f32::consts::TAU * u2);
-            let d =
-                t1 * (rad * phi.cos()) + t2 * (rad * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt();
-            ao.push(Ray {
-                origin: p,
-                dir: d.normalize(),
-                tmin: 0.0,
-                tmax: 0.05 * diag,
-            });
-        }
-    }
+    let rays::SecondaryRays { shadow, ao } = rays::secondary_rays(scene, tracer, &primary, 4);
     [
         ("primary", Query::Closest, primary),
         ("shadow", Query::Occluded, shadow),

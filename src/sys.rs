@@ -83,6 +83,28 @@ pub fn cpu_seconds() -> Option<f64> {
     Some((utime + stime) as f64 / 100.0)
 }
 
+/// This process's processor time so far (user and system, every thread),
+/// in seconds, at the clock's resolution (`CLOCK_PROCESS_CPUTIME_ID`,
+/// nanoseconds; [`cpu_seconds`] counts in 10 ms ticks); `None` where
+/// there is no such clock.
+pub fn process_cpu_seconds() -> Option<f64> {
+    #[cfg(target_os = "linux")]
+    {
+        let mut ts = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: `clock_gettime` writes the `timespec` it is given, which
+        // lives for the call.
+        let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+        (rc == 0).then_some(ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9)
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        None
+    }
+}
+
 /// This process's `RssAnon` and `RssFile` in bytes, from
 /// `/proc/self/status` (zeros where it cannot be read).
 pub fn rss() -> (u64, u64) {

@@ -23,8 +23,25 @@
 //!
 //! [`TreeFigures::tree_bytes`]: crate::format::TreeFigures::tree_bytes
 
-use crate::format::KdFile;
 use crate::format::node::{self, NodeWord};
+use crate::format::{KdFile, TreeFigures};
+
+/// A tree's bytes in the paper's std layout (Wald 2004, as Choi et al.'s
+/// std tree is stored): an 8-byte word for every node, empty leaves
+/// included, and for every T-reference, and a 4-byte index for every leaf
+/// reference, with no reordering (so no 2-byte leaves):
+/// `8·(nodes + t_refs) + 4·refs`. It is computed from the tree's shape,
+/// whatever the `.kd` format stores, so that it stays the paper's baseline.
+pub fn paper_layout_bytes(nodes: u64, t_refs: u64, refs: u64) -> u64 {
+    8 * (nodes + t_refs) + 4 * refs
+}
+
+/// [`paper_layout_bytes`] of a stored tree: its nodes as the paper counts
+/// them (inner, t-inner and leaves, empty ones included), one T-reference
+/// per t-inner node, and its leaf references.
+pub fn paper_layout_bytes_of(f: &TreeFigures) -> u64 {
+    paper_layout_bytes(f.nodes(), f.t_inner, f.references())
+}
 
 /// A tree's bytes by kind, and the bounds on what hoisting can save.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -144,6 +161,19 @@ mod tests {
             assert_eq!(s.idx16_bytes, 2 * f.idx16);
             assert!(s.hoist_bound_bytes <= s.duplicate_bytes);
             assert!(s.duplicate_bytes < s.index_bytes());
+        }
+        // The paper's layout from the tree's shape: the IR's nodes (empty
+        // leaves included) and references, one T-reference per t-inner.
+        for tree in [&std_tree, &slim_tree] {
+            let bytes = format::write_to_vec(tree, &scene, &WriteOptions::default()).unwrap();
+            let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+            let t_inner = tree
+                .nodes
+                .iter()
+                .filter(|n| matches!(n, crate::tree::Node::Inner { t_ref: Some(_), .. }))
+                .count() as u64;
+            let want = 8 * (tree.nodes.len() as u64 + t_inner) + 4 * tree.leaf_tris.len() as u64;
+            assert_eq!(paper_layout_bytes_of(&file.figures()), want);
         }
         // The big triangle lies in many leaves of the standard tree: its
         // references but one are duplicates (2 bytes each here).

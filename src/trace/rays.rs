@@ -272,3 +272,76 @@ pub fn count_batch(
     let stats = total.into_inner().expect("no panics while held");
     (results, stats)
 }
+
+/// Shadow and ambient-occlusion rays from the hits of primary rays, the
+/// sets of `benches/trace.rs` and `slimkd calibrate`, like the peer
+/// program's `--make-rays`.
+pub struct SecondaryRays {
+    /// One per hit, toward a point light near the first ray's origin (an
+    /// any-hit query up to just short of the light).
+    pub shadow: Vec<Ray>,
+    /// `ao_per_hit` per hit, cosine-distributed about the normal facing
+    /// the ray, up to 5 % of the scene's diagonal (any-hit queries).
+    pub ao: Vec<Ray>,
+}
+
+/// The shadow and ambient-occlusion rays of `primary` (traced with
+/// `tracer` for their hits), in the order of the primary rays. The rays
+/// leave the hit point offset along the normal by 10⁻⁴ of the scene's
+/// diagonal; the directions come from a fixed-seed splitmix64, so every
+/// run makes the same rays.
+pub fn secondary_rays(
+    scene: &crate::scene::TriangleColumns,
+    tracer: &dyn ClosestHit,
+    primary: &[Ray],
+    ao_per_hit: usize,
+) -> SecondaryRays {
+    let b = scene.bounds();
+    let diag = (b.max - b.min).length();
+    let eye = primary.first().map_or(Vec3::ZERO, |r| r.origin);
+    let light = eye + Vec3::new(0.05, 0.05, 0.0) * diag;
+    let mut out = SecondaryRays {
+        shadow: Vec::new(),
+        ao: Vec::new(),
+    };
+    let mut seed = 0x5eed_u64;
+    let mut uniform = move || {
+        seed = seed.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = seed;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    };
+    for r in primary {
+        let hit = tracer.closest_hit(r);
+        if !hit.is_hit() {
+            continue;
+        }
+        let mut n = scene.normal(hit.tri.0).normalize();
+        if n.dot(r.dir) > 0.0 {
+            n = -n;
+        }
+        let p = r.origin + r.dir * hit.t + n * (1e-4 * diag);
+        let to_light = light - p;
+        out.shadow.push(Ray {
+            origin: p,
+            dir: to_light.normalize(),
+            tmin: 0.0,
+            tmax: to_light.length() * (1.0 - 1e-5),
+        });
+        let (t1, t2) = n.any_orthonormal_pair();
+        for _ in 0..ao_per_hit {
+            let (u1, u2) = (uniform(), uniform());
+            let (rad, phi) = (u1.sqrt(), std::f32::consts::TAU * u2);
+            let d =
+                t1 * (rad * phi.cos()) + t2 * (rad * phi.sin()) + n * (1.0 - u1).max(0.0).sqrt();
+            out.ao.push(Ray {
+                origin: p,
+                dir: d.normalize(),
+                tmin: 0.0,
+                tmax: 0.05 * diag,
+            });
+        }
+    }
+    out
+}

@@ -139,6 +139,11 @@ pub(crate) enum Command {
     /// print Mrays/s, hits and a checksum comparable with the Embree peer
     /// program's `--rays` mode.
     Trace(Box<crate::trace::TraceArgs>),
+    /// Measure the cost of a traversal step and of a ray–triangle test
+    /// (trees built at several K_T, primary and AO rays, single and
+    /// packets) and fit time = a·steps + b·tests + c per ray; prints a, b,
+    /// c (ns), the implied K_T and R², per scene and pooled.
+    Calibrate(Box<crate::calibrate::CalibrateArgs>),
 }
 
 #[derive(clap::Args)]

@@ -4,7 +4,7 @@ use crate::*;
 use serde::Serialize;
 use slimkd::format::{self, Section};
 use slimkd::scene::{self};
-use slimkd::stats::bytes::ByteSplit;
+use slimkd::stats::bytes::{ByteSplit, paper_layout_bytes_of};
 use std::path::Path;
 use std::time::Instant;
 
@@ -48,6 +48,8 @@ struct InfoJson {
     max_t2rn: u32,
     reordered: bool,
     tree_bytes_per_triangle: f64,
+    paper_layout_bytes: u64,
+    paper_layout_bytes_per_triangle: f64,
     max_depth: u32,
     leaf_depth_histogram: Vec<u64>,
     bytes: BytesJson,
@@ -128,6 +130,7 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
     let c = file.config();
     let hist = file.leaf_depth_histogram();
     let split = ByteSplit::of(&file);
+    let paper = paper_layout_bytes_of(&f);
     let mib = |b: u64| b as f64 / (1 << 20) as f64;
     let per_tri = |b: u64| b as f64 / f.triangles.max(1) as f64;
     if ui.json {
@@ -147,6 +150,8 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
                 max_t2rn: c.max_t2rn,
                 reordered: file.is_reordered(),
                 tree_bytes_per_triangle: per_tri(f.tree_bytes()),
+                paper_layout_bytes: paper,
+                paper_layout_bytes_per_triangle: per_tri(paper),
                 max_depth: file.max_depth(),
                 leaf_depth_histogram: hist,
                 bytes: BytesJson {
@@ -217,11 +222,17 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
         mib(f.tree_bytes())
     );
     println!(
-        "bytes       tree {} ({:.1} per triangle), geometry {} ({:.1} per triangle)",
+        "bytes       tree {} ({:.1} per triangle) in this file's format, geometry {} ({:.1} per triangle)",
         f.tree_bytes(),
         per_tri(f.tree_bytes()),
         f.geometry_bytes(),
         per_tri(f.geometry_bytes())
+    );
+    println!(
+        "paper       this tree in the paper's std layout (Wald 2004: 8-byte nodes, empty leaves and T-references included, 4-byte indices, no reordering): {} ({:.1} per triangle); this file {:.1}% smaller",
+        paper,
+        per_tri(paper),
+        100.0 * (1.0 - f.tree_bytes() as f64 / paper.max(1) as f64)
     );
     let pct = |b: u64| 100.0 * b as f64 / split.total().max(1) as f64;
     println!(

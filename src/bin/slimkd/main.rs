@@ -6,6 +6,7 @@
 
 mod args;
 mod build;
+mod calibrate;
 mod info;
 mod json;
 mod main_job;
@@ -174,6 +175,7 @@ fn main() -> ExitCode {
         Some(Command::Convert { scene, output }) => cmd_convert(&scene, &output, ui),
         Some(Command::Report(args)) => cmd_report(&args, ui),
         Some(Command::Trace(args)) => cmd_trace(&args, ui),
+        Some(Command::Calibrate(args)) => calibrate::cmd_calibrate(&args, ui),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
