@@ -1,7 +1,7 @@
 //! Scenes: loading triangle meshes into structure-of-arrays columns.
 //!
-//! Consumes Wavefront OBJ files (through `tobj`), PLY files, ASCII or
-//! binary of either byte order (`ply`, through `ply-rs-bw`), glTF 2.0
+//! Consumes Wavefront OBJ files (`obj`, one pass straight into the
+//! columns), PLY files, ASCII or binary of either byte order (`ply`, through `ply-rs-bw`), glTF 2.0
 //! files, `.gltf` with embedded or side buffers or `.glb` (`gltf`, through
 //! the `gltf` crate), OBJ and PLY compressed with gzip (`.obj.gz`,
 //! `.ply.gz`, through `flate2`), or the binary scene cache (`.kds`,
@@ -54,8 +54,9 @@
 //! **Degenerate rule.** A triangle whose vertices are repeated or collinear
 //! (twice its area, computed in `f64` from the `f32` positions, is exactly
 //! zero) can never be hit by the watertight test, so it is *dropped and
-//! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
-//! as `tobj` returns them (no welding).
+//! counted* ([`LoadSummary::dropped_degenerate`]). The vertex column holds
+//! the vertices the faces use, in the order of their first use (no
+//! welding; vertices no face uses are left out).
 
 #![warn(missing_docs)]
 
