@@ -224,3 +224,41 @@ fn frame_progress_ends_at_one() {
         assert_eq!(got.hits, render::trace_frame(&tracer, &cam).hits);
     }
 }
+
+/// Shading a mapped file reads the hit triangles' normals from the file's
+/// sections (`FileNormals`, nothing copied into columns); it must shade
+/// exactly as the scene's columns do, in a plain and in a reordered file
+/// (whose hits are input ids, found in the file through its `tri_map`).
+#[test]
+fn file_normals_shade_as_the_scenes_columns() {
+    let scene = common::kd::load_scene("nexuiz_dieselpower.obj");
+    let tree = common::kd::std_tree(&scene);
+    let views =
+        render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
+            .unwrap();
+    let path = manifest("scenes/nexuiz_dieselpower.obj");
+    let cam = Camera::from_view(render::find_view(&views, &path, "1").unwrap(), 48, 40);
+    for reorder in [false, true] {
+        let file = common::kd::read(&common::kd::write(&tree, &scene, reorder));
+        assert_eq!(file.is_reordered(), reorder);
+        let frame = render::trace_frame(&slimkd::trace::Scalar::new(&file), &cam);
+        assert!(
+            frame.n_hits() > 48 * 40 / 2,
+            "the camera should see the scene"
+        );
+        let normals = render::FileNormals::new(&file, &frame);
+        for hit in frame.hits.iter().filter(|h| h.is_hit()) {
+            assert_eq!(
+                render::TriangleNormals::normal(&normals, hit.tri.0),
+                scene.normal(hit.tri.0),
+                "reorder {reorder}, triangle {}",
+                hit.tri.0
+            );
+        }
+        for shading in [Shading::EyeLight, Shading::Normals] {
+            let a = render::shade(&frame, &cam, &normals, shading);
+            let b = render::shade(&frame, &cam, &scene, shading);
+            assert_eq!(a.rgb, b.rgb, "reorder {reorder}");
+        }
+    }
+}

@@ -248,6 +248,33 @@ fn vertex_reused_across_faces_keeps_its_position() {
     );
 }
 
+/// The vertex column is the used vertices numbered by first use (triangle
+/// by triangle, corner by corner, fans included); `.kds` caches and `.kd`
+/// files store this numbering, so it must not change.
+#[test]
+fn vertices_are_numbered_by_first_use_and_unused_ones_left_out() {
+    let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 9 9 9\nv 1 1 0\nv 2 1 0\n\
+                f 5 2 -4\nf 1 2 3 6\n";
+    let (c, summary) = load_ok("first-use", text);
+    let at = |i: usize| {
+        [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [9.0, 9.0, 9.0],
+            [1.0, 1.0, 0.0],
+            [2.0, 1.0, 0.0],
+        ][i - 1]
+    };
+    let want: Vec<Vec3> = [5, 2, 3, 1, 6]
+        .iter()
+        .map(|&i| Vec3::from_array(at(i)))
+        .collect();
+    assert_eq!(c.positions(), want.as_slice());
+    assert_eq!(c.indices(), &[[0, 1, 2], [3, 1, 2], [3, 2, 4]]);
+    assert_eq!(summary.vertices, 5);
+}
+
 #[test]
 fn vertex_coordinates_are_read_exactly() {
     let text = "v 0.1 -2.5e3 +7\nv 3.4028235e38 -1e-38 1e-45\nv -0 0.000001 123456789\nf 1 2 3\n";

@@ -18,6 +18,7 @@ mod image_out;
 
 pub use image_out::{Frame, ImageError, write_depth_f32, write_exr, write_image, write_png};
 
+use crate::format::KdFile;
 use crate::geom::{Aabb, Ray};
 use crate::progress::Progress;
 use crate::scene::TriangleColumns;
@@ -485,11 +486,96 @@ pub fn trace_frame_with_progress(
     }
 }
 
+/// Where shading finds the geometric normal (not normalised) of a hit's
+/// triangle, by its input id.
+pub trait TriangleNormals: Sync {
+    /// The normal of input triangle `tri`.
+    fn normal(&self, tri: u32) -> Vec3;
+}
+
+impl TriangleNormals for TriangleColumns {
+    fn normal(&self, tri: u32) -> Vec3 {
+        TriangleColumns::normal(self, tri)
+    }
+}
+
+/// The normals of a frame's hit triangles, read from a `.kd` file's
+/// mapped sections where they lie: nothing of the geometry is copied, and
+/// only the pages of the triangles hit (and, in a reordered file, the
+/// `tri_map`, read once) are touched. What it holds is one entry per
+/// distinct triangle hit, and a bit per triangle while it is made.
+pub struct FileNormals<'a, D: AsRef<[u8]>> {
+    file: &'a KdFile<D>,
+    /// The distinct input ids hit, ascending, and beside each its file id.
+    hit_ids: Vec<(u32, u32)>,
+}
+
+impl<'a, D: AsRef<[u8]> + Sync> FileNormals<'a, D> {
+    /// The normals of the triangles `buffer` hit, in `file`.
+    pub fn new(file: &'a KdFile<D>, buffer: &HitBuffer) -> FileNormals<'a, D> {
+        let n_tris = file.triangles().len();
+        let mut hit_ids: Vec<(u32, u32)> = buffer
+            .hits
+            .iter()
+            .filter(|h| h.is_hit() && (h.tri.0 as usize) < n_tris)
+            .map(|h| (h.tri.0, h.tri.0))
+            .collect();
+        hit_ids.sort_unstable();
+        hit_ids.dedup();
+        if let Some(map) = file.tri_map() {
+            // File id of every input id hit: one pass over the map (a
+            // permutation in a valid file; an entry out of range matches
+            // nothing), testing each entry against a bit set of the ids hit.
+            let mut wanted = vec![0u64; n_tris.div_ceil(64)];
+            for &(input, _) in &hit_ids {
+                wanted[input as usize / 64] |= 1 << (input % 64);
+            }
+            let found: Vec<(u32, u32)> = map
+                .par_iter()
+                .enumerate()
+                .filter(|&(_, &input)| {
+                    wanted
+                        .get(input as usize / 64)
+                        .is_some_and(|w| w & (1 << (input % 64)) != 0)
+                })
+                .map(|(file_id, &input)| (input, file_id as u32))
+                .collect();
+            for (input, file_id) in found {
+                if let Ok(k) = hit_ids.binary_search_by_key(&input, |&(i, _)| i) {
+                    hit_ids[k].1 = file_id;
+                }
+            }
+        }
+        FileNormals { file, hit_ids }
+    }
+}
+
+impl<D: AsRef<[u8]> + Sync> TriangleNormals for FileNormals<'_, D> {
+    /// The normal of input triangle `tri`, one of those hit (zero for any
+    /// other, which shading does not ask for).
+    fn normal(&self, tri: u32) -> Vec3 {
+        let Ok(k) = self.hit_ids.binary_search_by_key(&tri, |&(i, _)| i) else {
+            return Vec3::ZERO;
+        };
+        // Every read is checked, so that a file whose sections are not all
+        // validated on open still cannot make shading panic.
+        let vertices = self.file.vertices();
+        let corner = |v: u32| vertices.get(v as usize).copied().map(Vec3::from_array);
+        let Some(&[a, b, c]) = self.file.triangles().get(self.hit_ids[k].1 as usize) else {
+            return Vec3::ZERO;
+        };
+        match (corner(a), corner(b), corner(c)) {
+            (Some(a), Some(b), Some(c)) => (b - a).cross(c - a),
+            _ => Vec3::ZERO,
+        }
+    }
+}
+
 /// Colours a traced frame.
 pub fn shade(
     buffer: &HitBuffer,
     camera: &Camera,
-    scene: &TriangleColumns,
+    scene: &(impl TriangleNormals + ?Sized),
     shading: Shading,
 ) -> Frame {
     let background = [0.05f32, 0.05, 0.08];

@@ -1,7 +1,7 @@
 //! Scenes: loading triangle meshes into structure-of-arrays columns.
 //!
-//! Consumes Wavefront OBJ files (through `tobj`), PLY files, ASCII or
-//! binary of either byte order (`ply`, through `ply-rs-bw`), glTF 2.0
+//! Consumes Wavefront OBJ files (`obj`, one pass straight into the
+//! columns), PLY files, ASCII or binary of either byte order (`ply`, through `ply-rs-bw`), glTF 2.0
 //! files, `.gltf` with embedded or side buffers or `.glb` (`gltf`, through
 //! the `gltf` crate), OBJ and PLY compressed with gzip (`.obj.gz`,
 //! `.ply.gz`, through `flate2`), or the binary scene cache (`.kds`,
@@ -54,21 +54,24 @@
 //! **Degenerate rule.** A triangle whose vertices are repeated or collinear
 //! (twice its area, computed in `f64` from the `f32` positions, is exactly
 //! zero) can never be hit by the watertight test, so it is *dropped and
-//! counted* ([`LoadSummary::dropped_degenerate`]). Vertex positions are kept
-//! as `tobj` returns them (no welding).
+//! counted* ([`LoadSummary::dropped_degenerate`]). The vertex column holds
+//! the vertices the faces use, in the order of their first use (no
+//! welding; vertices no face uses are left out).
 
 mod cache;
+mod column;
 mod gltf;
 mod obj;
 mod ply;
 
 pub use self::gltf::{load_gltf, load_gltf_bytes};
-pub use cache::{is_scene_cache, load_scene_cache, write_scene_cache};
+pub use cache::{is_scene_cache, load_scene_cache, read_scene_cache, write_scene_cache};
 pub use obj::{embedded_name, load_obj, load_obj_bytes, load_obj_with_progress};
 pub use ply::{load_ply, load_ply_bytes};
 
 use crate::geom::{Aabb, double_area};
 use crate::progress::Progress;
+use column::Column;
 use glam::Vec3;
 use rayon::prelude::*;
 use std::fmt;
@@ -79,11 +82,13 @@ use std::path::{Path, PathBuf};
 ///
 /// Invariant: every index in `indices` is `< positions.len()`, every
 /// position is finite, and `indices.len() < u32::MAX` (triangle ids fit a
-/// `u32`).
+/// `u32`), and no coordinate is `-0.0`. The columns are in memory, or
+/// mapped from a `.kds` scene cache ([`load_scene_cache`]); they read the
+/// same either way.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TriangleColumns {
-    positions: Vec<Vec3>,
-    indices: Vec<[u32; 3]>,
+    positions: Column<Vec3>,
+    indices: Column<[u32; 3]>,
 }
 
 impl TriangleColumns {
@@ -97,8 +102,21 @@ impl TriangleColumns {
         for p in &mut positions {
             *p += 0.0;
         }
+        TriangleColumns::checked(Column::Owned(positions), Column::Owned(indices))
+    }
+
+    /// Columns whose storage is given, checked for the invariant (a
+    /// `-0.0` is an error here: mapped columns cannot be changed).
+    fn checked(
+        positions: Column<Vec3>,
+        indices: Column<[u32; 3]>,
+    ) -> Result<TriangleColumns, InvalidColumns> {
         if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
             return Err(InvalidColumns::NonFiniteVertex { vertex: i });
+        }
+        let negative_zero = |p: &Vec3| p.to_array().iter().any(|c| c.to_bits() == 0x8000_0000);
+        if let Some(i) = positions.iter().position(negative_zero) {
+            return Err(InvalidColumns::NegativeZero { vertex: i });
         }
         let n = positions.len() as u64;
         if let Some(t) = indices
@@ -111,6 +129,11 @@ impl TriangleColumns {
             return Err(InvalidColumns::TooManyTriangles);
         }
         Ok(TriangleColumns { positions, indices })
+    }
+
+    /// Whether the columns are mapped from a file rather than in memory.
+    pub fn is_mapped(&self) -> bool {
+        self.positions.is_mapped() && self.indices.is_mapped()
     }
 
     /// One vertex column per corner, for tests and generators: triangle `i`
@@ -129,7 +152,10 @@ impl TriangleColumns {
         positions: Vec<Vec3>,
         indices: Vec<[u32; 3]>,
     ) -> TriangleColumns {
-        TriangleColumns { positions, indices }
+        TriangleColumns {
+            positions: Column::Owned(positions),
+            indices: Column::Owned(indices),
+        }
     }
 
     /// The vertex positions.
@@ -215,18 +241,22 @@ impl TriangleColumns {
     }
 
     /// Drops degenerate triangles (see the module docs); returns how many.
+    /// Columns without any are left as they are (mapped ones stay mapped).
     pub fn drop_degenerate(&mut self) -> usize {
-        let before = self.indices.len();
-        let positions = &self.positions;
-        self.indices.retain(|t| {
+        let positions: &[Vec3] = &self.positions;
+        let keep = |t: &[u32; 3]| {
             let tri = [
                 positions[t[0] as usize],
                 positions[t[1] as usize],
                 positions[t[2] as usize],
             ];
             t[0] != t[1] && t[1] != t[2] && t[0] != t[2] && double_area(&tri) != 0.0
-        });
-        before - self.indices.len()
+        };
+        let dropped = self.indices.iter().filter(|t| !keep(t)).count();
+        if dropped > 0 {
+            self.indices.to_mut().retain(keep);
+        }
+        dropped
     }
 }
 
@@ -245,6 +275,12 @@ pub enum InvalidColumns {
     },
     /// `u32::MAX` triangles or more (ids are `u32`, one value reserved).
     TooManyTriangles,
+    /// A coordinate `-0.0` in columns that cannot be changed (a mapped
+    /// scene cache; its writer writes `+0.0`).
+    NegativeZero {
+        /// Its index in the position column.
+        vertex: usize,
+    },
 }
 
 impl fmt::Display for InvalidColumns {
@@ -257,6 +293,12 @@ impl fmt::Display for InvalidColumns {
                 write!(f, "triangle {triangle} has a vertex index out of range")
             }
             InvalidColumns::TooManyTriangles => write!(f, "too many triangles for 32-bit ids"),
+            InvalidColumns::NegativeZero { vertex } => {
+                write!(
+                    f,
+                    "vertex {vertex} has a coordinate -0.0 (columns hold +0.0)"
+                )
+            }
         }
     }
 }

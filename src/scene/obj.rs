@@ -1,26 +1,26 @@
-//! Wavefront OBJ through `tobj`, with line numbers for every error.
+//! Wavefront OBJ, parsed once, line by line, straight into the columns,
+//! with the line number in every error.
 //!
-//! `tobj` reports *what* went wrong but not *where*; it checks face indices
-//! only when a whole object is exported, some of those checks overflow (and
-//! panic in debug builds) on relative indices that are too negative, it
-//! reads an `l` line of three points as a triangle, and it fails on lines
-//! that this loader ignores (vertex colours on only some vertices, `usemtl`
-//! without a name). So the reader handed to `tobj` is a [`LineInspector`]:
-//! it reads the file line by line, parses and checks every line itself, and
-//! hands `tobj` only what it needs, in a form `tobj` cannot misread: one
-//! `v x y z` line per vertex (the weight `w` already applied, colours
-//! dropped) and one `f` line of absolute, 1-based position indices per face
-//! of three or more vertices. Every other line is checked (where the rules
-//! say so) and then withheld. The first bad line stops the parse, with an
-//! I/O error that `tobj` passes through, and is reported with its number.
-//! Indices beyond the vertices read so far are legal if the file defines
-//! the vertex later; they are checked at the end of the file and reported at
-//! the line of the face.
+//! Consumes OBJ text from any `BufRead` (a file, a gzip stream, bytes in
+//! memory). Each line is checked and parsed by the rules of
+//! [`crate::scene`]: `v` lines append to the file's vertex list (the
+//! weight `w` applied in `f32`, colours dropped), `vt` and `vn` lines are
+//! checked and counted, and an `f` line of three or more vertices is
+//! fan-triangulated (`(v0, v1, v2), (v0, v2, v3), ...`) into triangles of
+//! absolute vertex indices. The first bad line stops the parse and is
+//! reported with its number. Indices beyond the vertices read so far are
+//! legal if the file defines the vertex later; they are checked at the end
+//! of the file and reported at the line of the face.
+//!
+//! Produces the columns with the vertices the faces use, numbered in the
+//! order of their first use (triangle by triangle, corner by corner);
+//! vertices no face uses are left out. This is the numbering `.kds`
+//! caches and `.kd` files of OBJ scenes store, so it must not change.
 
 use super::{LoadSummary, SceneError, TriangleColumns};
 use crate::progress::Progress;
 use glam::Vec3;
-use std::io::{BufRead, Read, Write};
+use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 /// Loads an OBJ file. See the module docs of [`crate::scene`] for the rules.
@@ -47,86 +47,50 @@ pub fn load_obj_bytes(
 
 pub(crate) fn load_obj_reader<R: BufRead>(
     path: &Path,
-    reader: R,
+    mut reader: R,
 ) -> Result<(TriangleColumns, LoadSummary), SceneError> {
-    let mut inspector = LineInspector::new(reader);
-    let options = tobj::LoadOptions {
-        single_index: false,
-        triangulate: true,
-        ignore_points: true,
-        ignore_lines: true,
-    };
-    // Materials are not used (and `mtllib` lines never reach tobj).
-    let result = tobj::load_obj_buf(&mut inspector, &options, |_| {
-        Err(tobj::LoadError::OpenFileFailed)
-    });
-    if let Some(found) = inspector.problem.take() {
-        return Err(match found {
-            Problem::Io(source) => SceneError::Io {
-                path: path.to_path_buf(),
-                source,
-            },
-            Problem::Line(line, message) => SceneError::Line {
-                path: path.to_path_buf(),
-                line,
-                message,
-            },
-        });
-    }
-    let models = match result {
-        Ok((models, _materials)) => models,
-        // The inspector hands tobj only lines it accepts; should tobj
-        // refuse one anyway, name the line it was reading.
-        Err(e) => {
-            return Err(SceneError::Line {
-                path: path.to_path_buf(),
-                line: inspector.line,
-                message: crate::text::escape_controls(&e.to_string()).into_owned(),
-            });
-        }
-    };
-    let oom = |e: crate::sys::OutOfMemory| SceneError::Invalid {
+    let line_error = |line, message: String| SceneError::Line {
         path: path.to_path_buf(),
-        message: e.to_string(),
+        line,
+        message: crate::text::escape_controls(&message).into_owned(),
     };
-    let mut positions = Vec::new();
-    let mut indices = Vec::new();
-    let n_positions = models.iter().map(|m| m.mesh.positions.len() / 3).sum();
-    let n_tris = models.iter().map(|m| m.mesh.indices.len() / 3).sum();
-    crate::sys::try_reserve(&mut positions, n_positions, "the scene's vertex positions")
-        .map_err(oom)?;
-    crate::sys::try_reserve(&mut indices, n_tris, "the scene's triangles").map_err(oom)?;
-    for model in &models {
-        let base = positions.len() as u64;
-        let mesh = &model.mesh;
-        positions.extend(
-            mesh.positions
-                .chunks_exact(3)
-                .map(|p| Vec3::new(p[0], p[1], p[2])),
-        );
-        for t in mesh.indices.chunks_exact(3) {
-            let tri = [0, 1, 2].map(|k| base + u64::from(t[k]));
-            if tri.iter().any(|&i| i > u64::from(u32::MAX)) {
-                return Err(SceneError::Invalid {
+    let mut parser = ObjParser::default();
+    let mut raw = Vec::new();
+    loop {
+        raw.clear();
+        match reader.read_until(b'\n', &mut raw) {
+            Ok(0) => break,
+            Ok(_) => {
+                parser.line += 1;
+                parser
+                    .parse_line(&raw)
+                    .map_err(|message| line_error(parser.line, message))?;
+            }
+            Err(source) => {
+                return Err(SceneError::Io {
                     path: path.to_path_buf(),
-                    message: "more than 2^32 vertices".into(),
+                    source,
                 });
             }
-            indices.push(tri.map(|i| i as u32));
         }
     }
+    parser
+        .check_forward_refs()
+        .map_err(|(line, message)| line_error(line, message))?;
+    let lines = parser.line;
+    let (positions, indices) = parser
+        .into_columns()
+        .map_err(|message| SceneError::Invalid {
+            path: path.to_path_buf(),
+            message,
+        })?;
     super::finish(
         path,
         positions,
         indices,
-        inspector.line,
+        lines,
         "no `f` line with three or more vertices",
     )
-}
-
-enum Problem {
-    Io(std::io::Error),
-    Line(u64, String),
 }
 
 /// What a face index refers to.
@@ -158,60 +122,33 @@ impl Kind {
     }
 }
 
-/// A `BufRead` that reads the OBJ text one line at a time, checks each line
-/// and hands `tobj` the part of it that `tobj` needs (see the module docs).
-struct LineInspector<R> {
-    inner: R,
-    /// The line as read.
-    raw: Vec<u8>,
-    /// What `tobj` sees of it (empty: nothing).
-    out: Vec<u8>,
-    /// How much of `out` `tobj` has consumed.
-    pos: usize,
-    /// The 1-based number of the line in `raw` (0 before the first).
+/// The state of one OBJ parse: the file's vertices and triangles so far.
+#[derive(Default)]
+struct ObjParser {
+    /// The 1-based number of the line being parsed (0 before the first).
     line: u64,
     /// `v`, `vt` and `vn` lines seen so far, by [`Kind`].
     counts: [u64; 3],
+    /// Every `v` line's position, in file order.
+    positions: Vec<Vec3>,
+    /// The fan triangles of the faces, as 0-based indices into the file's
+    /// vertices. An index is only meaningful once `check_forward_refs`
+    /// and the vertex count check of `into_columns` have passed.
+    triangles: Vec<[u32; 3]>,
     /// The largest index of each kind beyond those defined so far, by line:
     /// legal only if the file defines that many later.
     forward_refs: Vec<(u64, Kind, u64)>,
     /// The corners of the face being read (absolute, 1-based).
     corners: Vec<u64>,
-    at_end: bool,
-    problem: Option<Problem>,
 }
 
-impl<R: BufRead> LineInspector<R> {
-    fn new(inner: R) -> Self {
-        LineInspector {
-            inner,
-            raw: Vec::new(),
-            out: Vec::new(),
-            pos: 0,
-            line: 0,
-            counts: [0; 3],
-            forward_refs: Vec::new(),
-            corners: Vec::new(),
-            at_end: false,
-            problem: None,
-        }
-    }
-
-    /// Records the problem of line `line`; `message` may quote the line,
-    /// so its control characters are escaped.
-    fn stop(&mut self, line: u64, message: String) -> std::io::Error {
-        let message = crate::text::escape_controls(&message).into_owned();
-        self.problem = Some(Problem::Line(line, message));
-        std::io::Error::other("stopped at a bad line")
-    }
-
+impl ObjParser {
     fn count(&self, kind: Kind) -> u64 {
         self.counts[kind as usize]
     }
 
-    /// Checks the line `raw` and fills `out` with what `tobj` gets.
-    fn inspect(&mut self, raw: &[u8]) -> Result<(), String> {
-        self.out.clear();
+    /// Parses the line `raw` (its line end included).
+    fn parse_line(&mut self, raw: &[u8]) -> Result<(), String> {
         let mut bytes = raw;
         if self.line == 1 {
             bytes = bytes.strip_prefix("\u{feff}".as_bytes()).unwrap_or(bytes);
@@ -274,7 +211,7 @@ impl<R: BufRead> LineInspector<R> {
             if w == 0.0 {
                 return Err("the vertex weight w is zero".into());
             }
-            // As tobj would: each coordinate divided by w, in f32.
+            // Each coordinate divided by w, in f32.
             p = p.map(|c| c / w);
         }
         self.counts[Kind::Position as usize] += 1;
@@ -287,8 +224,8 @@ impl<R: BufRead> LineInspector<R> {
                 p[2]
             ));
         }
-        // `{:e}` is the shortest text that reads back as the same f32.
-        writeln!(self.out, "v {:e} {:e} {:e}", p[0], p[1], p[2]).expect("write to a Vec");
+        reserve_more(&mut self.positions, 1, "the scene's vertex positions")?;
+        self.positions.push(Vec3::from_array(p));
         Ok(())
     }
 
@@ -331,12 +268,17 @@ impl<R: BufRead> LineInspector<R> {
             0 => Err("a face without vertices".into()),
             // A point or a line: not a triangle, ignored.
             1 | 2 => Ok(()),
-            _ => {
-                self.out.push(b'f');
-                for &i in &self.corners {
-                    write!(self.out, " {i}").expect("write to a Vec");
+            n => {
+                let fan = n - 2;
+                reserve_more(&mut self.triangles, fan, "the scene's triangles")?;
+                // Indices are >= 1. One past `u32::MAX` wraps here, but
+                // only in a file that `check_forward_refs` or the vertex
+                // count check of `into_columns` refuses.
+                let at = |k: usize| (self.corners[k] - 1) as u32;
+                let v0 = at(0);
+                for k in 1..n - 1 {
+                    self.triangles.push([v0, at(k), at(k + 1)]);
                 }
-                self.out.push(b'\n');
                 Ok(())
             }
         }
@@ -389,6 +331,48 @@ impl<R: BufRead> LineInspector<R> {
             )),
         }
     }
+
+    /// The used vertices, numbered by first use, and the triangles in that
+    /// numbering (see the module docs). Called after `check_forward_refs`
+    /// passed, so every index is below the vertex count.
+    fn into_columns(self) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
+        if self.positions.len() > u32::MAX as usize {
+            return Err("more than 2^32 vertices".into());
+        }
+        let mut triangles = self.triangles;
+        let mut number = Vec::new();
+        crate::sys::try_reserve(
+            &mut number,
+            self.positions.len(),
+            "the scene's vertex numbers",
+        )
+        .map_err(|e| e.to_string())?;
+        number.resize(self.positions.len(), u32::MAX);
+        let mut used = Vec::new();
+        for tri in &mut triangles {
+            for corner in tri.iter_mut() {
+                let n = &mut number[*corner as usize];
+                if *n == u32::MAX {
+                    *n = used.len() as u32;
+                    reserve_more(&mut used, 1, "the scene's vertex positions")?;
+                    used.push(self.positions[*corner as usize]);
+                }
+                *corner = *n;
+            }
+        }
+        Ok((used, triangles))
+    }
+}
+
+/// Makes room for `n` more elements of `v`, growing it geometrically (so
+/// pushing N elements costs O(N)); a failed allocation is an error saying
+/// what did not fit.
+fn reserve_more<T>(v: &mut Vec<T>, n: usize, what: &'static str) -> Result<(), String> {
+    if v.capacity() - v.len() >= n {
+        return Ok(());
+    }
+    let more = n.max(v.len()).max(1 << 12);
+    crate::sys::try_reserve(v, more, what).map_err(|e| e.to_string())
 }
 
 /// How many words there are, after checking that each parses as a number.
@@ -401,57 +385,6 @@ fn numbers<'a>(words: impl Iterator<Item = &'a str>, what: &str) -> Result<usize
         n += 1;
     }
     Ok(n)
-}
-
-impl<R: BufRead> Read for LineInspector<R> {
-    fn read(&mut self, out: &mut [u8]) -> std::io::Result<usize> {
-        let available = self.fill_buf()?;
-        let n = available.len().min(out.len());
-        out[..n].copy_from_slice(&available[..n]);
-        self.consume(n);
-        Ok(n)
-    }
-}
-
-impl<R: BufRead> BufRead for LineInspector<R> {
-    fn fill_buf(&mut self) -> std::io::Result<&[u8]> {
-        if self.problem.is_some() {
-            return Err(std::io::Error::other("stopped at a bad line"));
-        }
-        // Read on until a line gives tobj something, or the file ends.
-        while self.pos == self.out.len() && !self.at_end {
-            self.out.clear();
-            self.pos = 0;
-            self.raw.clear();
-            match self.inner.read_until(b'\n', &mut self.raw) {
-                Ok(0) => {
-                    self.at_end = true;
-                    if let Err((line, message)) = self.check_forward_refs() {
-                        return Err(self.stop(line, message));
-                    }
-                }
-                Ok(_) => {
-                    self.line += 1;
-                    let raw = std::mem::take(&mut self.raw);
-                    let inspected = self.inspect(&raw);
-                    self.raw = raw;
-                    if let Err(message) = inspected {
-                        return Err(self.stop(self.line, message));
-                    }
-                }
-                Err(e) => {
-                    let kind = e.kind();
-                    self.problem = Some(Problem::Io(e));
-                    return Err(std::io::Error::from(kind));
-                }
-            }
-        }
-        Ok(&self.out[self.pos..])
-    }
-
-    fn consume(&mut self, amt: usize) {
-        self.pos = (self.pos + amt).min(self.out.len());
-    }
 }
 
 /// The path to show for an embedded scene.

@@ -33,7 +33,8 @@ pub(crate) struct Cli {
     pub(crate) command: Option<Command>,
     #[command(flatten)]
     pub(crate) out: Out,
-    /// Read `.kd` files into memory instead of mapping them: for files
+    /// Read `.kd` files and `.kds` scene caches into memory instead of
+    /// mapping them: for files
     /// another process may rewrite or truncate in place while slimkd reads
     /// them (a mapped file truncated under the reader ends it by SIGBUS).
     #[arg(long, global = true, display_order = 903)]

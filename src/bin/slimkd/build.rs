@@ -51,6 +51,10 @@ pub(crate) fn load(path: &Path, quiet: bool) -> Res<Loaded> {
     } else {
         let progress = Progress::default();
         let (s, m) = with_bar(quiet, "loading", &progress, &String::new, || {
+            let no_mmap = render::NO_MMAP.load(std::sync::atomic::Ordering::Relaxed);
+            if no_mmap && scene::SceneFormat::of_path(path) == Some(scene::SceneFormat::Cache) {
+                return Ok(scene::read_scene_cache(path)?);
+            }
             Ok(scene::load_with_progress(path, Some(&progress))?)
         })?;
         (s, m, path.to_path_buf())

@@ -233,6 +233,8 @@ pub(crate) fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
     if let Some(n) = threads {
         b = b.num_threads(n);
     }
-    b.build()
-        .map_err(|e| format!("cannot start the worker threads: {e}").into())
+    b.build().map_err(|e| {
+        format!("cannot start the worker threads (not enough memory or too many threads): {e}")
+            .into()
+    })
 }

@@ -91,13 +91,17 @@ pub(crate) fn with_bar_lines<T: Send>(
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(pool_threads)
                     .build()
-                    .map_err(|e| format!("{label}: cannot start the worker threads: {e}"))?;
+                    .map_err(|e| format!("{label}: cannot start the worker threads (not enough memory or too many threads): {e}"))?;
                 pool.install(|| work(&lines))
             };
             // The receiver waits until this is sent (or the worker panics).
             let _ = done.send(run());
         });
-        let worker = worker.map_err(|e| format!("{label}: cannot start a worker thread: {e}"))?;
+        let worker = worker.map_err(|e| {
+            format!(
+                "{label}: cannot start a worker thread (not enough memory or too many threads): {e}"
+            )
+        })?;
         let mut bar: Option<ProgressBar> = None;
         let print = |bar: &Option<ProgressBar>, line: String| match bar {
             Some(b) if !b.is_hidden() => b.println(line),

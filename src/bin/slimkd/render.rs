@@ -133,7 +133,8 @@ pub(crate) enum Source {
     },
     File {
         file: KdFile<Mapped>,
-        columns: TriangleColumns,
+        /// Only for `--mode brute`, which needs the scene as columns.
+        columns: Option<TriangleColumns>,
         open_ms: f64,
     },
 }
@@ -171,7 +172,7 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
             let start = Instant::now();
             let file = open_kd(&args.scene, false)?;
             let open_ms = start.elapsed().as_secs_f64() * 1e3;
-            let columns = file.to_columns();
+            let columns = (args.mode == ModeArg::Brute).then(|| file.to_columns());
             Source::File { file, columns, open_ms }
         } else {
             let loaded = load(&args.scene, ui.bars_off())?;
@@ -185,9 +186,9 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
             }
         };
         let (scene_path, recorded, columns, bounds) = match &source {
-            Source::Built { loaded, built, .. } => (loaded.path.clone(), None, &loaded.scene, built.tree.bounds),
+            Source::Built { loaded, built, .. } => (loaded.path.clone(), None, Some(&loaded.scene), built.tree.bounds),
             Source::File { file, columns, .. } => {
-                (args.scene.clone(), file.config().scene.name(), columns, file.bounds())
+                (args.scene.clone(), file.config().scene.name(), columns.as_ref(), file.bounds())
             }
         };
         let camera = camera_for(args, &scene_path, recorded, &bounds)?;
@@ -199,7 +200,7 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
             Source::File { .. } => None,
         };
         let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode) {
-            (_, ModeArg::Brute) => Box::new(BruteForce(columns)),
+            (_, ModeArg::Brute) => Box::new(BruteForce(columns.expect("columns for brute force"))),
             (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar::new(tree_tracer.as_ref().expect("built"))),
             (Source::Built { .. }, ModeArg::Packet) => {
                 Box::new(PacketTracer::new(tree_tracer.as_ref().expect("built")))
@@ -227,7 +228,12 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
             ShadingArg::EyeLight => Shading::EyeLight,
             ShadingArg::Normals => Shading::Normals,
         };
-        let frame = render::shade(&buf, &camera, columns, shading);
+        let frame = match &source {
+            Source::Built { loaded, .. } => render::shade(&buf, &camera, &loaded.scene, shading),
+            Source::File { file, .. } => {
+                render::shade(&buf, &camera, &render::FileNormals::new(file, &buf), shading)
+            }
+        };
         if let Some(out) = &args.output {
             render::write_image(out, &frame)?;
         }
