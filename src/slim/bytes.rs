@@ -2,22 +2,57 @@
 //! a subtree takes in the `.kd` file (8 bytes per node and per hoisted
 //! triangle, 2 or 4 per leaf index), for a built [`TreeIr`] and for a
 //! range of the work tree, and the lower bound on a rebuilt subtree that
-//! lets the pass skip a rebuild.
+//! lets the pass skip a rebuild. [`tree_bytes`] counts a whole tree in
+//! either [`ByteLayout`], for measurements of what hoisting saves.
 
 use super::work::{WNode, Work};
 use crate::format::node::leaf_index_bytes;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, TreeIr, TriId};
 
+/// How the nodes of a tree are counted in bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ByteLayout {
+    /// The `.kd` file of today (version 1): every node, empty leaves
+    /// included, is an 8-byte word, a hoisted triangle one more, and every
+    /// leaf's triangles are indices (2 or 4 bytes each).
+    V1,
+    /// The planned version 2: an empty leaf takes no word, and a leaf with
+    /// one triangle holds it in its own word (no index); the rest as
+    /// [`ByteLayout::V1`].
+    V2,
+}
+
+/// The tree bytes of `tree` (nodes, T-references and leaf indices; no
+/// geometry) in `layout`, with the file's triangle numbering (`reordered`:
+/// the Morton ranks of `--reorder`, else the input ids). In
+/// [`ByteLayout::V1`] this is the `tree_bytes` of the written file.
+pub fn tree_bytes(
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    reordered: bool,
+    layout: ByteLayout,
+) -> u64 {
+    ByteModel::new(scene, reordered)
+        .with_layout(layout)
+        .tree(tree)
+}
+
 /// How [`HoistRule::Bytes`](super::HoistRule::Bytes) counts bytes.
 pub(super) struct ByteModel {
     /// The file id of each triangle (`None`: the input id).
     rank: Option<Vec<u32>>,
+    layout: ByteLayout,
 }
 
 impl ByteModel {
+    pub(super) fn with_layout(self, layout: ByteLayout) -> ByteModel {
+        ByteModel { layout, ..self }
+    }
+
     pub(super) fn new(scene: &TriangleColumns, reordered: bool) -> ByteModel {
         ByteModel {
+            layout: ByteLayout::V1,
             rank: reordered.then(|| {
                 let perm = scene.morton_order();
                 let mut rank = vec![0u32; perm.len()];
@@ -29,8 +64,14 @@ impl ByteModel {
         }
     }
 
+    /// The bytes of a leaf: its word and its indices.
     fn leaf(&self, tris: &[TriId]) -> u64 {
-        match &self.rank {
+        match (self.layout, tris.len()) {
+            (ByteLayout::V2, 0) => return 0,
+            (ByteLayout::V2, 1) => return 8,
+            _ => {}
+        }
+        8 + match &self.rank {
             Some(r) => leaf_index_bytes(tris.len(), tris.iter().map(|t| r[t.0 as usize])),
             None => leaf_index_bytes(tris.len(), tris.iter().map(|t| t.0)),
         }
@@ -41,7 +82,7 @@ impl ByteModel {
             .iter()
             .map(|n| match *n {
                 Node::Inner { t_ref, .. } => 8 + 8 * u64::from(t_ref.is_some()),
-                Node::Leaf { start, count } => 8 + self.leaf(t.leaf(start, count)),
+                Node::Leaf { start, count } => self.leaf(t.leaf(start, count)),
             })
             .sum()
     }
@@ -52,7 +93,7 @@ impl ByteModel {
             .iter()
             .map(|n| match *n {
                 WNode::Inner { t_ref, .. } => 8 + 8 * u64::from(t_ref.is_some()),
-                WNode::Leaf { start, count } => 8 + self.leaf(work.leaf(start, count)),
+                WNode::Leaf { start, count } => self.leaf(work.leaf(start, count)),
             })
             .sum()
     }

@@ -84,7 +84,7 @@ mod params;
 mod pass;
 mod work;
 
-pub use bytes::min_subtree_bytes;
+pub use bytes::{ByteLayout, min_subtree_bytes, tree_bytes};
 pub use oracle::{above, occupancy_weight};
 pub use params::{HoistRule, SlimParams, SlimPhases, SlimReport};
 
