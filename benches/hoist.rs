@@ -3,7 +3,8 @@
 //!
 //! For each scene it builds the standard tree (level builder, default
 //! constants), runs the slim pass under each setting (the `fast` and
-//! `small` presets with their byte rule and with the paper's rule), and
+//! `small` presets; the paper's `f` and `s` settings with its rule, and
+//! with the byte rule: `paper f/b`, `paper s/b`), and
 //! prints the triangles hoisted, and per hoisted triangle the nodes,
 //! references and tree bytes saved against the std tree, the bytes counted
 //! both ways ([`ByteLayout::V1`], today's file, and [`ByteLayout::V2`],
@@ -73,11 +74,14 @@ fn bench_scene(name: &str, scene: &TriangleColumns, config: &BuildConfig) {
         "  {:<12} {:>8} {:>10} {:>10} {:>10} {:>10} {:>9} {:>9}",
         "setting", "hoisted", "nodes/h", "refs/h", "B v1/h", "B v2/h", "v1", "v2"
     );
+    let bytes = HoistRule::Bytes { reordered: true };
     let runs = [
         ("fast", SlimParams::FAST),
         ("small", SlimParams::SMALL),
-        ("fast/paper", SlimParams::FAST.with_rule(HoistRule::Paper)),
-        ("small/paper", SlimParams::SMALL.with_rule(HoistRule::Paper)),
+        ("paper f", SlimParams::PAPER_FAST),
+        ("paper s", SlimParams::PAPER_SMALL),
+        ("paper f/b", SlimParams::PAPER_FAST.with_rule(bytes)),
+        ("paper s/b", SlimParams::PAPER_SMALL.with_rule(bytes)),
     ];
     for (label, params) in runs {
         let (tree, report) = slim::slim(&std_tree, scene, config, &params);

@@ -264,6 +264,7 @@ fn table4_and_figure5_are_consistent() {
             tau_freq: p.tau_freq,
             max_t2rn: p.max_t2rn,
             rule: SlimParams::FAST.rule,
+            coarsen: 1.0,
         };
         let (tree, sr) = slim::slim(std_tree(), bunny(), &BuildConfig::default(), &params);
         assert_eq!(p.tree_bytes, written(&tree).0.tree_bytes());
