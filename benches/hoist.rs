@@ -16,13 +16,11 @@
 //! `scenes/nexuiz_dieselpower.obj`. For example
 //! `cargo bench --bench hoist -- ~/.cache/slimkd-scenes/{nexuiz_dieselpower,nexuiz_aneurysm,bunny_scan}.obj`.
 
-mod common;
-
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, ByteLayout, HoistRule, SlimParams, tree_bytes};
 use slimkd::tree::{Node, TreeIr};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Figures of one tree.
 struct Figures {
@@ -109,11 +107,14 @@ fn main() {
         .map(PathBuf::from)
         .collect();
     if paths.is_empty() {
-        paths.push(common::crate_path("scenes/nexuiz_dieselpower.obj"));
+        paths.push(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj"));
     }
     let config = BuildConfig::default();
     for path in paths {
-        let l = common::load(&path);
-        bench_scene(&l.name, &l.scene, &config);
+        let scene = slimkd::scene::load_obj(&path)
+            .unwrap_or_else(|e| panic!("cannot load the scene: {e}"))
+            .0;
+        let name = path.file_stem().unwrap_or_default().to_string_lossy();
+        bench_scene(&name, &scene, &config);
     }
 }

@@ -214,7 +214,7 @@ pub(crate) struct BuildArgs {
     /// Factor on K_T in the SAH of rebuilt subtrees, at least 1
     /// (overrides the preset's: fast 1, small 2; 1 is the paper's
     /// rebuild; with `--preset std` it needs --tau-occu and --tau-freq).
-    #[arg(long, value_parser = parse_coarsen)]
+    #[arg(long, value_parser = parse_coarsen, allow_hyphen_values = true)]
     pub(crate) coarsen: Option<f64>,
     /// Worker threads (default, or 0: all cores).
     #[arg(short = 'j', long)]
