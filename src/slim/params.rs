@@ -51,9 +51,8 @@ impl SlimParams {
     /// The `fast` preset: low thresholds (τ_occu 0.1, τ_freq 0.05,
     /// max_t2rn 16) with the byte rule for a reordered file and the
     /// paper's rebuild: 22–35 % fewer tree bytes than std on dieselpower,
-    /// aneurysm and bunny_scan, with no more node steps and triangle tests
-    /// per primary ray than 1.03× std's (`docs/perf-notes.md`, "Hoisting
-    /// that pays").
+    /// aneurysm and bunny_scan, tracing primary packets at 0.99–1.13×
+    /// std's speed (`docs/perf-notes.md`, "Hoisting that pays").
     pub const FAST: SlimParams = SlimParams {
         tau_occu: 0.1,
         tau_freq: 0.05,
@@ -63,7 +62,8 @@ impl SlimParams {
     };
     /// The `small` preset: the thresholds of `fast`, the rebuilt subtrees
     /// priced with twice `K_T`: 49–64 % fewer tree bytes than std on the
-    /// same scenes (`docs/perf-notes.md`, "Hoisting that pays").
+    /// same scenes, at 0.96–1.23× std's speed (`docs/perf-notes.md`,
+    /// "Hoisting that pays").
     pub const SMALL: SlimParams = SlimParams {
         coarsen: 2.0,
         ..SlimParams::FAST
