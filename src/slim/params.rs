@@ -51,7 +51,7 @@ impl SlimParams {
     /// The `fast` preset: low thresholds (τ_occu 0.1, τ_freq 0.05,
     /// max_t2rn 16) with the byte rule for a reordered file and the
     /// paper's rebuild: 22–35 % fewer tree bytes than std on dieselpower,
-    /// aneurysm and bunny_scan, tracing primary packets at 0.99–1.13×
+    /// aneurysm and bunny_scan, tracing primary packets at 0.96–1.13×
     /// std's speed (`docs/perf-notes.md`, "Hoisting that pays").
     pub const FAST: SlimParams = SlimParams {
         tau_occu: 0.1,
@@ -62,7 +62,7 @@ impl SlimParams {
     };
     /// The `small` preset: the thresholds of `fast`, the rebuilt subtrees
     /// priced with twice `K_T`: 49–64 % fewer tree bytes than std on the
-    /// same scenes, at 0.96–1.23× std's speed (`docs/perf-notes.md`,
+    /// same scenes, at 0.96–1.16× std's speed (`docs/perf-notes.md`,
     /// "Hoisting that pays").
     pub const SMALL: SlimParams = SlimParams {
         coarsen: 2.0,
