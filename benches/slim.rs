@@ -24,7 +24,7 @@ mod common;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::scene::TriangleColumns;
-use slimkd::slim::{self, HoistRule, SlimParams, SlimPhases, SlimReport};
+use slimkd::slim::{self, SlimParams, SlimPhases, SlimReport};
 use slimkd::tree::TreeIr;
 use std::time::Instant;
 
@@ -70,8 +70,8 @@ fn bench_scene(name: &str, scene: &TriangleColumns, reps: usize) {
     let runs = [
         ("fast", SlimParams::FAST),
         ("small", SlimParams::SMALL),
-        ("fast/paper", SlimParams::FAST.with_rule(HoistRule::Paper)),
-        ("small/paper", SlimParams::SMALL.with_rule(HoistRule::Paper)),
+        ("fast/paper", SlimParams::PAPER_FAST),
+        ("small/paper", SlimParams::PAPER_SMALL),
     ];
     let mut std_s = Vec::new();
     let mut slim_s = vec![Vec::new(); runs.len()];

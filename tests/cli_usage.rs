@@ -63,6 +63,7 @@ fn hoisting_flags_with_std_need_both_thresholds() {
         &["--preset", "std", "--tau-freq", "0.5"],
         &["--tau-occu", "0.5"],
         &["--max-t2rn", "3"],
+        &["--coarsen", "2"],
         &[
             "--preset",
             "std",
@@ -92,7 +93,8 @@ fn hoisting_flags_with_std_need_both_thresholds() {
     assert_eq!(b["preset"], "custom");
     assert_eq!(b["tau_occu"], 0.6);
     assert_eq!(b["tau_freq"], 0.3);
-    assert_eq!(b["max_t2rn"], 4);
+    assert_eq!(b["max_t2rn"], 16);
+    assert_eq!(b["coarsen"], 2.0);
     assert_eq!(b["hoist_rule"], "bytes");
     // A slim preset supplies the other threshold.
     let b = json(&slimkd(&[
@@ -104,15 +106,60 @@ fn hoisting_flags_with_std_need_both_thresholds() {
         "0.5",
         "--json",
     ]));
-    assert_eq!(b["tau_occu"], 0.9);
+    assert_eq!(b["tau_occu"], 0.1);
     assert_eq!(b["tau_freq"], 0.5);
+    assert_eq!(b["coarsen"], 1.0);
+    // With the paper's rule a preset is the paper's setting.
+    let b = json(&slimkd(&[
+        "build",
+        &scene,
+        "--preset",
+        "fast",
+        "--hoist-rule",
+        "paper",
+        "--json",
+    ]));
+    assert_eq!(
+        (
+            &b["tau_occu"],
+            &b["tau_freq"],
+            &b["max_t2rn"],
+            &b["coarsen"]
+        ),
+        (&0.9.into(), &0.7.into(), &4.into(), &1.0.into())
+    );
     // The rule and the defaults are in the help.
     let help = stdout(&slimkd(&["build", "--help"]));
     assert!(
         help.contains("need both --tau-occu and --tau-freq"),
         "{help}"
     );
-    assert!(help.contains("τ_occu 0.5, τ_freq 0.4"), "{help}");
+    assert!(help.contains("τ_occu 0.1, τ_freq 0.05"), "{help}");
+    assert!(help.contains("fast τ_occu 0.9, τ_freq 0.7"), "{help}");
+}
+
+/// A rebuild's K_T factor below 1, NaN or infinite is a usage error.
+#[test]
+fn coarsen_below_one_is_a_usage_error() {
+    let scene = bunny();
+    for v in ["nan", "0.99", "0", "-1", "inf", "x"] {
+        let out = slimkd(&["build", &scene, "--preset", "small", "--coarsen", v]);
+        let err = exits(&out, 2, &format!("--coarsen {v}"));
+        assert!(err.contains("--coarsen"), "{err}");
+    }
+    let b = json(&slimkd(&[
+        "build",
+        &scene,
+        "--preset",
+        "fast",
+        "--coarsen",
+        "1.5",
+        "--json",
+    ]));
+    assert_eq!(
+        (&b["preset"], &b["coarsen"]),
+        (&"custom".into(), &1.5.into())
+    );
 }
 
 /// τ outside [0, 1], NaN or infinite is a usage error.

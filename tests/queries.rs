@@ -13,7 +13,7 @@ use proptest::prelude::*;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
-use slimkd::slim::{self, HoistRule, SlimParams};
+use slimkd::slim::{self, SlimParams};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::rays::{self, Query};
 use slimkd::trace::{self, ClosestHit, Hit, KdSource, Scalar, TraceStats, TreeTracer};
@@ -120,7 +120,7 @@ proptest! {
     ) {
         let scene = columns(&tris);
         let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
-        let params = SlimParams { tau_occu: 0.0, tau_freq: 0.0, ..SlimParams::SMALL.with_rule(HoistRule::Paper) };
+        let params = SlimParams { tau_occu: 0.0, tau_freq: 0.0, ..SlimParams::PAPER_SMALL };
         let (slim, _) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
         let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
         let rays = with_interval(&rays, tmin, span);
@@ -137,7 +137,7 @@ fn hoisted_triangles_are_counted_and_tested() {
     // tests, and the hoisted triangle occludes.
     let scene = kd::load_scene("bunny_npm.obj");
     let tree = kd::std_tree(&scene);
-    let params = SlimParams::SMALL.with_rule(HoistRule::Paper);
+    let params = SlimParams::PAPER_SMALL;
     let (slim, report) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
     assert!(report.hoisted > 0);
     assert!(

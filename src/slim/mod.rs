@@ -43,6 +43,14 @@
 //! out up to 7% *larger* than the standard tree. [`HoistRule::Paper`]
 //! gives the paper's literal behaviour.
 //!
+//! *Deviation from the paper ([`SlimParams::coarsen`], the `small`
+//! preset):* a picked subtree may be rebuilt with a larger `K_T` than the
+//! std tree's, so that the rebuilt subtree stops splitting sooner; the
+//! byte rule then keeps the hoist only where that, with the triangle
+//! hoisted, makes the subtree smaller. Removing a hoisted triangle alone
+//! leaves the rebuilt subtree's node count as it was (see the field's
+//! docs), so this is where a hoist's nodes are saved.
+//!
 //! **Exact arithmetic.** Leaf surface areas enter the occupancy as integers
 //! (`SA(leaf)/SA(root)` in units of 2⁻⁴⁰), so sums are exact and
 //! independent of summation order; the fast implementation here and the
@@ -84,7 +92,7 @@ mod params;
 mod pass;
 mod work;
 
-pub use bytes::min_subtree_bytes;
+pub use bytes::{ByteLayout, min_subtree_bytes, tree_bytes};
 #[doc(hidden)] // the literal Algorithm 1 of tests/slim.rs shares the oracle's formulas
 pub use oracle::{above, occupancy_weight};
 pub use params::{HoistRule, SlimParams, SlimPhases, SlimReport};
@@ -203,6 +211,7 @@ pub fn slim_with_progress(
         progress,
     };
     phases.analysis_s += lap(&mut clock);
+    let rebuild_config = params.rebuild_config(config);
     let mut todo = vec![Todo {
         node: root,
         size: tree.nodes.len() as u32,
@@ -222,7 +231,13 @@ pub fn slim_with_progress(
         let outcomes: Vec<(Outcome, usize)> = picks
             .par_iter()
             .map_init(
-                || (SubtreeBuilder::new(scene, config), Vec::new(), Vec::new()),
+                || {
+                    (
+                        SubtreeBuilder::new(scene, &rebuild_config),
+                        Vec::new(),
+                        Vec::new(),
+                    )
+                },
                 |(builder, tris, refs), p| rebuild_pick(&work, p, &ctx, builder, tris, refs),
             )
             .collect();

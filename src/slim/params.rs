@@ -30,7 +30,8 @@ pub enum HoistRule {
     },
 }
 
-/// The thresholds of the oracle, the hoisting limit and the hoist rule.
+/// The thresholds of the oracle, the hoisting limit, the hoist rule and
+/// the traversal cost of rebuilt subtrees.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SlimParams {
     /// A triangle is picked only if its occupancy (share of the
@@ -43,29 +44,67 @@ pub struct SlimParams {
     pub max_t2rn: u32,
     /// Which picked triangles are hoisted.
     pub rule: HoistRule,
+    /// The factor on `K_T` of the SAH that rebuilds a picked subtree
+    /// ([`SlimParams::rebuild_config`]); 1 is the paper's rebuild. Above 1
+    /// a rebuilt subtree stops splitting sooner, so with
+    /// [`HoistRule::Bytes`] a hoist trades a little SAH cost for nodes:
+    /// without it a rebuilt subtree has as many nodes as the one it
+    /// replaces (−0.03 nodes per hoist on dieselpower, `small` thresholds,
+    /// paper rule; the triangle removed straddles both children of most
+    /// splits, which makes splitting *more* attractive).
+    pub coarsen: f64,
 }
 
 impl SlimParams {
-    /// The `fast` preset: the paper's thresholds, with the byte rule for a
-    /// reordered file.
+    /// The `fast` preset: low thresholds (τ_occu 0.1, τ_freq 0.05,
+    /// max_t2rn 16) with the byte rule for a reordered file and the
+    /// paper's rebuild: 22–35 % fewer tree bytes than std on dieselpower,
+    /// aneurysm and bunny_scan, tracing primary packets at 0.96–1.13×
+    /// std's speed (`docs/perf-notes.md`, "Hoisting that pays").
     pub const FAST: SlimParams = SlimParams {
+        tau_occu: 0.1,
+        tau_freq: 0.05,
+        max_t2rn: 16,
+        rule: HoistRule::Bytes { reordered: true },
+        coarsen: 1.0,
+    };
+    /// The `small` preset: the thresholds of `fast`, the rebuilt subtrees
+    /// priced with twice `K_T`: 49–64 % fewer tree bytes than std on the
+    /// same scenes, at 0.96–1.16× std's speed (`docs/perf-notes.md`,
+    /// "Hoisting that pays").
+    pub const SMALL: SlimParams = SlimParams {
+        coarsen: 2.0,
+        ..SlimParams::FAST
+    };
+    /// The paper's `f` setting (τ_occu 0.9, τ_freq 0.7, max_t2rn 4) with
+    /// its Algorithm 1 ([`HoistRule::Paper`], the literal rebuild).
+    pub const PAPER_FAST: SlimParams = SlimParams {
         tau_occu: 0.9,
         tau_freq: 0.7,
         max_t2rn: 4,
-        rule: HoistRule::Bytes { reordered: true },
+        rule: HoistRule::Paper,
+        coarsen: 1.0,
     };
-    /// The `small` preset: the paper's thresholds, with the byte rule for
-    /// a reordered file.
-    pub const SMALL: SlimParams = SlimParams {
+    /// The paper's `s` setting (τ_occu 0.5, τ_freq 0.4, max_t2rn 4) with
+    /// its Algorithm 1.
+    pub const PAPER_SMALL: SlimParams = SlimParams {
         tau_occu: 0.5,
         tau_freq: 0.4,
-        max_t2rn: 4,
-        rule: HoistRule::Bytes { reordered: true },
+        ..SlimParams::PAPER_FAST
     };
 
     /// The same thresholds with another hoist rule.
     pub const fn with_rule(self, rule: HoistRule) -> SlimParams {
         SlimParams { rule, ..self }
+    }
+
+    /// The build configuration of rebuilt subtrees: `config` with `K_T`
+    /// times [`SlimParams::coarsen`] (the same depth limit, so the
+    /// rebuilt subtrees stay inside the std tree's depth).
+    pub fn rebuild_config(&self, config: &crate::build::BuildConfig) -> crate::build::BuildConfig {
+        let mut c = *config;
+        c.sah.k_t *= self.coarsen;
+        c
     }
 }
 

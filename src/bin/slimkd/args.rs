@@ -183,14 +183,15 @@ pub(crate) struct ReportArgs {
 
 #[derive(clap::Args, Clone)]
 pub(crate) struct BuildArgs {
-    /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.9, τ_freq 0.7),
-    /// `small` (τ_occu 0.5, τ_freq 0.4); both with max_t2rn 4 (Choi et al.
-    /// 2013) and the hoist rule of --hoist-rule (default `bytes`). The
-    /// hoisting flags (--tau-occu, --tau-freq, --max-t2rn, --hoist-rule)
-    /// override what a slim preset sets; with `std` (the default) they
-    /// need both --tau-occu and --tau-freq (then max_t2rn is 4 and the
-    /// rule `bytes` unless given, and the file records the preset as
-    /// custom).
+    /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.1, τ_freq 0.05,
+    /// max_t2rn 16, coarsen 1), `small` (the same, coarsen 2), with the
+    /// hoist rule `bytes`; with `--hoist-rule paper`, the paper's settings
+    /// (Choi et al. 2013): fast τ_occu 0.9, τ_freq 0.7, small 0.5, 0.4,
+    /// both max_t2rn 4, coarsen 1. The hoisting flags (--tau-occu,
+    /// --tau-freq, --max-t2rn, --coarsen, --hoist-rule) override what a
+    /// slim preset sets; with `std` (the default) they need both
+    /// --tau-occu and --tau-freq (then the rest is small's unless given,
+    /// and the file records the preset as custom).
     #[arg(long, value_enum, default_value_t = PresetArg::Std)]
     pub(crate) preset: PresetArg,
     /// When a picked triangle is hoisted. `bytes` (the presets' rule, a
@@ -211,10 +212,16 @@ pub(crate) struct BuildArgs {
     /// small 0.4; with `--preset std` it needs --tau-occu too).
     #[arg(long, value_parser = parse_tau, allow_hyphen_values = true)]
     pub(crate) tau_freq: Option<f64>,
-    /// Most hoisted triangles on a root path (overrides the preset's: 4;
-    /// with `--preset std` it needs --tau-occu and --tau-freq).
+    /// Most hoisted triangles on a root path (overrides the preset's: 16,
+    /// or 4 with `--hoist-rule paper`; with `--preset std` it needs
+    /// --tau-occu and --tau-freq).
     #[arg(long)]
     pub(crate) max_t2rn: Option<u32>,
+    /// Factor on K_T in the SAH of rebuilt subtrees, at least 1
+    /// (overrides the preset's: fast 1, small 2; 1 is the paper's
+    /// rebuild; with `--preset std` it needs --tau-occu and --tau-freq).
+    #[arg(long, value_parser = parse_coarsen, allow_hyphen_values = true)]
+    pub(crate) coarsen: Option<f64>,
     /// Worker threads (default, or 0: all cores).
     #[arg(short = 'j', long)]
     pub(crate) threads: Option<usize>,
@@ -286,8 +293,13 @@ pub(crate) enum PresetArg {
 
 impl BuildArgs {
     /// The hoisting flags.
-    pub(crate) const HOISTING: [&str; 4] =
-        ["--tau-occu", "--tau-freq", "--max-t2rn", "--hoist-rule"];
+    pub(crate) const HOISTING: [&str; 5] = [
+        "--tau-occu",
+        "--tau-freq",
+        "--max-t2rn",
+        "--coarsen",
+        "--hoist-rule",
+    ];
 
     /// Whether the flag (its long name, `--preset`) was given.
     pub(crate) fn was_given(&self, flag: &str) -> bool {
@@ -318,18 +330,27 @@ impl BuildArgs {
     /// recorded in the file; `reordered`: whether the tree will be written
     /// with reordering (for the byte rule).
     pub(crate) fn slim(&self, reordered: bool) -> (Option<SlimParams>, Preset) {
-        let base = match self.preset {
-            PresetArg::Std => None,
-            PresetArg::Fast => Some(SlimParams::FAST),
-            PresetArg::Small => Some(SlimParams::SMALL),
+        let paper = self.hoist_rule == HoistRuleArg::Paper;
+        let base = match (self.preset, paper) {
+            (PresetArg::Std, _) => None,
+            (PresetArg::Fast, false) => Some(SlimParams::FAST),
+            (PresetArg::Small, false) => Some(SlimParams::SMALL),
+            (PresetArg::Fast, true) => Some(SlimParams::PAPER_FAST),
+            (PresetArg::Small, true) => Some(SlimParams::PAPER_SMALL),
         };
         // `check` has made sure that std comes with both thresholds (which
-        // replace SMALL's below); only max_t2rn and the rule are taken.
+        // replace small's below); only max_t2rn, coarsen and the rule are
+        // taken.
         let custom = self.tau_occu.is_some()
             || self.tau_freq.is_some()
             || self.max_t2rn.is_some()
-            || self.hoist_rule == HoistRuleArg::Paper;
-        let mut p = base.unwrap_or(SlimParams::SMALL);
+            || self.coarsen.is_some()
+            || paper;
+        let mut p = base.unwrap_or(if paper {
+            SlimParams::PAPER_SMALL
+        } else {
+            SlimParams::SMALL
+        });
         p.rule = self.hoist_rule.rule(reordered);
         if let Some(v) = self.tau_occu {
             p.tau_occu = v;
@@ -339,6 +360,9 @@ impl BuildArgs {
         }
         if let Some(v) = self.max_t2rn {
             p.max_t2rn = v;
+        }
+        if let Some(v) = self.coarsen {
+            p.coarsen = v;
         }
         match (base, custom) {
             (None, false) => (None, Preset::Std),
@@ -531,6 +555,18 @@ pub(crate) fn parse_tau(s: &str) -> Result<f64, String> {
         .map_err(|_| format!("expected a number in [0, 1], got `{s}`"))?;
     if !(0.0..=1.0).contains(&v) {
         return Err(format!("`{s}` is not in [0, 1]"));
+    }
+    Ok(v)
+}
+
+/// Parses the factor on K_T of rebuilt subtrees: a finite number ≥ 1.
+pub(crate) fn parse_coarsen(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a number ≥ 1, got `{s}`"))?;
+    if !(v.is_finite() && v >= 1.0) {
+        return Err(format!("`{s}` is not a finite number ≥ 1"));
     }
     Ok(v)
 }

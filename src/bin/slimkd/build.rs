@@ -252,11 +252,12 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats, v
     }
     if let Some((p, r, ph)) = &built.slim {
         println!(
-            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
+            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
             built.preset.name(),
             p.tau_occu,
             p.tau_freq,
             p.max_t2rn,
+            p.coarsen,
             report::rule_name(p.rule),
             r.hoisted,
             r.rebuilds,

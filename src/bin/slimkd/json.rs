@@ -127,6 +127,7 @@ pub(crate) struct BuildJson {
     pub(crate) tau_occu: Option<f64>,
     pub(crate) tau_freq: Option<f64>,
     pub(crate) max_t2rn: Option<u32>,
+    pub(crate) coarsen: Option<f64>,
     pub(crate) hoist_rule: Option<&'static str>,
     pub(crate) level: Option<LevelJson>,
     pub(crate) slim: Option<SlimJson>,
@@ -147,6 +148,7 @@ impl BuildJson {
             tau_occu: slim.map(|(p, _, _)| p.tau_occu),
             tau_freq: slim.map(|(p, _, _)| p.tau_freq),
             max_t2rn: slim.map(|(p, _, _)| p.max_t2rn),
+            coarsen: slim.map(|(p, _, _)| p.coarsen),
             hoist_rule: slim.map(|(p, _, _)| report::rule_name(p.rule)),
             level: built.level.as_ref().map(|r| LevelJson {
                 sah_s: r.phases.sah_s,

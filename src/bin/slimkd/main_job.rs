@@ -173,6 +173,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         tau_occu: None,
         tau_freq: None,
         max_t2rn: None,
+        coarsen: None,
         hoist_rule: HoistRuleArg::Bytes,
         given: Vec::new(),
     };

@@ -94,13 +94,15 @@ impl Report {
             if self.scenes.len() == 1 { "" } else { "s" },
             names.join(", ")
         );
+        let preset = |k: TreeKind| k.params(self.rule).expect("a slim tree kind");
+        let (fast, small) = (preset(TreeKind::Fast), preset(TreeKind::Small));
         md += &format!(
             "**Machine figures.** Frame rates are the median of {} frame{} (after one warm-up frame) of \
              {}×{} primary rays, one per pixel, on 1 thread and on {} threads; the packet mode traces \
              4×4 rays with the `{}` kernel. Host: {} with {} hardware threads. Trees are built by the \
              level builder (K_T {}, K_I {}, λ {}), written with Morton reordering (2-byte leaves where \
              they fit) and traced from the `.kd` bytes in memory. Presets: fast τ_occu {} τ_freq {}, \
-             small τ_occu {} τ_freq {}, max_t2rn {}, hoist rule `{}`. Percentages are 100·(1 − x/std): a positive \
+             small τ_occu {} τ_freq {}, max_t2rn {}, rebuilds' K_T ×{} (fast) and ×{} (small), hoist rule `{}`. Percentages are 100·(1 − x/std): a positive \
              reduction is a smaller tree, a positive loss a slower frame.\n\n",
             self.reps,
             if self.reps == 1 { "" } else { "s" },
@@ -113,11 +115,13 @@ impl Report {
             self.build.sah.k_t,
             self.build.sah.k_i,
             self.build.sah.lambda_empty,
-            SlimParams::FAST.tau_occu,
-            SlimParams::FAST.tau_freq,
-            SlimParams::SMALL.tau_occu,
-            SlimParams::SMALL.tau_freq,
-            SlimParams::FAST.max_t2rn,
+            fast.tau_occu,
+            fast.tau_freq,
+            small.tau_occu,
+            small.tau_freq,
+            fast.max_t2rn,
+            fast.coarsen,
+            small.coarsen,
             rule_name(self.rule),
         );
         md

@@ -195,12 +195,15 @@ impl TreeKind {
         }
     }
 
-    /// The slim parameters with the given hoist rule (`None` for std).
+    /// The slim parameters with the given hoist rule (`None` for std):
+    /// the paper's settings with its rule, the presets with the byte rule.
     pub fn params(self, rule: HoistRule) -> Option<SlimParams> {
-        match self {
-            TreeKind::Std => None,
-            TreeKind::Fast => Some(SlimParams::FAST.with_rule(rule)),
-            TreeKind::Small => Some(SlimParams::SMALL.with_rule(rule)),
+        match (self, rule) {
+            (TreeKind::Std, _) => None,
+            (TreeKind::Fast, HoistRule::Paper) => Some(SlimParams::PAPER_FAST),
+            (TreeKind::Small, HoistRule::Paper) => Some(SlimParams::PAPER_SMALL),
+            (TreeKind::Fast, _) => Some(SlimParams::FAST.with_rule(rule)),
+            (TreeKind::Small, _) => Some(SlimParams::SMALL.with_rule(rule)),
         }
     }
 

@@ -251,6 +251,8 @@ pub fn run_with_progress(
                         tau_freq,
                         max_t2rn: SWEEP_MAX_T2RN,
                         rule: options.rule,
+                        // The paper's rebuild: Figure 5 sweeps its thresholds.
+                        coarsen: 1.0,
                     };
                     sweep.push(sweep_point(
                         name,
