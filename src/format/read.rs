@@ -177,8 +177,9 @@ fn u64_at(b: &[u8], at: usize) -> u64 {
 impl<D: AsRef<[u8]>> KdFile<D> {
     /// Validates `data` and wraps it. Checks the magic, version, byte
     /// order, header checksum, every count and section offset, every node
-    /// word (known type and mode bits, child blocks strictly forward and
-    /// inside the node section, depth at most [`MAX_DEPTH`]), every leaf
+    /// word (known type and mode bits, the nodes one tree in pre-order with
+    /// every child where its parent's slot field says, splits inside their
+    /// cells, depth at most [`MAX_DEPTH`]), every leaf
     /// range and index, every vertex index and the triangle map, the
     /// canonical placement of the sections and the file length, and that
     /// every byte outside the header and the sections (reserved header
