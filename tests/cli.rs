@@ -81,18 +81,32 @@ fn build_info_verify_render_round_trip() {
         assert_eq!(info["tree_bytes"], b["tree_bytes"]);
         assert_eq!(info["preset"], preset);
         let f = |k: &str| info[k].as_u64().unwrap();
-        // The counts are the file's; its empty leaves without a word (not
-        // in the JSON) take no bytes.
+        // The counts are the file's; its empty leaves without a word take
+        // no bytes.
         let fig = slimkd::format::KdFile::open(std::path::Path::new(kd_s), true)
             .unwrap()
             .figures();
         assert_eq!(
-            [f("nodes_inner"), f("nodes_t_inner"), f("nodes_leaf")],
-            [fig.inner, fig.t_inner, fig.leaves]
+            [
+                f("nodes_inner"),
+                f("nodes_t_inner"),
+                f("nodes_leaf"),
+                f("empty_leaves_without_word"),
+                f("one_triangle_leaves")
+            ],
+            [
+                fig.inner,
+                fig.t_inner,
+                fig.leaves,
+                fig.implicit_empty,
+                fig.one_leaves
+            ]
         );
+        assert!(f("empty_leaves_without_word") > 0);
         assert_eq!(
             f("tree_bytes"),
-            8 * (f("nodes_inner") + 2 * f("nodes_t_inner") + f("nodes_leaf") - fig.implicit_empty)
+            8 * (f("nodes_inner") + 2 * f("nodes_t_inner") + f("nodes_leaf")
+                - f("empty_leaves_without_word"))
                 + 4 * f("idx32")
                 + 2 * f("idx16")
         );

@@ -50,6 +50,8 @@ struct InfoJson {
     tree_bytes_per_triangle: f64,
     paper_layout_bytes: u64,
     paper_layout_bytes_per_triangle: f64,
+    empty_leaves_without_word: u64,
+    one_triangle_leaves: u64,
     max_depth: u32,
     leaf_depth_histogram: Vec<u64>,
     bytes: BytesJson,
@@ -152,6 +154,8 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
                 tree_bytes_per_triangle: per_tri(f.tree_bytes()),
                 paper_layout_bytes: paper,
                 paper_layout_bytes_per_triangle: per_tri(paper),
+                empty_leaves_without_word: f.implicit_empty,
+                one_triangle_leaves: f.one_leaves,
                 max_depth: file.max_depth(),
                 leaf_depth_histogram: hist,
                 bytes: BytesJson {
