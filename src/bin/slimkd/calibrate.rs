@@ -222,16 +222,7 @@ pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
         )
         .into());
     }
-    let views = match &args.views {
-        Some(file) => {
-            let mut text = String::new();
-            slimkd::fsio::open_regular(file)
-                .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
-                .map_err(|e| format!("{}: {e}", file.display()))?;
-            slimkd::render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
-        }
-        None => slimkd::render::parse_views(DEFAULT_VIEWS)?,
-    };
+    let views = crate::read_views(args.views.as_deref())?;
     let scenes = if args.scenes.is_empty() {
         vec![PathBuf::from(DEFAULT_ARG)]
     } else {

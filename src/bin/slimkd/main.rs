@@ -36,6 +36,18 @@ pub(crate) const DEFAULT_ARG: &str = "default";
 
 pub(crate) type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
 
+/// The views of a views file (errors name it), or the embedded ones.
+pub(crate) fn read_views(file: Option<&std::path::Path>) -> Res<Vec<slimkd::render::View>> {
+    let Some(file) = file else {
+        return Ok(slimkd::render::parse_views(DEFAULT_VIEWS)?);
+    };
+    let mut text = String::new();
+    slimkd::fsio::open_regular(file)
+        .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
+        .map_err(|e| format!("{}: {e}", file.display()))?;
+    Ok(slimkd::render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?)
+}
+
 #[cfg(target_os = "linux")]
 #[global_allocator]
 static ALLOCATOR: ExitOnOom = ExitOnOom;

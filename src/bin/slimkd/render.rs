@@ -68,20 +68,10 @@ pub(crate) fn camera_for(
     let (w, h) = args.size;
     let mut cam = Camera::default_for(bounds, w, h);
     if let Some(id) = &args.view {
-        let (views, from): (Vec<View>, String) = match &args.views {
-            Some(file) => {
-                let mut text = String::new();
-                slimkd::fsio::open_regular(file)
-                    .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
-                    .map_err(|e| format!("{}: {e}", file.display()))?;
-                let views =
-                    render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?;
-                (views, format!("the views file {}", file.display()))
-            }
-            None => (
-                render::parse_views(DEFAULT_VIEWS)?,
-                "the embedded views".into(),
-            ),
+        let views: Vec<View> = crate::read_views(args.views.as_deref())?;
+        let from = match &args.views {
+            Some(file) => format!("the views file {}", file.display()),
+            None => "the embedded views".into(),
         };
         let stem = scene_path.file_stem().unwrap_or_default().to_string_lossy();
         let view = recorded

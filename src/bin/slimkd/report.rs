@@ -2,7 +2,6 @@
 
 use crate::*;
 use slimkd::progress::Progress;
-use slimkd::render::{self};
 use slimkd::stats::report;
 use std::time::Instant;
 
@@ -20,16 +19,7 @@ pub(crate) fn cmd_report(args: &ReportArgs, ui: Out) -> Res<()> {
     // The output's name and directory, before any work.
     report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
     check_output_dir(&args.output)?;
-    let views = match &args.views {
-        Some(file) => {
-            let mut text = String::new();
-            slimkd::fsio::open_regular(file)
-                .and_then(|mut f| std::io::Read::read_to_string(&mut f, &mut text))
-                .map_err(|e| format!("{}: {e}", file.display()))?;
-            render::parse_views(&text).map_err(|e| format!("{}: {e}", file.display()))?
-        }
-        None => render::parse_views(DEFAULT_VIEWS)?,
-    };
+    let views = crate::read_views(args.views.as_deref())?;
     let mut scenes = Vec::new();
     for path in &args.scenes {
         let loaded = load(path, ui.bars_off())?;
