@@ -107,13 +107,8 @@ pub fn file_config(
     preset: Preset,
     slim: Option<&SlimParams>,
 ) -> FileConfig {
-    let (tau_occu, tau_freq, max_t2rn, coarsen) = slim.map_or((0.0, 0.0, 0, 0.0), |p| {
-        (
-            p.tau_occu as f32,
-            p.tau_freq as f32,
-            p.max_t2rn,
-            p.coarsen as f32,
-        )
+    let (tau_occu, tau_freq, max_t2rn) = slim.map_or((0.0, 0.0, 0), |p| {
+        (p.tau_occu as f32, p.tau_freq as f32, p.max_t2rn)
     });
     FileConfig {
         k_t: config.sah.k_t,
@@ -124,7 +119,6 @@ pub fn file_config(
         tau_occu,
         tau_freq,
         max_t2rn,
-        coarsen,
         scene: Default::default(),
     }
 }

@@ -80,11 +80,6 @@ fn build_info_verify_render_round_trip() {
         }
         assert_eq!(info["tree_bytes"], b["tree_bytes"]);
         assert_eq!(info["preset"], preset);
-        // The header records the slim pass's coarsen (0 for std).
-        assert_eq!(
-            info["coarsen"].as_f64().unwrap(),
-            b["coarsen"].as_f64().unwrap_or(0.0)
-        );
         let f = |k: &str| info[k].as_u64().unwrap();
         // The counts are the file's; its empty leaves without a word take
         // no bytes.

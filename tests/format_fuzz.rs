@@ -923,7 +923,7 @@ fn mutate(b: &mut Vec<u8>, base: &Base, m: Mutation) {
             let at = match a % 4 {
                 0 => 160 + (v % 32) as usize,
                 1 => H_TABLE + H_ENTRY * (v % 6) as usize + 20 + ((v >> 8) % 4) as usize,
-                2 => 360 + (v % 24) as usize,
+                2 => 356 + (v % 28) as usize,
                 _ => {
                     // A padding byte after a section, if it has any.
                     let Some(r) = section_in(b, Section::ALL[(v % 6) as usize]) else {
@@ -1360,12 +1360,11 @@ fn bounds_not_containing_a_vertex_are_rejected() {
     ));
 }
 
-/// Reserved fields are documented as zero (header bytes 360..384 after the
+/// Reserved fields are documented as zero (header bytes 356..384 after the
 /// header checksum, and the reserved word of each section-table entry) but
 /// were accepted non-zero; the two counts before them (340..356, empty
 /// leaves without a word and one-triangle leaves) lie outside the header
-/// checksum too, and are checked against the nodes; so does `coarsen`
-/// (356..360), which must be 0 or a finite factor of at least 1.
+/// checksum too, and are checked against the nodes.
 #[test]
 fn reserved_header_bytes_and_section_words_must_be_zero() {
     let (_, _, bytes) = grid_file();
@@ -1374,7 +1373,7 @@ fn reserved_header_bytes_and_section_words_must_be_zero() {
         e..e + 4
     });
     // Header bytes 160..192 are the scene tag.
-    for at in (360..384).chain(section_words) {
+    for at in (356..384).chain(section_words) {
         let mut b = bytes.clone();
         b[at] = 0x40;
         fix_header_crc(&mut b);
@@ -1431,33 +1430,6 @@ fn non_finite_or_negative_zero_geometry_is_rejected() {
             Err(FormatError::Index { section, .. }) => assert_eq!(section, "vertices"),
             Err(e) => panic!("vertex coordinate {x}: wrong error {e}"),
             Ok(_) => panic!("vertex coordinate {x} accepted"),
-        }
-    }
-}
-
-/// `coarsen` (header bytes 356..360, outside the checksum) is refused
-/// unless it is 0 (a std tree) or finite and at least 1; 1.5 is accepted.
-#[test]
-fn coarsen_outside_its_range_is_refused() {
-    let (_, _, bytes) = grid_file();
-    for (value, ok) in [
-        (0.0f32, true),
-        (1.0, true),
-        (1.5, true),
-        (0.5, false),
-        (-0.0, false),
-        (-2.0, false),
-        (f32::NAN, false),
-        (f32::INFINITY, false),
-    ] {
-        let mut b = bytes.clone();
-        b[356..360].copy_from_slice(&value.to_le_bytes());
-        match (open(&b), ok) {
-            (Ok(f), true) => assert_eq!(f.config().coarsen.to_bits(), value.to_bits()),
-            (Err(FormatError::Header(m)), false) => {
-                assert!(m.contains("coarsen"), "{value}: {m}")
-            }
-            (r, _) => panic!("coarsen {value}: {:?}", r.map(|_| ())),
         }
     }
 }

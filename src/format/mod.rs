@@ -20,8 +20,7 @@
 //! Every byte is checked: the header by its CRC (bytes 0..336), each section
 //! by its CRC in the section table ([`KdFile::verify`]), the counts of empty
 //! leaves without a word and of one-triangle leaves (bytes 340..356, after
-//! the CRC) against the nodes, `coarsen` (356..360) by its range, and the
-//! reserved header bytes 360..384 and the
+//! the CRC) against the nodes, and the reserved header bytes 356..384 and the
 //! padding after each section must be zero ([`KdFile::from_bytes`]). So any
 //! single corrupted bit makes `from_bytes` or `verify` fail.
 //!
@@ -56,8 +55,7 @@
 //! | 336 | 4 | CRC-32 of bytes 0..336 |
 //! | 340 | 8 | empty leaves without a word |
 //! | 348 | 8 | one-triangle leaves (no index entry) |
-//! | 356 | 4 | coarsen: the factor on K_T of rebuilt subtrees (f32; 0 for std, else finite and ≥ 1) |
-//! | 360 | 24 | reserved (zero) |
+//! | 356 | 28 | reserved (zero) |
 //!
 //! Sections, in order: `nodes` (u64 node words, see [`node`]), `idx32`
 //! (u32), `idx16` (u16), `vertices` (3 × f32), `triangles` (3 × u32 vertex
@@ -180,10 +178,7 @@ pub(crate) const SCENE_NAME_AT: usize = 168;
 /// the one-triangle leaves (u64), after its checksummed part.
 pub(crate) const IMPLICIT_EMPTY_AT: usize = 340;
 pub(crate) const ONE_LEAVES_AT: usize = 348;
-/// Where the header records the slim pass's `coarsen` (f32), after its
-/// checksummed part (the bytes before were all taken).
-pub(crate) const COARSEN_AT: usize = 356;
-pub(crate) const RESERVED_AT: usize = 360;
+pub(crate) const RESERVED_AT: usize = 356;
 
 // The header table must fit before the header checksum.
 const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);

@@ -4,9 +4,8 @@
 use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
 use super::write::{FileConfig, Preset, SceneTag};
 use super::{
-    COARSEN_AT, ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE,
-    IMPLICIT_EMPTY_AT, MAGIC, ONE_LEAVES_AT, RESERVED_AT, SECTION_ALIGN, SECTION_ENTRY,
-    SECTION_TABLE, Section, VERSION,
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, IMPLICIT_EMPTY_AT, MAGIC,
+    ONE_LEAVES_AT, RESERVED_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
 use crate::geom::Aabb;
 use crate::tree::MAX_DEPTH;
@@ -247,16 +246,8 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             tau_occu: f32::from_bits(u32_at(b, 56)),
             tau_freq: f32::from_bits(u32_at(b, 60)),
             max_t2rn: u32_at(b, 64),
-            coarsen: f32::from_bits(u32_at(b, COARSEN_AT)),
             scene: SceneTag::from_header(b)?,
         };
-        if !(config.coarsen.to_bits() == 0 || (config.coarsen.is_finite() && config.coarsen >= 1.0))
-        {
-            return Err(FormatError::Header(format!(
-                "coarsen {:?} (0, or finite and at least 1)",
-                config.coarsen
-            )));
-        }
         let max_depth = u32_at(b, 68);
         let counts = TreeFigures {
             words: u64_at(b, 72),

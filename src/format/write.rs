@@ -150,9 +150,6 @@ pub struct FileConfig {
     pub tau_freq: f32,
     /// The most hoisted triangles on a root path (0 for `Std`).
     pub max_t2rn: u32,
-    /// The factor on K_T for rebuilt subtrees (`SlimParams::coarsen`; 0
-    /// for `Std`).
-    pub coarsen: f32,
     /// The scene the tree was built for.
     pub scene: SceneTag,
 }
@@ -168,7 +165,6 @@ impl Default for FileConfig {
             tau_occu: 0.0,
             tau_freq: 0.0,
             max_t2rn: 0,
-            coarsen: 0.0,
             scene: SceneTag::default(),
         }
     }
@@ -669,7 +665,6 @@ fn write_kd<W: Read + Write + Seek>(
     put_u32(&mut header, 56, c.tau_occu.to_bits());
     put_u32(&mut header, 60, c.tau_freq.to_bits());
     put_u32(&mut header, 64, c.max_t2rn);
-    put_u32(&mut header, super::COARSEN_AT, c.coarsen.to_bits());
     put_u32(&mut header, 68, lay.max_depth);
     put_u64(&mut header, 72, lay.n_words);
     put_u64(&mut header, 80, lay.n_inner);

@@ -46,7 +46,6 @@ struct InfoJson {
     tau_occu: f32,
     tau_freq: f32,
     max_t2rn: u32,
-    coarsen: f32,
     reordered: bool,
     tree_bytes_per_triangle: f64,
     paper_layout_bytes: u64,
@@ -151,7 +150,6 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
                 tau_occu: c.tau_occu,
                 tau_freq: c.tau_freq,
                 max_t2rn: c.max_t2rn,
-                coarsen: c.coarsen,
                 reordered: file.is_reordered(),
                 tree_bytes_per_triangle: per_tri(f.tree_bytes()),
                 paper_layout_bytes: paper,
@@ -184,7 +182,7 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
         format::VERSION
     );
     println!(
-        "build       preset {}, K_T {}, K_I {}, λ {}, depth limit {}, τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}",
+        "build       preset {}, K_T {}, K_I {}, λ {}, depth limit {}, τ_occu {}, τ_freq {}, max_t2rn {}",
         c.preset.name(),
         c.k_t,
         c.k_i,
@@ -192,8 +190,7 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
         c.depth_limit,
         c.tau_occu,
         c.tau_freq,
-        c.max_t2rn,
-        c.coarsen
+        c.max_t2rn
     );
     println!(
         "scene       {} (geometry hash {:016x}): {} triangles{}, {} vertices, bounds ({}, {}, {}) – ({}, {}, {})",
