@@ -5,25 +5,8 @@
 
 mod common;
 
-use common::fresh_temp_dir;
+use common::{fresh_temp_dir, json, slimkd};
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn slimkd(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_slimkd"))
-        .args(args)
-        .output()
-        .expect("the binary runs")
-}
-
-fn json(out: &Output) -> serde_json::Value {
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).expect("one JSON object")
-}
 
 fn check_fit(fit: &serde_json::Value, samples: usize, intercepts: usize) {
     assert_eq!(fit["samples"], samples, "{fit}");

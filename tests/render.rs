@@ -4,13 +4,12 @@
 
 mod common;
 
-use common::fresh_temp_dir;
+use common::{fresh_temp_dir, slimkd};
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::render::{self, Camera, Shading};
 use slimkd::scene;
 use slimkd::trace::{BruteForce, TreeTracer};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 fn manifest(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
@@ -56,13 +55,6 @@ fn frames_match_brute_force_on_every_shipped_view() {
         );
         assert!(got.n_hits() > 0);
     }
-}
-
-fn slimkd(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_slimkd"))
-        .args(args)
-        .output()
-        .expect("the binary runs")
 }
 
 #[test]

@@ -284,3 +284,21 @@ pub fn fresh_temp_dir(name: &str) -> std::path::PathBuf {
 pub fn dir_entries(dir: &std::path::Path) -> Vec<String> {
     slimkd::fsio::entry_names(dir).unwrap_or_else(|e| panic!("cannot list {}: {e}", dir.display()))
 }
+
+/// Runs the `slimkd` binary of this build with `args`.
+pub fn slimkd(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_slimkd"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+/// The one JSON object a successful command printed.
+pub fn json(out: &std::process::Output) -> serde_json::Value {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("one JSON object")
+}
