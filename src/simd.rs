@@ -38,10 +38,24 @@ impl SimdLevel {
     fn cpu() -> SimdLevel {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx512f") {
+            // Each level's kernels are compiled with the features listed
+            // here (`simd_dispatch!`), so it runs only where all of them
+            // are reported. POPCNT, BMI1/2 and LZCNT come with every CPU
+            // that has AVX2; without them in the target features, a lane
+            // mask's `count_ones` compiled to a dozen shifts and masks.
+            let base = is_x86_feature_detected!("popcnt")
+                && is_x86_feature_detected!("bmi1")
+                && is_x86_feature_detected!("bmi2")
+                && is_x86_feature_detected!("lzcnt");
+            if base
+                && is_x86_feature_detected!("avx512f")
+                && is_x86_feature_detected!("avx512vl")
+                && is_x86_feature_detected!("avx512bw")
+                && is_x86_feature_detected!("avx512dq")
+            {
                 return SimdLevel::Avx512;
             }
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if base && is_x86_feature_detected!("avx2") {
                 return SimdLevel::Avx2;
             }
         }
@@ -98,12 +112,12 @@ impl SimdLevel {
 macro_rules! simd_dispatch {
     ($level:expr, |$wide:ident| $body:expr) => {{
         #[cfg(target_arch = "x86_64")]
-        #[target_feature(enable = "avx512f")]
+        #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq,popcnt,bmi1,bmi2,lzcnt")]
         fn on_avx512<R>(f: impl FnOnce() -> R) -> R {
             f()
         }
         #[cfg(target_arch = "x86_64")]
-        #[target_feature(enable = "avx2")]
+        #[target_feature(enable = "avx2,popcnt,bmi1,bmi2,lzcnt")]
         fn on_avx2<R>(f: impl FnOnce() -> R) -> R {
             f()
         }
@@ -111,7 +125,7 @@ macro_rules! simd_dispatch {
             #[cfg(target_arch = "x86_64")]
             $crate::simd::SimdLevel::Avx512 => {
                 // SAFETY: `usable` returns AVX-512 only if this CPU reported
-                // avx512f.
+                // every feature `on_avx512` enables (`SimdLevel::cpu`).
                 unsafe {
                     on_avx512(
                         #[inline(always)]
@@ -125,7 +139,7 @@ macro_rules! simd_dispatch {
             #[cfg(target_arch = "x86_64")]
             $crate::simd::SimdLevel::Avx2 => {
                 // SAFETY: `usable` returns AVX2 only if this CPU reported
-                // avx2.
+                // every feature `on_avx2` enables (`SimdLevel::cpu`).
                 unsafe {
                     on_avx2(
                         #[inline(always)]

@@ -456,7 +456,24 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
         return Hit::MISS;
     };
     let rp = RayPrecomp::new(ray);
-    let mut best = Hit::MISS;
+    walk_cells::<W, ANY, COUNT>(src, ray, &rp, inv_dir, (0, t0, t1), Hit::MISS, stats)
+}
+
+/// The scalar walk of the subtree at `start.0` over the ray's interval
+/// `[start.1, start.2]` in its cell, keeping the closest of `best` and
+/// the hits found (any hit under `ANY`). [`walk_ray`] starts it at the
+/// root; the packet traverser hands it a lane of a cell that only that
+/// lane or few others visit.
+#[inline(always)]
+pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+    src: W,
+    ray: &Ray,
+    rp: &RayPrecomp,
+    inv_dir: Vec3,
+    start: (u32, f32, f32),
+    mut best: Hit,
+    stats: &mut TraceStats,
+) -> Hit {
     // Pending cells. Entries below `sp` are written; the traversal depth
     // is at most MAX_DEPTH (checked by TreeIr::validate and
     // KdFile::from_bytes), so `sp` stays below MAX_STACK. The push checks
@@ -466,7 +483,7 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     // of short rays' time.
     let mut stack = [const { MaybeUninit::<(u32, f32, f32)>::uninit() }; MAX_STACK];
     let mut sp = 0usize;
-    let (mut node, mut tmin, mut tmax) = (0u32, t0, t1);
+    let (mut node, mut tmin, mut tmax) = start;
     let org = ray.origin.to_array();
     let dir = ray.dir.to_array();
     let inv = inv_dir.to_array();
@@ -488,7 +505,7 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                     if COUNT {
                         stats.hoisted += 1;
                     }
-                    if test_one::<W, ANY>(src, &rp, ray, tri, &mut best) {
+                    if test_one::<W, ANY>(src, rp, ray, tri, &mut best) {
                         return best;
                     }
                 }
@@ -551,7 +568,7 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                     if COUNT {
                         stats.tris += 1;
                     }
-                    if test_one::<W, ANY>(src, &rp, ray, tris.get(i), &mut best) {
+                    if test_one::<W, ANY>(src, rp, ray, tris.get(i), &mut best) {
                         return best;
                     }
                 }
