@@ -131,6 +131,53 @@ proptest! {
     }
 }
 
+/// Ambient-occlusion packets: 4 origins, each with 4 rays in scattered
+/// directions (every octant) and a short interval, as renderers trace
+/// them. Such a packet walks the tree whole, lanes of different octants
+/// taking children in different orders, and one-lane cells go to the
+/// scalar walk; every hit is still brute force's.
+fn ao_packet(g: i32) -> impl Strategy<Value = Vec<Ray>> {
+    let coord = move || (-1..=2 * g + 1).prop_map(|k| k as f32 * 0.5 + 0.01);
+    let point = move || (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
+    let dir = (-4i32..=4, -4i32..=4, -4i32..=4)
+        .prop_filter("zero direction", |&(x, y, z)| (x, y, z) != (0, 0, 0))
+        .prop_map(|(x, y, z)| Vec3::new(x as f32, y as f32, z as f32).normalize());
+    (
+        prop::collection::vec(point(), 4),
+        prop::collection::vec(dir, 16),
+        0.2f32..3.0,
+    )
+        .prop_map(|(origins, dirs, radius)| {
+            (0..16)
+                .map(|i| Ray {
+                    tmin: 0.0,
+                    tmax: radius,
+                    ..Ray::new(origins[i / 4], dirs[i])
+                })
+                .collect()
+        })
+}
+
+proptest! {
+    #![proptest_config(cases(128))]
+
+    #[test]
+    fn ambient_occlusion_packets_equal_brute_force(
+        (tris, packets) in (2i32..=6).prop_flat_map(|g| (
+            prop::collection::vec(grid_triangle(g), 8..=80),
+            prop::collection::vec(ao_packet(g), 1..4),
+        )),
+    ) {
+        let scene = columns(&tris);
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let rays: Vec<Ray> = packets.into_iter().flatten().collect();
+        check_queries(&TreeTracer { tree: &tree, scene: &scene }, &scene, &rays);
+        let bytes = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap();
+        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+        check_queries(&file, &scene, &rays);
+    }
+}
+
 #[test]
 fn hoisted_triangles_are_counted_and_tested() {
     // A scene whose slim tree hoists: the counting traversal reports hoisted

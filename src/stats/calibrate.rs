@@ -15,7 +15,8 @@
 //! non-negative `a`, `b`, `c` of `time = a·steps + b·tests + c` per ray by
 //! least squares. A step is a node visited, inner or leaf; for packets it
 //! is one node step of the packet (shared by its active lanes) or of a ray
-//! of an octant traced ray by ray, and a test is one lane's test. So `a/b`
+//! of a small packet or a one-lane cell walked ray by ray, and a test is
+//! one lane's test. So `a/b`
 //! is the ratio `K_T/K_I` of the traverser per step it executes; the SAH
 //! prices a node visit of one ray, which for packets is `a` times the
 //! packet steps per visit ([`packet_steps_per_visit`]: about 0.14 on

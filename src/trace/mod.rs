@@ -414,7 +414,7 @@ pub fn traverse_counted<S: KdSource>(src: &S, ray: &Ray, any: bool, stats: &mut 
 /// `best`; under `ANY`, says whether the ray is done. A function rather
 /// than a closure of the walk: a closure's body is compiled on its own,
 /// without the target features of the packet traversal that inlines the
-/// walk for its single-ray octants.
+/// walk for its small packets and one-lane cells.
 #[inline(always)]
 fn test_one<'a, W: Walk<'a>, const ANY: bool>(
     src: W,

@@ -2,17 +2,16 @@
 //! 16 rays walk the tree together, and each leaf triangle is tested against
 //! all active rays at once in SIMD lanes.
 //!
-//! A packet is up to 16 rays with an active mask. Rays that share the
-//! sign of every direction component (one octant) walk the tree together
-//! in one traversal order; an incoherent packet is split by octant into
-//! sub-packets that each walk the tree under their own lane mask, and an
-//! octant of fewer than [`MIN_LANES`] rays goes ray by ray. Any-hit
-//! queries need no common order, so their packet walks whole whatever its
-//! octants (ambient-occlusion packets of 4 origins × 4 directions: 1.8×
-//! the rays per second of splitting them), each child first for the lanes
-//! most of which meet it first, and a cell that only one lane visits is
-//! walked by that lane alone with the scalar traverser. When all lanes
-//! of a (sub-)packet share the watertight test's axis permutation, as
+//! A packet is up to 16 rays with an active mask, and it walks the tree
+//! whole, whatever its rays' octants: each lane by its own split rule,
+//! each child first for most of the lanes that visit both children (all of
+//! them in a one-octant packet, the scalar order). Splitting an
+//! incoherent packet by octant instead, with the octants of fewer than 8
+//! rays going ray by ray, traced ambient-occlusion packets (4 origins × 4
+//! directions) at half the rays per second, closest or any hit. In an
+//! any-hit packet, a cell that only one lane visits is walked by that lane
+//! alone with the scalar traverser. When all lanes
+//! of a packet share the watertight test's axis permutation, as
 //! nearly all coherent rays do, the leaf kernel picks each vertex
 //! component once for all lanes instead of per lane. Each lane makes
 //! exactly the scalar traverser's decisions (its split rule, with the same
@@ -43,11 +42,8 @@ use glam::Vec3;
 /// Rays in a packet.
 pub const LANES: usize = 16;
 
-/// An octant with fewer rays than this goes ray by ray: a packet step
-/// costs several scalar steps whatever its occupancy, and so few rays of
-/// one octant are seldom coherent (ambient-occlusion rays split into
-/// octants of about 4, which as packets kept 1.6 lanes busy a step and
-/// traced 15 % slower than single rays).
+/// A packet of fewer rays than this goes ray by ray: a packet step costs
+/// several scalar steps whatever its occupancy.
 pub const MIN_LANES: u32 = 8;
 
 /// A cell that at most this many lanes of an any-hit packet visit is
@@ -75,8 +71,6 @@ struct Packet {
     sx: Lanes,
     sy: Lanes,
     sz: Lanes,
-    /// Direction octant per lane (bit k: component k is negative).
-    octant: [u8; LANES],
 }
 
 // The methods are inlined into the per-instruction-set traversal; as
@@ -97,7 +91,6 @@ impl Packet {
             sx: [0.0; LANES],
             sy: [0.0; LANES],
             sz: [0.0; LANES],
-            octant: [0; LANES],
         };
         for i in 0..LANES {
             let r = rays.get(i).unwrap_or(&rays[0]);
@@ -118,9 +111,6 @@ impl Packet {
             p.inv[0][i] = 1.0 / x;
             p.inv[1][i] = 1.0 / y;
             p.inv[2][i] = 1.0 / z;
-            p.octant[i] = u8::from(x.is_sign_negative())
-                | (u8::from(y.is_sign_negative()) << 1)
-                | (u8::from(z.is_sign_negative()) << 2);
             let (ax, ay, az) = (x.abs(), y.abs(), z.abs());
             let x_max = (ax >= ay) & (ax >= az);
             let y_max = !x_max & (ay >= az);
@@ -507,9 +497,9 @@ fn split_lanes<const M: bool>(p: &Packet, k: usize, pos: f32, cur: &Entry) -> La
     out
 }
 
-/// Splits the rays by octant, walks each octant of at least [`MIN_LANES`]
-/// rays as one packet and the others ray by ray; inlined into one copy per
-/// instruction set, so that its lane loops are vectorised for that set.
+/// Walks a packet of at least [`MIN_LANES`] rays as one, and fewer ray by
+/// ray; inlined into one copy per instruction set, so that its lane loops
+/// are vectorised for that set.
 #[inline(always)]
 fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
     src: W,
@@ -522,36 +512,18 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
         t: [f32::INFINITY; LANES],
         id: [u32::MAX; LANES],
     };
-    let mut left: u16 = if rays.len() == LANES {
+    let mask: u16 = if rays.len() == LANES {
         u16::MAX
     } else {
         (1u16 << rays.len()) - 1
     };
-    while left != 0 {
-        let oct = p.octant[left.trailing_zeros() as usize];
-        let mut mask = 0u16;
-        for i in 0..LANES {
-            mask |= u16::from(left & (1 << i) != 0 && p.octant[i] == oct) << i;
-        }
-        left &= !mask;
-        if ANY {
-            // Any-hit queries need no common order: every lane visits
-            // exactly the cells the scalar traverser visits, in whatever
-            // order, so all lanes walk as one packet.
-            mask |= left;
-            left = 0;
-        }
-        if mask.count_ones() >= MIN_LANES {
-            walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats);
-        } else {
-            let mut m = mask;
-            while m != 0 {
-                let i = m.trailing_zeros() as usize;
-                m &= m - 1;
-                let h = super::walk_ray::<_, ANY, COUNT>(src, &rays[i], stats);
-                best.t[i] = h.t;
-                best.id[i] = h.tri.0;
-            }
+    if rays.len() >= MIN_LANES as usize {
+        walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats);
+    } else {
+        for (i, r) in rays.iter().enumerate() {
+            let h = super::walk_ray::<_, ANY, COUNT>(src, r, stats);
+            best.t[i] = h.t;
+            best.id[i] = h.tri.0;
         }
     }
     for (i, o) in out.iter_mut().enumerate() {
@@ -648,7 +620,7 @@ fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
     hit
 }
 
-/// Walks the lanes of `mask`, which share one octant, as one packet.
+/// Walks the lanes of `mask` as one packet, whatever their octants.
 #[inline(always)]
 fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
     src: W,
