@@ -7,8 +7,10 @@
 //! with the byte rule: `paper f/b`, `paper s/b`), and
 //! prints the triangles hoisted, and per hoisted triangle the nodes,
 //! references and tree bytes saved against the std tree, the bytes counted
-//! both ways ([`ByteLayout::V1`], today's file, and [`ByteLayout::V2`],
-//! empty leaves free and one-triangle leaves without an index), with the
+//! both ways ([`ByteLayout::V1`], every leaf a word and every reference an
+//! index, and [`ByteLayout::V2`], the file of today, which the byte rule
+//! counts in: empty leaves free and one-triangle leaves without an
+//! index), with the
 //! file's Morton numbering (`--reorder`). The std tree's line gives its
 //! depth limit and how many of its leaves (non-empty ones) sit there.
 //!

@@ -33,7 +33,8 @@ use slimkd::geom::clip_triangle;
 use slimkd::geom::{Aabb, Ray};
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{
-    self, HoistRule, SlimParams, SlimReport, above, min_subtree_bytes, occupancy_weight, rebuild,
+    self, ByteLayout, HoistRule, SlimParams, SlimReport, above, min_subtree_bytes,
+    occupancy_weight, rebuild,
 };
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{self, ClosestHit, Hit, KdSource, TreeTracer};
@@ -124,24 +125,32 @@ impl LTree {
         }
     }
 
-    /// The bytes of the subtree under `n` as a file stores them: 8 per
-    /// node, 8 more per hoisted triangle, and per leaf its index list
-    /// (`file_id` gives a triangle's id in the file).
+    /// The bytes of the subtree under `n` as a file (format version 2)
+    /// stores them: 8 per inner node, 8 more per hoisted triangle, and per
+    /// leaf nothing if it is empty (but 8 for the left child of a node
+    /// whose two children are empty), its word if it holds one triangle,
+    /// else its word and its index list (`file_id` gives a triangle's id
+    /// in the file).
     fn bytes(&self, n: usize, file_id: &impl Fn(TriId) -> u32) -> u64 {
         match &self.nodes[n] {
-            LNode::Leaf(tris) => {
-                let n = tris.len();
-                8 + n as u64
-                    * if fits_leaf16(n, tris.iter().map(|&t| file_id(t))) {
-                        2
-                    } else {
-                        4
-                    }
-            }
+            LNode::Leaf(tris) => match tris.len() {
+                0 => 0,
+                1 => 8,
+                n => {
+                    8 + n as u64
+                        * if fits_leaf16(n, tris.iter().map(|&t| file_id(t))) {
+                            2
+                        } else {
+                            4
+                        }
+                }
+            },
             LNode::Inner {
                 left, right, t_ref, ..
             } => {
+                let is_empty = |c: usize| matches!(&self.nodes[c], LNode::Leaf(t) if t.is_empty());
                 8 + 8 * u64::from(t_ref.is_some())
+                    + 8 * u64::from(is_empty(*left) && is_empty(*right))
                     + self.bytes(*left, file_id)
                     + self.bytes(*right, file_id)
             }
@@ -216,11 +225,25 @@ fn literal_pick(tree: &LTree, n: usize, cell: Aabb, sa_root: f64, p: &SlimParams
         .find(|t| above(count[t] as f64, n_leaves as f64, p.tau_freq))
 }
 
-/// The bytes of a tree as a file stores them (see `LTree::bytes`).
+/// The bytes of a tree as a file stores them (see `LTree::bytes`; an
+/// empty root keeps its word).
 fn ir_bytes(ir: &TreeIr, file_id: &impl Fn(TriId) -> u32) -> u64 {
     let mut t = LTree::default();
     let root = t.append(ir);
-    t.bytes(root, file_id)
+    let empty_root = matches!(&t.nodes[root], LNode::Leaf(tris) if tris.is_empty());
+    t.bytes(root, file_id) + 8 * u64::from(empty_root)
+}
+
+/// The `tree_bytes` of the file `tree` is written to (with or without
+/// reordering), read back from the file.
+fn written_tree_bytes(tree: &TreeIr, scene: &TriangleColumns, reordered: bool) -> u64 {
+    let options = WriteOptions {
+        reorder: reordered,
+        ..Default::default()
+    };
+    let bytes = format::write_to_vec(tree, scene, &options).unwrap();
+    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+    file.figures().tree_bytes()
 }
 
 /// The triangle ids in a file written with or without reordering, by input
@@ -396,24 +419,19 @@ fn slim_checked(std: &TreeIr, scene: &TriangleColumns, p: &SlimParams) -> (TreeI
     if p.rule == HoistRule::Paper {
         assert_eq!((report.rejected, report.skipped), (0, 0), "{p:?}");
     }
-    // The byte count of the literal rule is the file's tree in the
-    // version-1 layout (a word per node, a 2-byte index for a leaf of one
-    // triangle), the layout the byte rule counts in; with the byte rule
-    // every hoist makes the tree smaller in the file it counts for.
+    // The byte count of the literal rule, and `slim::tree_bytes`, are the
+    // written file's `tree_bytes`; with the byte rule every hoist makes
+    // the tree smaller in the file it counts for.
     for reordered in [false, true] {
-        let options = WriteOptions {
-            reorder: reordered,
-            ..Default::default()
-        };
         let ids = file_ids(scene, reordered);
         let [slim_bytes, std_bytes] = [&tree, std].map(|t| {
-            let bytes = format::write_to_vec(t, scene, &options).unwrap();
-            let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
             let counted = ir_bytes(t, &|t: TriId| ids[t.0 as usize]);
-            let f = file.figures();
-            let block_layout =
-                8 * (f.nodes() + f.t_inner) + 4 * f.idx32 + 2 * (f.idx16 + f.one_leaves);
-            assert_eq!(counted, block_layout, "{p:?}");
+            assert_eq!(counted, written_tree_bytes(t, scene, reordered), "{p:?}");
+            assert_eq!(
+                counted,
+                slim::tree_bytes(t, scene, reordered, ByteLayout::V2),
+                "{p:?}"
+            );
             counted
         });
         if p.rule == (HoistRule::Bytes { reordered }) {
@@ -928,6 +946,162 @@ fn max_t2rn_on_big_triangles_over_small_ones() {
 }
 
 // ---------------------------------------------------------------------
+// 3b. The byte count is the written file's `tree_bytes`.
+// ---------------------------------------------------------------------
+
+/// A tree of any shape for the byte count: splits anywhere in their cell
+/// (`frac` of the way along `axis`), hoisted triangles anywhere, leaves
+/// empty, of one triangle, small, or too long for 2-byte mode; nodes whose
+/// two children are empty included.
+#[derive(Clone, Debug)]
+enum Shape {
+    Leaf(Vec<u32>),
+    Inner {
+        axis: u8,
+        frac: f32,
+        t_ref: Option<u32>,
+        left: Box<Shape>,
+        right: Box<Shape>,
+    },
+}
+
+/// The scene the random shapes index: more than 2^16 triangles, so that a
+/// leaf's ids may differ in their upper 16 bits (4-byte mode).
+fn many_triangles() -> &'static TriangleColumns {
+    static SCENE: std::sync::OnceLock<TriangleColumns> = std::sync::OnceLock::new();
+    SCENE.get_or_init(|| columns(&slimkd::scene::slanted_grid(260)))
+}
+
+fn shape_strategy(n_tris: u32) -> impl Strategy<Value = Shape> {
+    let sorted = |v: std::collections::BTreeSet<u32>| v.into_iter().collect::<Vec<u32>>();
+    let leaf = prop_oneof![
+        4 => Just(Vec::new()),
+        3 => (0..n_tris).prop_map(|t| vec![t]),
+        3 => prop::collection::btree_set(0..n_tris, 2..6).prop_map(sorted),
+        // Neighbours in input order (one 16-bit block unless reordered).
+        2 => (0..n_tris - 8, 2..8u32).prop_map(|(a, n)| (a..a + n).collect()),
+        // At the 2-byte mode's length limit (2^11 indices) and below it.
+        1 => (0..n_tris - 2100, 2040..2060u32).prop_map(|(a, n)| (a..a + n).collect()),
+    ];
+    leaf.prop_map(Shape::Leaf)
+        .prop_recursive(10, 96, 2, move |inner| {
+            (
+                0u8..3,
+                0.0f32..=1.0,
+                prop::option::weighted(0.3, 0..n_tris),
+                inner.clone(),
+                inner,
+            )
+                .prop_map(|(axis, frac, t_ref, l, r)| Shape::Inner {
+                    axis,
+                    frac,
+                    t_ref,
+                    left: Box::new(l),
+                    right: Box::new(r),
+                })
+        })
+}
+
+/// The shape as a tree in canonical pre-order, its root cell `bounds`.
+fn shape_tree(shape: &Shape, bounds: Aabb) -> TreeIr {
+    fn emit(s: &Shape, cell: Aabb, out: &mut TreeIr) {
+        match s {
+            Shape::Leaf(tris) => {
+                let start = out.leaf_tris.len() as u32;
+                out.leaf_tris.extend(tris.iter().map(|&t| TriId(t)));
+                out.nodes.push(Node::Leaf {
+                    start,
+                    count: tris.len() as u32,
+                });
+            }
+            Shape::Inner {
+                axis,
+                frac,
+                t_ref,
+                left,
+                right,
+            } => {
+                let k = *axis as usize;
+                let pos = (cell.min[k] + frac * (cell.max[k] - cell.min[k]))
+                    .clamp(cell.min[k], cell.max[k]);
+                let me = out.nodes.len();
+                out.nodes.push(Node::Inner {
+                    axis: *axis,
+                    pos,
+                    right: NodeId(u32::MAX),
+                    t_ref: t_ref.map(TriId),
+                });
+                let (lc, rc) = cell.split(k, pos);
+                emit(left, lc, out);
+                let r = NodeId(out.nodes.len() as u32);
+                if let Node::Inner { right, .. } = &mut out.nodes[me] {
+                    *right = r;
+                }
+                emit(right, rc, out);
+            }
+        }
+    }
+    let mut out = TreeIr {
+        bounds,
+        nodes: Vec::new(),
+        leaf_tris: Vec::new(),
+    };
+    emit(shape, bounds, &mut out);
+    out
+}
+
+proptest! {
+    #![proptest_config(cases(256))]
+
+    /// `slim::tree_bytes` in the version-2 layout (the byte rule's count)
+    /// is the `tree_bytes` of the file the tree is written to, with and
+    /// without reordering, for trees of any shape: empty children without
+    /// a word but the left one of two empty children with one, one-triangle
+    /// leaves without an index, 2- and 4-byte leaves as the writer chooses.
+    /// (The built std and slim trees are checked the same way in
+    /// `slim_checked`.)
+    #[test]
+    fn tree_bytes_v2_is_the_written_files(shape in shape_strategy(many_triangles().len() as u32)) {
+        let scene = many_triangles();
+        let tree = shape_tree(&shape, scene.bounds());
+        for reordered in [false, true] {
+            let ids = file_ids(scene, reordered);
+            let written = written_tree_bytes(&tree, scene, reordered);
+            prop_assert_eq!(slim::tree_bytes(&tree, scene, reordered, ByteLayout::V2), written);
+            prop_assert_eq!(ir_bytes(&tree, &|t: TriId| ids[t.0 as usize]), written);
+        }
+    }
+}
+
+/// The regression case of the count above: a node whose two children are
+/// empty keeps one empty-leaf word (8 bytes), which the version-2 count
+/// left out; and a lone empty root keeps its word too.
+#[test]
+fn two_empty_children_keep_one_word() {
+    let scene = many_triangles();
+    let empty = || Box::new(Shape::Leaf(Vec::new()));
+    let both_empty = Shape::Inner {
+        axis: 0,
+        frac: 0.5,
+        t_ref: Some(7),
+        left: empty(),
+        right: empty(),
+    };
+    // Inner word, T-reference word, the left child's empty-leaf word.
+    let tree = shape_tree(&both_empty, scene.bounds());
+    let root = shape_tree(&Shape::Leaf(Vec::new()), scene.bounds());
+    for reordered in [false, true] {
+        assert_eq!(written_tree_bytes(&tree, scene, reordered), 3 * 8);
+        assert_eq!(
+            slim::tree_bytes(&tree, scene, reordered, ByteLayout::V2),
+            3 * 8
+        );
+        assert_eq!(written_tree_bytes(&root, scene, reordered), 8);
+        assert_eq!(slim::tree_bytes(&root, scene, reordered, ByteLayout::V2), 8);
+    }
+}
+
+// ---------------------------------------------------------------------
 // 4. Hand-checked tiny scenes.
 // ---------------------------------------------------------------------
 
@@ -1024,20 +1198,29 @@ fn area(c: &Aabb) -> u32 {
 ///   hold each small triangle once, with `f_freq ≤ 1/2`: two hoists, and
 ///   again 4 references.
 ///
-/// With the byte rule (all leaves in 2-byte mode: 5 triangles), a node
-/// takes 8 bytes and a reference 2; the standard tree takes
-/// `11·8 + 9·2 = 106` bytes.
+/// With the byte rule (format version 2; all leaves in 2-byte mode: 5
+/// triangles), an inner node takes 8 bytes, a leaf of one triangle 8 (the
+/// triangle in its word), another leaf 8 and 2 per reference, an empty
+/// leaf nothing (no node here has two empty children). The standard tree
+/// takes `5·8 + 4·(8 + 2·2) + 8 + 0 = 96` bytes (5 inner nodes, the four
+/// two-triangle leaves, the leaf of triangle 0 alone, the empty leaf).
 ///
-/// - `small`: the rebuilt tree (11 nodes, 4 references) takes 96 bytes,
-///   and `96 + 8 < 106`: the same hoist as with the paper's rule.
-/// - `fast`: at the left child (2 leaves, `3·8 + 4·2 = 32` bytes) no
-///   rebuilt subtree of the 2 remaining references can take fewer than
-///   `3·8 + 2·2 = 28` bytes, and `28 + 8 ≥ 32`: skipped. At
-///   `[1, 6] × [-1, 4]` (5 nodes, 5 references: 50 bytes) the rebuilt
-///   subtree cuts the empty space around triangles 3 and 4 (7 nodes, 2
-///   references: 60 bytes): rejected. Its left child `[1, 3] × [-1, 4]`
-///   then picks triangle 0 (both leaves hold it) and is skipped like the
-///   left child of the root. Nothing is hoisted.
+/// - `small`: the rebuilt tree (11 nodes: 5 inner, 4 one-triangle leaves,
+///   2 empty leaves) takes `5·8 + 4·8 = 72` bytes, and `72 + 8 < 96`: the
+///   same hoist as with the paper's rule, and an 80-byte tree.
+/// - `fast`: every pick is rebuilt (no skip: for 2 references a rebuilt
+///   subtree takes at least `8 + 8 + 2·2 = 20` bytes, and `20 + 8` is
+///   below each replaced subtree's bytes) and rejected. At the left child
+///   (2 leaves: `8 + 2·12 = 32` bytes) the rebuilt subtree cuts the empty
+///   space around triangles 1 and 2 (7 nodes: 3 inner, 2 one-triangle
+///   leaves, 2 empty: `3·8 + 2·8 = 40` bytes), and `40 + 8 ≥ 32`. At
+///   `[1, 6] × [-1, 4]` (2 inner nodes, leaves `{0, 3}`, `{0, 4}`, `{0}`:
+///   `2·8 + 2·12 + 8 = 48` bytes) the rebuilt subtree takes 40 bytes the
+///   same way, and `40 + 8 = 48` is not smaller: rejected on the tie. Its
+///   left child `[1, 3] × [-1, 4]` then picks triangle 0 (both leaves hold
+///   it: `8 + 2·12 = 32` bytes); rebuilt, it is 5 nodes (2 inner, 2
+///   one-triangle leaves, 1 empty: `2·8 + 2·8 = 32` bytes), and
+///   `32 + 8 ≥ 32`. Nothing is hoisted: 3 rebuilds of 2 references each.
 #[test]
 fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     let scene = columns(&grid_under_huge(2, Some(6.0)));
@@ -1056,7 +1239,7 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     assert_eq!(std.leaf_tris.len(), 9);
 
     let input_ids = |t: TriId| t.0;
-    assert_eq!(ir_bytes(&std, &input_ids), 106);
+    assert_eq!(ir_bytes(&std, &input_ids), 96);
 
     // `small`: triangle 0 goes into the root; the rest is the SAH tree of
     // triangles 1–4 in the root cell, with nothing more hoisted.
@@ -1088,7 +1271,7 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
         };
         *t_ref = Some(TriId(0));
         assert_eq!(tree, expected);
-        assert_eq!(ir_bytes(&tree, &input_ids), 96 + 8);
+        assert_eq!(ir_bytes(&tree, &input_ids), 72 + 8);
         assert_eq!(t_inner_of(&tree), [(std.bounds, 0)]);
         let leaves = leaves_of(&tree);
         let nonempty: Vec<&Vec<u32>> = leaves
@@ -1119,18 +1302,26 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
     assert_eq!(leaves_holding(&tree, 0), 0);
 
     // `fast` with the byte rule: nothing hoisted.
-    let sub = cell([1.0, -1.0, 0.0], [6.0, 4.0, 1.0]);
-    let fresh = rebuild(&scene, &config(), &[TriId(3), TriId(4)], &sub, 2);
-    assert_eq!((fresh.nodes.len(), ir_bytes(&fresh, &input_ids)), (7, 60));
+    for (c, tris, depth, nodes, bytes) in [
+        (cell([-1.0, -1.0, 0.0], [1.0, 6.0, 1.0]), [1, 2], 1, 7, 40),
+        (cell([1.0, -1.0, 0.0], [6.0, 4.0, 1.0]), [3, 4], 2, 7, 40),
+        (cell([1.0, -1.0, 0.0], [3.0, 4.0, 1.0]), [3, 4], 3, 5, 32),
+    ] {
+        let fresh = rebuild(&scene, &config(), &tris.map(TriId), &c, depth);
+        assert_eq!(
+            (fresh.nodes.len(), ir_bytes(&fresh, &input_ids)),
+            (nodes, bytes)
+        );
+    }
     for rule in [RULES[1], RULES[2]] {
         let (tree, report) = slim_checked(&std, &scene, &SlimParams::PAPER_FAST.with_rule(rule));
         let expected = SlimReport {
             hoisted: 0,
             cancelled: 0,
-            rejected: 1,
-            skipped: 2,
-            rebuilds: 1,
-            rebuilt_refs: 2,
+            rejected: 3,
+            skipped: 0,
+            rebuilds: 3,
+            rebuilt_refs: 6,
         };
         assert_eq!(report, expected);
         assert_eq!(tree, std);
@@ -1150,10 +1341,18 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
 /// number of leaves of the standard tree that held it (each small triangle
 /// lies in one leaf before and after).
 ///
-/// With the byte rule it is not: without the huge triangle the SAH cuts
-/// the empty space around the small ones, so the rebuilt tree has 49
-/// nodes instead of 35 and takes 424 bytes instead of 336; nothing below
-/// pays off either, and the tree stays as it is.
+/// With the byte rule (format version 2, every leaf in 2-byte mode) it is
+/// not: the standard tree takes `17·8 + 5·8 + 10·8 + 23·2 = 302` bytes (17
+/// inner nodes; 5 one-triangle leaves; 10 other leaves holding 23
+/// references; 3 empty leaves, none beside another), and without the huge
+/// triangle the SAH cuts the empty space around the small ones: 49 nodes,
+/// 320 bytes, and `320 + 8 ≥ 302`. It is hoisted lower, at
+/// `[-1, 4] × [3, 10]`: that subtree (4 inner nodes; leaves `{0, 3}`,
+/// `{0, 7}`, `{0, 4}`, `{0, 8}`, `{0}`) takes `4·8 + 4·12 + 8 = 88` bytes;
+/// rebuilt without triangle 0 it has 5 inner nodes, the four small
+/// triangles in one-triangle leaves and 2 empty leaves: `5·8 + 4·8 = 72`
+/// bytes, and `72 + 8 < 88`. The tree takes `302 − 8 = 294` bytes; no other
+/// pick pays (the literal algorithm agrees, in `slim_checked`).
 #[test]
 fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
     let scene = columns(&grid_under_huge(4, Some(10.0)));
@@ -1163,14 +1362,18 @@ fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
     for t in 1..=16 {
         assert_eq!(leaves_holding(&std, t), 1, "triangle {t}");
     }
-    let (tree, report) = slim_checked(&std, &scene, &PAPER_SMALL_BYTES);
-    assert_eq!(report.hoisted, 0, "{report:?}");
-    assert_eq!(tree, std);
     let input_ids = |t: TriId| t.0;
     let all_but_0: Vec<TriId> = (1..=16).map(TriId).collect();
     let fresh = rebuild(&scene, &config(), &all_but_0, &std.bounds, 0);
-    assert_eq!((std.nodes.len(), ir_bytes(&std, &input_ids)), (35, 336));
-    assert_eq!((fresh.nodes.len(), ir_bytes(&fresh, &input_ids)), (49, 424));
+    assert_eq!((std.nodes.len(), ir_bytes(&std, &input_ids)), (35, 302));
+    assert_eq!((fresh.nodes.len(), ir_bytes(&fresh, &input_ids)), (49, 320));
+    let sub = cell([-1.0, 3.0, 0.0], [4.0, 10.0, 1.0]);
+    let fresh = rebuild(&scene, &config(), &[3, 4, 7, 8].map(TriId), &sub, 2);
+    assert_eq!((fresh.nodes.len(), ir_bytes(&fresh, &input_ids)), (11, 72));
+    let (tree, report) = slim_checked(&std, &scene, &PAPER_SMALL_BYTES);
+    assert_eq!(report.hoisted, 1, "{report:?}");
+    assert_eq!(t_inner_of(&tree), [(sub, 0)]);
+    assert_eq!(ir_bytes(&tree, &input_ids), 294);
 
     let small_paper = SlimParams::PAPER_SMALL;
     let (tree, report) = slim_checked(&std, &scene, &small_paper);
@@ -1204,8 +1407,9 @@ fn huge_triangle_over_4x4_grid_leaves_every_leaf() {
 /// split, at its box's face `y = 1`, costs `15 + 20·0.8·6/14 ≈ 21.9`, more
 /// than the leaf's 20), so both hoists are cancelled and the tree stays.
 /// With the byte rule they are skipped without a rebuild: a two-leaf node
-/// with two references takes `3·8 + 2·2 = 28` bytes, no more than 8 bytes
-/// above the least a rebuilt subtree takes.
+/// with two one-triangle leaves takes `8 + 2·8 = 24` bytes, no more than 8
+/// bytes above the least a rebuilt subtree of the one remaining reference
+/// takes (an inner node and a one-triangle leaf: `8 + 8 = 16`).
 #[test]
 fn small_disjoint_triangles_are_not_hoisted() {
     for n in 2..=4 {

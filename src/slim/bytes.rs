@@ -1,9 +1,9 @@
 //! The byte model of [`HoistRule::Bytes`](super::HoistRule::Bytes): what
-//! a subtree takes in the `.kd` file (8 bytes per node and per hoisted
-//! triangle, 2 or 4 per leaf index), for a built [`TreeIr`] and for a
-//! range of the work tree, and the lower bound on a rebuilt subtree that
-//! lets the pass skip a rebuild. [`tree_bytes`] counts a whole tree in
-//! either [`ByteLayout`], for measurements of what hoisting saves.
+//! a subtree takes in the `.kd` file as the writer lays it out (format
+//! version 2, [`ByteLayout::V2`]), for a built [`TreeIr`] and for a range
+//! of the work tree, and the lower bound on a rebuilt subtree that lets
+//! the pass skip a rebuild. [`tree_bytes`] counts a whole tree in either
+//! [`ByteLayout`], for measurements of what hoisting saves.
 
 use super::work::{WNode, Work};
 use crate::format::node::fits_leaf16;
@@ -15,22 +15,22 @@ use crate::tree::{Node, TreeIr, TriId};
 pub enum ByteLayout {
     /// The `.kd` file's version-1 layout: every node, empty leaves
     /// included, is an 8-byte word, a hoisted triangle one more, and every
-    /// leaf's triangles are indices (2 or 4 bytes each). The byte rule of
-    /// the slim pass counts in it (its hand-worked tests do).
+    /// leaf's triangles are indices (2 or 4 bytes each).
     V1,
-    /// The `.kd` file of today (version 2): an empty leaf takes no word
-    /// (but the left child of a node with two empty children, which this
-    /// counts as none), and a leaf with one triangle holds it in its own
-    /// word (no index); the rest as [`ByteLayout::V1`].
+    /// The `.kd` file of today (version 2), which the byte rule of the
+    /// slim pass counts in: an empty leaf takes no word, except the left
+    /// child of an inner node whose two children are empty (and an empty
+    /// root); a leaf with one triangle holds it in its own word (no
+    /// index); the rest as [`ByteLayout::V1`].
     V2,
 }
 
 /// The tree bytes of `tree` (nodes, T-references and leaf indices; no
 /// geometry) in `layout`, with the file's triangle numbering (`reordered`:
 /// the Morton ranks of `--reorder`, else the input ids). In
-/// [`ByteLayout::V1`] this is the version-1 layout's bytes of the written
-/// file; in [`ByteLayout::V2`] its `tree_bytes`, up to 8 bytes per node
-/// whose two children are empty.
+/// [`ByteLayout::V2`] this is the written file's `tree_bytes`
+/// (`format::TreeFigures::tree_bytes`); in [`ByteLayout::V1`] what the
+/// version-1 layout would take.
 pub fn tree_bytes(
     tree: &TreeIr,
     scene: &TriangleColumns,
@@ -54,9 +54,11 @@ impl ByteModel {
         ByteModel { layout, ..self }
     }
 
+    /// The model of the file as written (version 2), with or without
+    /// Morton reordering.
     pub(super) fn new(scene: &TriangleColumns, reordered: bool) -> ByteModel {
         ByteModel {
-            layout: ByteLayout::V1,
+            layout: ByteLayout::V2,
             rank: reordered.then(|| {
                 let perm = scene.morton_order();
                 let mut rank = vec![0u32; perm.len()];
@@ -68,7 +70,9 @@ impl ByteModel {
         }
     }
 
-    /// The bytes of a leaf: its word and its indices.
+    /// The bytes of a leaf: its word and its indices. In version 2 an
+    /// empty leaf counts none here (its parent's word says it is empty; the
+    /// exception is counted with the parent, [`ByteModel::inner`]).
     fn leaf(&self, tris: &[TriId]) -> u64 {
         match (self.layout, tris.len()) {
             (ByteLayout::V2, 0) => return 0,
@@ -83,31 +87,59 @@ impl ByteModel {
         8 + n as u64 * if wide { 4 } else { 2 }
     }
 
-    pub(super) fn tree(&self, t: &TreeIr) -> u64 {
-        t.nodes
-            .iter()
-            .map(|n| match *n {
-                Node::Inner { t_ref, .. } => 8 + 8 * u64::from(t_ref.is_some()),
-                Node::Leaf { start, count } => self.leaf(t.leaf(start, count)),
-            })
-            .sum()
+    /// The bytes of an inner node: its word, its T-reference word, and in
+    /// version 2 the empty-leaf word its left child keeps when both
+    /// children are empty leaves.
+    fn inner(&self, t_ref: bool, both_empty: bool) -> u64 {
+        let kept = self.layout == ByteLayout::V2 && both_empty;
+        8 + 8 * u64::from(t_ref) + 8 * u64::from(kept)
     }
 
-    /// The bytes of the contiguous subtree `work.nodes[node..node + size]`.
+    pub(super) fn tree(&self, t: &TreeIr) -> u64 {
+        let empty = |i: usize| matches!(t.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
+        let nodes: u64 = t
+            .nodes
+            .iter()
+            .enumerate()
+            .map(|(i, n)| match *n {
+                Node::Inner { t_ref, right, .. } => {
+                    self.inner(t_ref.is_some(), empty(i + 1) && empty(right.0 as usize))
+                }
+                Node::Leaf { start, count } => self.leaf(t.leaf(start, count)),
+            })
+            .sum();
+        // An empty root keeps its word.
+        let root = if self.layout == ByteLayout::V2 && empty(0) {
+            8
+        } else {
+            0
+        };
+        nodes + root
+    }
+
+    /// The bytes of the contiguous subtree `work.nodes[node..node + size]`
+    /// (whose root is an inner node).
     pub(super) fn subtree(&self, work: &Work, node: u32, size: u32) -> u64 {
+        let empty = |i: u32| matches!(work.nodes[i as usize], WNode::Leaf { count: 0, .. });
         work.nodes[node as usize..(node + size) as usize]
             .iter()
             .map(|n| match *n {
-                WNode::Inner { t_ref, .. } => 8 + 8 * u64::from(t_ref.is_some()),
+                WNode::Inner {
+                    t_ref, left, right, ..
+                } => self.inner(t_ref.is_some(), empty(left) && empty(right)),
                 WNode::Leaf { start, count } => self.leaf(work.leaf(start, count)),
             })
             .sum()
     }
 }
 
-/// The fewest bytes a rebuilt subtree of `n_refs` references that can hold
-/// a hoisted triangle takes: an inner node and two leaves, and every
-/// reference in some leaf at 2 bytes at least.
+/// The fewest bytes (format version 2) a rebuilt subtree of `n_refs`
+/// references that can hold a hoisted triangle takes: an inner node and
+/// the one leaf holding every reference, the other child empty (two leaves
+/// would take more: two words against one word and two bytes per index);
+/// for no reference the kept empty-leaf word, for one a one-triangle leaf,
+/// else 2 bytes per index.
 pub fn min_subtree_bytes(n_refs: usize) -> u64 {
-    3 * 8 + 2 * n_refs as u64
+    let indices = if n_refs >= 2 { 2 * n_refs as u64 } else { 0 };
+    8 + 8 + indices
 }

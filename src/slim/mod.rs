@@ -37,8 +37,9 @@
 //! *rejected*: `I` keeps its original subtree and the algorithm goes on
 //! with `I`'s children as if no triangle had been picked (as for a
 //! cancelled hoist). Why: in the `.kd` format a node is 8 bytes and a
-//! leaf index 2 (with 2-byte leaves), so a hoist pays an 8-byte word to
-//! save a few indices, and the rebuilt subtree often has more nodes; with
+//! leaf index 2 (with 2-byte leaves; a one-triangle leaf has none, an
+//! empty leaf no word), so a hoist pays an 8-byte word to save a few
+//! indices, and the rebuilt subtree often has more nodes; with
 //! the paper's rule the `fast` and `small` trees of the shared scenes came
 //! out up to 7% *larger* than the standard tree. [`HoistRule::Paper`]
 //! gives the paper's literal behaviour.

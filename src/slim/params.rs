@@ -11,10 +11,13 @@ pub enum HoistRule {
     Paper,
     /// A hoist is kept only if `bytes(rebuilt subtree) + 8 <
     /// bytes(replaced subtree)`, where a subtree's bytes are counted as the
-    /// file stores them (the paper's tree memory,
-    /// `8·(nodes + T-references) + 4·|idx32| + 2·|idx16|`): 8 per node, 8
-    /// more per hoisted triangle, and per leaf 2 bytes per index if the
-    /// leaf fits 2-byte mode, else 4 ([`leaf_index_bytes`]). Whether a leaf
+    /// file (format version 2) stores them, so that the sum over the tree
+    /// is the file's `tree_bytes`, `8·words + 4·|idx32| + 2·|idx16|`: 8 per
+    /// inner node, 8 more per hoisted triangle, nothing for an empty leaf
+    /// (but 8 for the left child of a node whose two children are empty),
+    /// 8 for a leaf of one triangle (held in its word), and per other leaf
+    /// 8 and 2 bytes per index if it fits 2-byte mode, else 4
+    /// ([`leaf_index_bytes`]). Whether a leaf
     /// fits depends on the triangle ids in the file: with `reordered` they
     /// are the Morton ranks the writer gives with reordering
     /// ([`TriangleColumns::morton_order`]), else the input ids. The count
