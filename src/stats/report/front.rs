@@ -567,7 +567,11 @@ impl FrontReport {
                 // The change against std, `100·(x/std − 1)`.
                 let pct = |x: f64, base: Option<f64>| match base {
                     Some(b) if x == b => "0".to_string(),
-                    Some(b) if b != 0.0 => format!("{:+.1} %", 100.0 * (x / b - 1.0)),
+                    Some(b) if b != 0.0 => {
+                        // A change that rounds to zero reads `+0.0`, never `-0.0`.
+                        let d = 100.0 * (x / b - 1.0);
+                        format!("{:+.1} %", if d.abs() < 0.05 { 0.0 } else { d })
+                    }
                     _ => "–".to_string(),
                 };
                 let name = if p.setting.preset.is_some() {
