@@ -28,8 +28,9 @@ use crate::progress::Progress;
 use serde::Serialize;
 
 /// `K_T` of the std trees of the `K_T` family (with the default `K_I`,
-/// 20): from two thirds of the default (15) to three times it. Only the
-/// ratio `K_T/K_I` shapes the tree, so no family varies `K_I`.
+/// 20): from two thirds of the default (15) to three times it. The SAH's
+/// decisions depend on the ratio `K_T/K_I` alone (up to rounding), so no
+/// family varies `K_I`.
 pub const FRONT_KT: [f64; 5] = [10.0, 15.0, 20.0, 30.0, 45.0];
 /// `(τ_occu, τ_freq)` of the threshold families, from the least hoisting
 /// to the most; `(0.1, 0.05)` is the presets'.
