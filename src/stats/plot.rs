@@ -1,6 +1,8 @@
 //! SVG charts for the report: a labelled scatter plot (Figure 5, size
-//! reduction against frame-rate loss) and stacked line panels (Figure 6,
-//! leaf-depth histograms).
+//! reduction against frame-rate loss), stacked line panels (Figure 6,
+//! leaf-depth histograms) and the trade-off chart of `slimkd sweep` (tree
+//! bytes against trace time, one line per family of settings, the Pareto
+//! front).
 //!
 //! Drawn with `plotters` into a `String` through its SVG backend, so no
 //! font library is needed: text is written as SVG `<text>` elements and
@@ -9,6 +11,7 @@
 
 use plotters::coord::Shift;
 use plotters::coord::types::RangedCoordf64;
+use plotters::element::DashedPathElement;
 use plotters::prelude::*;
 use std::fmt;
 
@@ -207,6 +210,143 @@ pub fn scatter_svg(
     Ok(svg)
 }
 
+/// One point of a trade-off chart ([`front_svg`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TradeOffPoint {
+    pub x: f64,
+    /// A horizontal whisker from the first to the second `x` (the spread
+    /// of the repetitions).
+    pub x_range: (f64, f64),
+    pub y: f64,
+    /// Written next to the point.
+    pub label: String,
+    /// Drawn larger, ringed and with its label in bold (the presets).
+    pub highlight: bool,
+    /// On the Pareto front: joined by the front's dashed staircase.
+    pub on_front: bool,
+}
+
+/// A polyline through some of a trade-off chart's points, by index.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TradeOffLine {
+    pub name: String,
+    pub points: Vec<usize>,
+}
+
+/// A trade-off chart: every point with its whisker and label, one
+/// polyline per family in its own colour (with a legend), the highlighted
+/// points ringed, and the Pareto front (lower left: smaller and faster) as
+/// a dashed grey staircase through the points on it. Neither range is
+/// forced to include zero.
+pub fn front_svg(
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    points: &[TradeOffPoint],
+    lines: &[TradeOffLine],
+    size: (u32, u32),
+) -> Result<String, PlotError> {
+    let finite = |p: &&TradeOffPoint| p.x.is_finite() && p.y.is_finite();
+    let xs = padded_range(
+        points
+            .iter()
+            .filter(finite)
+            .flat_map(|p| [p.x, p.x_range.0, p.x_range.1]),
+        0.08,
+    );
+    let ys = padded_range(points.iter().filter(finite).map(|p| p.y), 0.08);
+    let (xd, yd) = (tick_decimals(&xs), tick_decimals(&ys));
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 18))
+            .margin(16)
+            .x_label_area_size(44)
+            .y_label_area_size(64)
+            .build_cartesian_2d(xs, ys)
+            .map_err(plot_err)?;
+        draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
+        // The front: sorted by x, each step across then down.
+        let mut front: Vec<&TradeOffPoint> = points
+            .iter()
+            .filter(finite)
+            .filter(|p| p.on_front)
+            .collect();
+        front.sort_by(|a, b| a.x.total_cmp(&b.x).then(b.y.total_cmp(&a.y)));
+        let mut stairs = Vec::new();
+        for (i, p) in front.iter().enumerate() {
+            if i > 0 {
+                stairs.push((p.x, front[i - 1].y));
+            }
+            stairs.push((p.x, p.y));
+        }
+        let grey = RGBColor(110, 110, 110);
+        chart
+            .draw_series([DashedPathElement::new(stairs, 6, 4, grey.stroke_width(2))])
+            .map_err(plot_err)?
+            .label("Pareto front")
+            .legend(move |(x, y)| {
+                DashedPathElement::new(vec![(x, y), (x + 20, y)], 6, 4, grey.stroke_width(2))
+            });
+        for (i, line) in lines.iter().enumerate() {
+            let c = colour(i);
+            let pts: Vec<(f64, f64)> = line
+                .points
+                .iter()
+                .filter_map(|&k| points.get(k))
+                .filter(finite)
+                .map(|p| (p.x, p.y))
+                .collect();
+            chart
+                .draw_series(plotters::series::LineSeries::new(pts, c.stroke_width(2)))
+                .map_err(plot_err)?
+                .label(line.name.as_str())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                });
+        }
+        // Whiskers and points in the colour of the first line through them.
+        let colour_of = |k: usize| {
+            lines
+                .iter()
+                .position(|l| l.points.contains(&k))
+                .map_or(BLACK, colour)
+        };
+        for (k, p) in points.iter().enumerate().filter(|(_, p)| finite(p)) {
+            let c = colour_of(k);
+            let (lo, hi) = p.x_range;
+            if lo.is_finite() && hi.is_finite() {
+                chart
+                    .draw_series([PathElement::new(
+                        vec![(lo, p.y), (hi, p.y)],
+                        c.stroke_width(1),
+                    )])
+                    .map_err(plot_err)?;
+            }
+            let (radius, font) = if p.highlight {
+                (6, ("sans-serif", 14).into_font().style(FontStyle::Bold))
+            } else {
+                (4, ("sans-serif", 11).into_font())
+            };
+            chart
+                .draw_series([EmptyElement::at((p.x, p.y))
+                    + Circle::new((0, 0), radius, c.filled())
+                    + Text::new(p.label.clone(), (7, -14), font)])
+                .map_err(plot_err)?;
+            if p.highlight {
+                chart
+                    .draw_series([Circle::new((p.x, p.y), radius + 3, BLACK.stroke_width(2))])
+                    .map_err(plot_err)?;
+            }
+        }
+        draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
+        root.present().map_err(plot_err)?;
+    }
+    Ok(svg)
+}
+
 /// The width of the legend strip right of a line panel.
 const LEGEND_WIDTH: u32 = 120;
 
@@ -397,6 +537,50 @@ mod tests {
         let (fast_width, _) = line_style(1);
         assert!(std_width > fast_width);
         assert!(svg.contains(&format!("stroke-width=\"{std_width}\"")));
+    }
+
+    /// The trade-off chart draws every finite point's label (the
+    /// highlighted ones in bold, ringed), a legend entry per line and the
+    /// front's dashed staircase, which steps through the front's points
+    /// only.
+    #[test]
+    fn front_chart_highlights_presets_and_draws_the_front() {
+        let pt = |x: f64, y: f64, label: &str, highlight, on_front| TradeOffPoint {
+            x,
+            x_range: (x - 0.5, x + 0.5),
+            y,
+            label: label.into(),
+            highlight,
+            on_front,
+        };
+        let points = [
+            pt(1.0, 9.0, "fastest", false, true),
+            pt(2.0, 5.0, "std", true, true),
+            pt(3.0, 6.0, "behind", false, false),
+            pt(4.0, 2.0, "smallest", false, true),
+            pt(f64::NAN, 1.0, "left out", true, false),
+        ];
+        let lines = [TradeOffLine {
+            name: "family a".into(),
+            points: vec![0, 1, 2, 9],
+        }];
+        let svg = front_svg("t", "x", "y", &points, &lines, (600, 400)).unwrap();
+        for label in [
+            "fastest",
+            "std",
+            "behind",
+            "smallest",
+            "family a",
+            "Pareto front",
+        ] {
+            assert!(svg.contains(label), "{label}");
+        }
+        assert!(!svg.contains("left out"));
+        // Only the one finite highlighted point has a bold label.
+        assert_eq!(svg.matches("font-weight=\"bold\"").count(), 1);
+        // The staircase: three front points, two steps of two segments,
+        // drawn as dashes of one grey.
+        assert!(svg.matches("#6E6E6E").count() >= 4);
     }
 
     #[test]

@@ -145,6 +145,11 @@ pub(crate) enum Command {
     /// packets) and fit time = a·steps + b·tests + c per ray; prints a, b,
     /// c (ns), the implied K_T and R², per scene and pooled.
     Calibrate(Box<crate::calibrate::CalibrateArgs>),
+    /// Draw the trade-off front of tree bytes against trace time: trees
+    /// over K_T and the hoisting thresholds (std, fast and small among
+    /// them), primary packets timed in rounds; writes sweep.md, sweep.json
+    /// and a chart per scene (SCENE.sweep.svg) with the Pareto front.
+    Sweep(Box<crate::sweep::SweepArgs>),
 }
 
 #[derive(clap::Args)]

@@ -13,6 +13,7 @@ mod main_job;
 mod progress_bar;
 mod render;
 mod report;
+mod sweep;
 mod trace;
 
 use clap::parser::ValueSource;
@@ -188,6 +189,7 @@ fn main() -> ExitCode {
         Some(Command::Report(args)) => cmd_report(&args, ui),
         Some(Command::Trace(args)) => cmd_trace(&args, ui),
         Some(Command::Calibrate(args)) => calibrate::cmd_calibrate(&args, ui),
+        Some(Command::Sweep(args)) => sweep::cmd_sweep(&args, ui),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -36,14 +36,23 @@
 //!   over the views), one series per scene.
 //! - *Figure 6*: the leaf-depth histograms of std, fast and small.
 //!
+//! `front.rs` is the trade-off front of `slimkd sweep`: tree bytes against
+//! trace time over families of settings ([`run_front`]).
+//!
 //! Percentages are `100·(1 − x/std)`: a positive reduction is a smaller
 //! tree, a positive loss a slower frame.
 
+mod front;
 mod json;
 mod markdown;
 mod run;
 mod tables;
 
+pub use front::{
+    FRONT_COARSEN, FRONT_JSON, FRONT_KT, FRONT_MARKDOWN, FRONT_TAUS, FrontFamily, FrontGrid,
+    FrontOptions, FrontPoint, FrontReport, FrontSetting, SceneFront, default_grid, pareto_front,
+    run_front,
+};
 pub use run::{run, run_with_progress};
 pub use tables::duplication;
 

@@ -42,11 +42,16 @@ pub(super) fn write_tree(
 /// The views of a scene among [`VIEW_IDS`], found by its name (or, for a
 /// file name or path, by its stem).
 fn view_ids<'v>(options: &'v ReportOptions, name: &str) -> Vec<(&'static str, &'v View)> {
+    views_of(&options.views, name)
+}
+
+/// [`view_ids`] in a list of views.
+fn views_of<'v>(views: &'v [View], name: &str) -> Vec<(&'static str, &'v View)> {
     VIEW_IDS
         .iter()
         .filter_map(|&id| {
-            render::find_view_named(&options.views, name, id)
-                .or_else(|| render::find_view(&options.views, Path::new(name), id))
+            render::find_view_named(views, name, id)
+                .or_else(|| render::find_view(views, Path::new(name), id))
                 .map(|v| (id, v))
         })
         .collect()
@@ -54,8 +59,17 @@ fn view_ids<'v>(options: &'v ReportOptions, name: &str) -> Vec<(&'static str, &'
 
 /// The cameras of a scene: its views 1–3, or the default camera.
 fn cameras(options: &ReportOptions, name: &str, bounds: &Aabb) -> Vec<(String, Camera)> {
-    let (w, h) = options.size;
-    let found: Vec<(String, Camera)> = view_ids(options, name)
+    cameras_of(&options.views, options.size, name, bounds)
+}
+
+/// [`cameras`] from a list of views, at `(width, height)`.
+pub(super) fn cameras_of(
+    views: &[View],
+    (w, h): (u32, u32),
+    name: &str,
+    bounds: &Aabb,
+) -> Vec<(String, Camera)> {
+    let found: Vec<(String, Camera)> = views_of(views, name)
         .into_iter()
         .map(|(id, v)| (id.to_string(), Camera::from_view(v, w, h)))
         .collect();

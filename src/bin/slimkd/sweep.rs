@@ -1,0 +1,132 @@
+//! `slimkd sweep`: the trade-off front of tree bytes against trace time
+//! over families of settings ([`slimkd::stats::report::run_front`]).
+
+use crate::*;
+use slimkd::progress::Progress;
+use slimkd::stats::report;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(clap::Args)]
+pub(crate) struct SweepArgs {
+    /// OBJ files or scene caches (.kds), or `default` (the embedded
+    /// scene).
+    #[arg(required = true)]
+    pub(crate) scenes: Vec<PathBuf>,
+    /// Views file; each scene is matched by its name, the file's stem
+    /// (views 1–3). Without it the embedded views are used; a scene
+    /// without views is traced from the default camera.
+    #[arg(long)]
+    pub(crate) views: Option<PathBuf>,
+    /// Frame size WxH of every view.
+    #[arg(long, value_parser = parse_size, default_value = "512x512")]
+    pub(crate) size: (u32, u32),
+    /// Timed rounds after a warm-up (at least 1); min, median and max are
+    /// kept.
+    #[arg(long, default_value_t = 9, value_parser = parse_positive)]
+    pub(crate) reps: usize,
+    /// Threads of the builds and the tracing (at least 1). The default, 2,
+    /// keeps the figures comparable across machines and with the
+    /// measurements in docs/perf-notes.md.
+    #[arg(short = 'j', long, default_value_t = 2, value_parser = parse_positive)]
+    pub(crate) threads: usize,
+    /// The directory sweep.md, sweep.json and the charts (SCENE.sweep.svg)
+    /// are written into; it must exist.
+    #[arg(short = 'o', long, default_value = ".")]
+    pub(crate) output: PathBuf,
+}
+
+/// `slimkd sweep --json`: the files written and the sweep's own JSON
+/// (what `sweep.json` holds).
+#[derive(serde::Serialize)]
+struct SweepCmdJson {
+    written: Vec<String>,
+    #[serde(flatten)]
+    sweep: serde_json::Value,
+}
+
+pub(crate) fn cmd_sweep(args: &SweepArgs, ui: Out) -> Res<()> {
+    match std::fs::metadata(&args.output) {
+        Ok(m) if m.is_dir() => {}
+        Ok(_) => return Err(format!("{}: not a directory", args.output.display()).into()),
+        Err(e) => return Err(format!("{}: {e}", args.output.display()).into()),
+    }
+    let views = crate::read_views(args.views.as_deref())?;
+    let mut scenes = Vec::new();
+    for path in &args.scenes {
+        let loaded = load(path, ui.bars_off())?;
+        if !ui.quiet {
+            eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
+        }
+        scenes.push((loaded.name(), loaded.scene));
+    }
+    let options = report::FrontOptions {
+        scenes,
+        views,
+        size: args.size,
+        reps: args.reps,
+        threads: args.threads,
+        grid: None,
+    };
+    let start = Instant::now();
+    let progress = Progress::default();
+    let current = std::sync::Mutex::new(String::new());
+    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
+    let sweep = with_bar_lines(ui.bars_off(), "sweep", &progress, &message, |lines| {
+        Ok(report::run_front(&options, Some(&progress), &mut |line| {
+            if let Ok(mut m) = current.lock() {
+                line.clone_into(&mut m);
+            }
+            lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
+        })?)
+    })?;
+    let written = sweep
+        .write(&args.output)
+        // Its errors name the file.
+        .map_err(|e| format!("cannot write the sweep: {e}"))?;
+    if ui.json {
+        let mut body = sweep.json();
+        if let Some(o) = body.as_object_mut() {
+            // print_json writes the schema first.
+            o.remove("schema");
+        }
+        return print_json(
+            "sweep",
+            SweepCmdJson {
+                written: written.iter().map(|p| p.display().to_string()).collect(),
+                sweep: body,
+            },
+        );
+    }
+    if ui.quiet {
+        return Ok(());
+    }
+    if ui.verbose {
+        print!("{}", sweep.markdown(&sweep.figure_names()));
+    }
+    for s in &sweep.scenes {
+        let on: Vec<String> = report::TreeKind::ALL
+            .iter()
+            .filter_map(|&k| {
+                s.preset(k).map(|p| {
+                    format!(
+                        "{} {}",
+                        k.name(),
+                        if p.on_front { "on the front" } else { "off it" }
+                    )
+                })
+            })
+            .collect();
+        println!(
+            "{}: {} points, {} on the front; {}",
+            s.name,
+            s.points.len(),
+            s.points.iter().filter(|p| p.on_front).count(),
+            on.join(", ")
+        );
+    }
+    for p in written {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
