@@ -84,7 +84,7 @@ pub mod node;
 mod read;
 mod write;
 
-pub use read::{AlignedBytes, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
+pub use read::{AlignedBytes, Check, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
 pub use write::{
     FileConfig, Preset, SCENE_NAME_LEN, SceneTag, WriteOptions, write_file, write_to_vec,
 };
