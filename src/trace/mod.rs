@@ -499,10 +499,10 @@ pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
 ) -> Hit {
     // Pending cells. Entries below `sp` are written; the traversal depth
     // is at most MAX_DEPTH (checked by TreeIr::validate and
-    // KdFile::from_bytes), so `sp` stays below MAX_STACK. The push checks
+    // KdFile::validate), so `sp` stays below MAX_STACK. The push checks
     // it all the same (the compare the indexing made anyway) and drops the
-    // cell of a deeper path, which only a file changed after it was
-    // opened can make. Left uninitialised: zeroing 1.2 KB per ray cost 4 %
+    // cell of a deeper path, which only a file that was not validated can
+    // make. Left uninitialised: zeroing 1.2 KB per ray cost 4 %
     // of short rays' time.
     let mut stack = [const { MaybeUninit::<(u32, f32, f32)>::uninit() }; MAX_STACK];
     let mut sp = 0usize;

@@ -766,8 +766,8 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                         // An empty child (a file's child without a word) is
                         // not visited. One entry per inner node on the path: the depth
                         // bound (MAX_DEPTH) keeps it below MAX_STACK; a
-                        // deeper path, which only a file changed after it
-                        // was opened can make, drops the cell (as the
+                        // deeper path, which only a file that was not
+                        // validated can make, drops the cell (as the
                         // scalar walk does).
                         let _ = stack.try_push(Entry {
                             node: second.0,
