@@ -329,3 +329,46 @@ fn shared_subtrees_end_at_the_step_limit_and_are_refused_by_validate() {
     let file = KdFile::from_bytes_checked(aligned_copy(&t)).unwrap();
     file.verify().unwrap();
 }
+
+/// A reordered file whose triangle map points past the triangles (its
+/// checksums repaired) opens, and every hit it gives names a triangle of
+/// the file (the entry's own file id), so a caller that looks the hit's
+/// triangle up (shading, `Accel::triangle`) cannot index out of range; the
+/// full check refuses it.
+#[test]
+fn a_triangle_map_out_of_range_still_gives_ids_of_the_file() {
+    use slimkd::format::Section;
+    use slimkd::trace::packet::PacketTracer;
+    use slimkd::trace::{ClosestHit, Hit};
+
+    let mut rng = Rng(9);
+    let scene = random_small_scene(&mut rng, 300, 4);
+    let mut b = write(&std_tree(&scene), &scene, true);
+    let map = section(&b, Section::TriMap);
+    for at in map.step_by(4) {
+        set_u32(&mut b, at, u32::MAX - 1);
+    }
+    fix_all_crcs(&mut b);
+    let file = KdFile::from_bytes(aligned_copy(&b)).expect("the header is intact");
+    let n = file.figures().triangles as u32;
+    let rays = rays_at(&file.bounds(), &mut rng, 256);
+    let single: Vec<Hit> = rays
+        .iter()
+        .map(|r| slimkd::trace::traverse(&file, r))
+        .collect();
+    let mut packet = vec![Hit::MISS; rays.len()];
+    for (rays, out) in rays.chunks(16).zip(packet.chunks_mut(16)) {
+        PacketTracer::new(&file).closest_hit_n(rays, out);
+    }
+    assert!(single.iter().any(|h| h.is_hit()));
+    for h in single.iter().chain(&packet).filter(|h| h.is_hit()) {
+        assert!(h.tri.0 < n, "hit id {} of {n} triangles", h.tri.0);
+    }
+    assert!(matches!(
+        file.validate(),
+        Err(FormatError::Index {
+            section: "tri_map",
+            ..
+        })
+    ));
+}

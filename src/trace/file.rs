@@ -170,8 +170,15 @@ impl<'a> Walk<'a> for FileWalk<'a> {
 
     #[inline(always)]
     fn input_id(&self, t: u32) -> TriId {
+        // A map entry out of range (a file not validated) reads as `t`, so
+        // that a hit's id always names a triangle of the file (a triangle
+        // `t` out of range is never hit).
         TriId(match self.tri_map {
-            Some(map) => map.get(t as usize).copied().unwrap_or(t),
+            Some(map) => map
+                .get(t as usize)
+                .copied()
+                .filter(|&i| (i as usize) < map.len())
+                .unwrap_or(t),
             None => t,
         })
     }
