@@ -74,7 +74,7 @@ fn bench_scene(
         std::process::id()
     ));
     std::fs::write(&path, &bytes).expect("the temporary file is written");
-    let file = KdFile::open(&path, false).expect("the file maps");
+    let file = KdFile::open(&path, format::Check::Header).expect("the file maps");
     std::fs::remove_file(&path).expect("the temporary file is removed");
     let memory = TreeTracer { tree: &tree, scene };
     let camera = Camera::from_view(view, SIZE, SIZE);

@@ -318,16 +318,19 @@ impl Accel {
         Accel::build(&scene, options)
     }
 
-    /// Maps a `.kd` file and validates its structure (not its checksums:
-    /// see [`Accel::verify`]). The file must not be modified in place
+    /// Maps a `.kd` file and checks its header and section table, in O(1)
+    /// ([`format::Check::Header`]: a corrupt section gives wrong hits, never
+    /// a panic; [`Accel::verify`] checks the rest). The file must not be
+    /// modified in place
     /// while mapped (slimkd replaces files by rename, which is safe; see
     /// [`KdFile::open`]).
     pub fn open(path: impl AsRef<Path>) -> Result<Accel, AccelError> {
         let path = path.as_ref();
-        let file = KdFile::open(path, false).map_err(|source| AccelError::Format {
-            path: Some(path.to_path_buf()),
-            source,
-        })?;
+        let file =
+            KdFile::open(path, format::Check::Header).map_err(|source| AccelError::Format {
+                path: Some(path.to_path_buf()),
+                source,
+            })?;
         Ok(Accel::new(Image::Mapped(file), Some(path.to_path_buf())))
     }
 
@@ -352,10 +355,11 @@ impl Accel {
         )
     }
 
-    /// Checks every section's checksum (reads the whole image).
+    /// Checks every node, index and vertex and every section's checksum
+    /// ([`format::Check::Verify`]; reads the whole image).
     pub fn verify(&self) -> Result<(), AccelError> {
         let path = self.path.clone();
-        with_file!(&self.image, |f| f.verify())
+        with_file!(&self.image, |f| f.check(format::Check::Verify))
             .map_err(|source| AccelError::Format { path, source })
     }
 
@@ -363,8 +367,12 @@ impl Accel {
         let file_id = with_file!(&image, |f| match f.tri_map() {
             Some(map) => {
                 let mut inv = vec![0u32; map.len()];
+                // A map that is not a permutation (a file not validated)
+                // leaves some entries 0: never an index out of range.
                 for (file, &input) in map.iter().enumerate() {
-                    inv[input as usize] = file as u32;
+                    if let Some(slot) = inv.get_mut(input as usize) {
+                        *slot = file as u32;
+                    }
                 }
                 inv
             }

@@ -141,7 +141,7 @@ fn round_trip(preset: Preset, reorder: bool) {
     assert_traces_as_brute_force(&scene, &memory, &rays);
     assert_traces_as_brute_force(&scene, &mapped, &rays);
     // The header records what was built.
-    let file = slimkd::format::KdFile::open(&path, true).unwrap();
+    let file = slimkd::format::KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
     assert_eq!(file.is_reordered(), reorder);
     assert_eq!(
         file.config().preset,

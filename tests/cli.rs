@@ -67,9 +67,10 @@ fn build_info_verify_render_round_trip() {
         let f = |k: &str| info[k].as_u64().unwrap();
         // The counts are the file's; its empty leaves without a word take
         // no bytes.
-        let fig = slimkd::format::KdFile::open(std::path::Path::new(kd_s), true)
-            .unwrap()
-            .figures();
+        let fig =
+            slimkd::format::KdFile::open(std::path::Path::new(kd_s), slimkd::format::Check::Verify)
+                .unwrap()
+                .figures();
         assert_eq!(
             [
                 f("nodes_inner"),

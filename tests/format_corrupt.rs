@@ -1,6 +1,9 @@
 //! Corrupt `.kd` files are rejected without panics, with specific errors:
 //! every single-bit flip, truncation, overwrites, random byte strings and
-//! targeted edits.
+//! targeted edits. A corrupt header or section table is refused on open
+//! (`KdFile::from_bytes`, O(1)); a file corrupt in its sections opens, and
+//! traces without panic or hang (its hits may be wrong), and is refused by
+//! the full check (`KdFile::validate`) or by `verify` (the checksums).
 
 mod common;
 
@@ -22,10 +25,23 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 enum Outcome {
     /// `from_bytes` refused it.
     Rejected(FormatError),
-    /// `from_bytes` accepted it and `verify` refused it.
+    /// `from_bytes` accepted it and `validate` refused it.
+    Invalid(FormatError),
+    /// `from_bytes` and `validate` accepted it and `verify` refused it.
     BadChecksum(FormatError),
-    /// Both accepted it.
+    /// All three accepted it.
     Accepted,
+}
+
+/// Whether `e` is an error of the sections' contents, which only the full
+/// check finds (every other error is the header's or the section table's,
+/// which the open must find).
+fn is_contents_error(e: &FormatError) -> bool {
+    match e {
+        FormatError::Node { .. } | FormatError::Index { .. } => true,
+        FormatError::Header(m) => m.contains("do not match the nodes"),
+        _ => false,
+    }
 }
 
 /// Rays and packets traced over every file `from_bytes` accepts.
@@ -47,7 +63,9 @@ impl Probes {
 }
 
 /// Reads `bytes` as a file; when `from_bytes` accepts it, traces every
-/// probe over it with every traverser. `Err` says what panicked.
+/// probe over it with every traverser (before the full check, as a reader
+/// that opened it would), then runs `validate` and `verify`. `Err` says
+/// what panicked.
 fn probe(bytes: &[u8], probes: &Probes) -> Result<Outcome, String> {
     let data = aligned_copy(bytes);
     let file = match catch_unwind(AssertUnwindSafe(|| KdFile::from_bytes(data))) {
@@ -55,8 +73,6 @@ fn probe(bytes: &[u8], probes: &Probes) -> Result<Outcome, String> {
         Ok(Err(e)) => return Ok(Outcome::Rejected(e)),
         Err(_) => return Err("from_bytes panicked".into()),
     };
-    let verified =
-        catch_unwind(AssertUnwindSafe(|| file.verify())).map_err(|_| "verify panicked")?;
     catch_unwind(AssertUnwindSafe(|| {
         for ray in &probes.rays {
             std::hint::black_box(trace::traverse(&file, ray));
@@ -72,6 +88,13 @@ fn probe(bytes: &[u8], probes: &Probes) -> Result<Outcome, String> {
         std::hint::black_box(file.figures().tree_bytes());
     }))
     .map_err(|_| "traversal panicked")?;
+    let valid =
+        catch_unwind(AssertUnwindSafe(|| file.validate())).map_err(|_| "validate panicked")?;
+    if let Err(e) = valid {
+        return Ok(Outcome::Invalid(e));
+    }
+    let verified =
+        catch_unwind(AssertUnwindSafe(|| file.verify())).map_err(|_| "verify panicked")?;
     Ok(match verified {
         Ok(()) => Outcome::Accepted,
         Err(e) => Outcome::BadChecksum(e),
@@ -264,10 +287,13 @@ fn check_single_flip(b: &[u8], pos: usize, o: &Outcome) -> Result<(), String> {
         (Region::Endianness, Outcome::Rejected(FormatError::Endianness)) => true,
         (Region::Header, Outcome::Rejected(FormatError::HeaderChecksum { .. })) => true,
         (Region::Reserved, Outcome::Rejected(FormatError::Header(_))) => true,
+        // The count of one-triangle leaves: only the nodes can show it
+        // wrong.
+        (Region::Reserved, Outcome::Invalid(e @ FormatError::Header(_))) => is_contents_error(e),
         (Region::Padding(s), Outcome::Rejected(FormatError::Section { section, .. })) => {
             *section == s.name()
         }
-        (Region::Section(_), Outcome::Rejected(_)) => true,
+        (Region::Section(_), Outcome::Invalid(e)) => is_contents_error(e),
         (
             Region::Section(s),
             Outcome::BadChecksum(FormatError::ChecksumMismatch { section, .. }),
@@ -397,8 +423,8 @@ fn corrupt_truncations() {
 }
 
 /// (c) Random byte overwrites anywhere are caught; overwrites of node words
-/// and vertices with plausible values and all checksums repaired, accepted
-/// or not, never make reading or traversal panic (these reach traversal of
+/// and vertices with plausible values and all checksums repaired open,
+/// never make reading or traversal panic, and are judged by the full check (these reach traversal of
 /// odd but valid trees: moved splits, other leaf ranges, extreme
 /// coordinates).
 #[test]
@@ -448,6 +474,13 @@ fn corrupt_overwrites() {
                 &b,
                 |o| match o {
                     Outcome::BadChecksum(_) => Err("checksums were repaired".into()),
+                    // Only the sections changed: the open reads none of
+                    // them, so it opens (and traced), and the full check
+                    // judges it.
+                    Outcome::Rejected(_) => Err("refused on open".into()),
+                    Outcome::Invalid(e) if !is_contents_error(e) => {
+                        Err("not an error of the contents".into())
+                    }
                     _ => Ok(()),
                 },
             );
@@ -626,8 +659,9 @@ impl Want {
 
 /// (e) Targeted edits, each with the specific error it must give. Header
 /// edits repair the header checksum so that they reach the later checks;
-/// node and section edits repair nothing, so `from_bytes` must refuse them
-/// structurally (or, for pure data edits, `verify` by checksum).
+/// node and section edits repair nothing, so the open (header and table)
+/// or the full check (contents) must refuse them structurally (or, for
+/// pure data edits, `verify` by checksum).
 #[test]
 fn corrupt_targeted_edits() {
     let bases = small_bases();
@@ -1266,6 +1300,7 @@ fn corrupt_targeted_edits() {
         for (what, bytes, check) in cases {
             suite.case(&|| format!("{}: {what}", base.name), &bytes, |o| match o {
                 Outcome::Rejected(e) if check.accepts(e) => Ok(()),
+                Outcome::Invalid(e) if check.accepts(e) && is_contents_error(e) => Ok(()),
                 _ => Err("not the expected error".into()),
             });
         }
@@ -1341,7 +1376,7 @@ fn an_empty_leaf_word_must_start_at_0() {
         let mut b = bytes.clone();
         set_word(&mut b, 3, node::encode_leaf32(0, start));
         fix_all_crcs(&mut b);
-        match KdFile::from_bytes(aligned_copy(&b)) {
+        match KdFile::from_bytes_checked(aligned_copy(&b)) {
             Err(FormatError::Node { index: 3, message }) => {
                 assert!(message.contains("empty leaf"), "{message}")
             }

@@ -6,12 +6,16 @@
 //! split positions, words after the tree, header counts, offsets and
 //! bounds, geometry, index arrays, the triangle map, reserved bytes), and
 //! then their checksums are repaired, so that each mutation reaches the
-//! structural checks of `KdFile::from_bytes` rather than stopping at a CRC.
+//! structural checks (`KdFile::from_bytes`, the O(1) open, and
+//! `KdFile::validate`, the full check) rather than stopping at a CRC.
 //!
-//! Asserted for every case: `from_bytes` never panics; a file it accepts
-//! passes `verify`, and every traverser (scalar, and packets at every SIMD
-//! level) traces it without panic, with work bounded by the file's size.
-//! On an accepted file whose tree covers its geometry (every triangle
+//! Asserted for every case: `from_bytes` never panics; on a file it
+//! accepts, every traverser (scalar, and packets at every SIMD level), the
+//! depth histogram, the byte split and `to_columns` run without panic, each
+//! walk within its step limit (`2 · words + 1` nodes), whatever the full
+//! check says of the file; a file the full check accepts passes `verify`,
+//! and its traversers' work is bounded by the file's size.
+//! On a valid file whose tree covers its geometry (every triangle
 //! reaches every leaf the builders' classification sends it to, or a type
 //! II node above: [`covers_geometry`]), single, packet and brute force
 //! return the same hit, bit for bit. On an accepted file that does not
@@ -301,7 +305,9 @@ fn assert_agree<D: AsRef<[u8]> + Sync>(
     rays: &[Ray],
     packets: &[[Ray; 16]],
 ) -> Result<(), String> {
-    let scene = file.to_columns();
+    let scene = file
+        .to_columns()
+        .map_err(|e| format!("to_columns of a valid file: {e}"))?;
     for ray in rays {
         let want = trace::brute_force(&scene, ray);
         let got = trace::traverse(file, ray);
@@ -358,7 +364,45 @@ fn check_plausible(
     }
 }
 
-/// Traces every probe over an accepted file with bounded work, and checks
+/// Traces every probe over a file that passed the O(1) open alone: no
+/// panic, no read out of bounds, and no walk past its step limit (each
+/// probe ray walks twice, closest and any hit; a packet query of 16 rays
+/// takes at most 48 limits: two octants of 8 lanes or more, 16 limits
+/// each, and 16 lanes alone).
+fn check_opened<D: AsRef<[u8]> + Sync>(file: &KdFile<D>, base: &Base) -> Result<(), String> {
+    let limit = 2 * file.nodes().len() as u64 + 1;
+    for ray in &base.rays {
+        let mut s = TraceStats::default();
+        trace::traverse_counted(file, ray, false, &mut s);
+        trace::traverse_counted(file, ray, true, &mut s);
+        if s.nodes > 2 * limit {
+            return Err(format!(
+                "{} steps over the limit {limit}, ray {ray:?}",
+                s.nodes
+            ));
+        }
+    }
+    for rays in &base.packets {
+        for level in SimdLevel::available() {
+            let mut s = TraceStats::default();
+            let mut out = [Hit::MISS; 16];
+            let tracer = PacketTracer::with_level(file, level);
+            tracer.trace_counted(rays, false, &mut out, &mut s);
+            tracer.trace_counted(rays, true, &mut out, &mut s);
+            if s.nodes > 2 * 48 * limit {
+                return Err(format!("{} packet steps over the limit {limit}", s.nodes));
+            }
+        }
+    }
+    let _ = std::hint::black_box((
+        file.leaf_depth_histogram(),
+        slimkd::stats::bytes::ByteSplit::of(file),
+        file.to_columns(),
+    ));
+    Ok(())
+}
+
+/// Traces every probe over a valid file with bounded work, and checks
 /// the hits; `Ok(covering)`.
 fn check_accepted<D: AsRef<[u8]> + Sync>(file: &KdFile<D>, base: &Base) -> Result<bool, String> {
     let n_words = file.nodes().len() as u64;
@@ -387,12 +431,14 @@ fn check_accepted<D: AsRef<[u8]> + Sync>(file: &KdFile<D>, base: &Base) -> Resul
             }
         }
     }
-    std::hint::black_box((file.leaf_depth_histogram(), file.to_columns(), stats));
+    let scene = file
+        .to_columns()
+        .map_err(|e| format!("to_columns of a valid file: {e}"))?;
+    std::hint::black_box((file.leaf_depth_histogram(), stats));
     if covers_geometry(file) {
         assert_agree(file, &base.rays, &base.packets)?;
         return Ok(true);
     }
-    let scene = file.to_columns();
     for ray in &base.rays {
         let want = trace::brute_force(&scene, ray);
         check_plausible("single", trace::traverse(file, ray), want, &scene, ray)?;
@@ -970,7 +1016,10 @@ fn repair_crcs(b: &mut [u8]) {
 
 #[derive(Default)]
 struct Tally {
+    /// Refused by the O(1) open.
     rejected: Cell<usize>,
+    /// Opened, and refused by the full check.
+    invalid: Cell<usize>,
     covering: Cell<usize>,
     not_covering: Cell<usize>,
 }
@@ -1014,6 +1063,21 @@ fn mutated_files_are_rejected_or_traced_consistently() {
                 }
                 Ok(file) => file,
             };
+            catch_unwind(AssertUnwindSafe(|| check_opened(&file, base)))
+                .map_err(|_| {
+                    TestCaseError::fail(format!(
+                        "{}: a reader of the opened file panicked",
+                        base.name
+                    ))
+                })?
+                .map_err(|e| TestCaseError::fail(format!("{}: {e}", base.name)))?;
+            let valid = catch_unwind(AssertUnwindSafe(|| file.validate()))
+                .map_err(|_| TestCaseError::fail(format!("{}: validate panicked", base.name)))?;
+            if let Err(e) = valid {
+                prop_assert!(!e.to_string().is_empty());
+                bump(&tally.invalid);
+                return Ok(());
+            }
             prop_assert!(
                 file.verify().is_ok(),
                 "{}: checksums were repaired",
@@ -1030,18 +1094,21 @@ fn mutated_files_are_rejected_or_traced_consistently() {
             Ok(())
         })
         .unwrap();
-    let (rejected, covering, not_covering) = (
+    let (rejected, invalid, covering, not_covering) = (
         tally.rejected.get(),
+        tally.invalid.get(),
         tally.covering.get(),
         tally.not_covering.get(),
     );
     eprintln!(
-        "{cases} cases: {rejected} rejected, {covering} accepted and covering their geometry, \
-         {not_covering} accepted and not covering it"
+        "{cases} cases: {rejected} rejected on open, {invalid} opened and refused by the full \
+         check, {covering} valid and covering their geometry, {not_covering} valid and not \
+         covering it"
     );
     // Each outcome must be reached, or the test checks less than it says.
     let least = cases as usize / 50;
     assert!(rejected >= least, "{rejected} rejected");
+    assert!(invalid >= least, "{invalid} invalid");
     assert!(covering >= least, "{covering} covering");
     assert!(not_covering >= least / 4, "{not_covering} not covering");
 }
@@ -1050,8 +1117,17 @@ fn mutated_files_are_rejected_or_traced_consistently() {
 // Named regression tests.
 // ---------------------------------------------------------------------
 
+/// Opens `b` as the readers do (the header alone), traces rays over it
+/// (which must not panic, whatever it holds), and returns what the full
+/// check says.
 fn open(b: &[u8]) -> Result<KdFile<format::AlignedBytes>, FormatError> {
-    KdFile::from_bytes(aligned_copy(b))
+    let file = KdFile::from_bytes(aligned_copy(b))?;
+    let mut rng = Rng(3);
+    for ray in rays_at(&file.bounds(), &mut rng, 32) {
+        std::hint::black_box(trace::traverse(&file, &ray));
+    }
+    file.validate()?;
+    Ok(file)
 }
 
 fn grid_file() -> (TriangleColumns, TreeIr, Vec<u8>) {

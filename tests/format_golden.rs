@@ -89,7 +89,7 @@ fn version_1_file_says_to_rebuild() {
 fn regenerate_golden() {
     let (scene, tree, options) = golden_inputs();
     format::write_file(&golden_path(), &tree, &scene, &options).unwrap();
-    let file = KdFile::open(&golden_path(), true).unwrap();
+    let file = KdFile::open(&golden_path(), slimkd::format::Check::Verify).unwrap();
     eprintln!(
         "wrote {} ({} bytes): {:?}, max depth {}",
         golden_path().display(),

@@ -33,11 +33,18 @@ fn encode(w: NodeWord) -> u64 {
     }
 }
 
+/// The file with leaf `w` at `slot`: it opens (the open reads no node) and
+/// traces; the result is what the full check says.
 fn with_leaf(bytes: &[u8], slot: usize, w: NodeWord) -> Result<(), FormatError> {
     let mut b = bytes.to_vec();
     set_word(&mut b, slot, encode(w));
     fix_all_crcs(&mut b);
-    KdFile::from_bytes(aligned_copy(&b)).map(|_| ())
+    let file = KdFile::from_bytes(aligned_copy(&b)).expect("the header is intact");
+    let mut rng = Rng(5);
+    for ray in rays_at(&file.bounds(), &mut rng, 64) {
+        std::hint::black_box(slimkd::trace::traverse(&file, &ray));
+    }
+    file.validate()
 }
 
 #[test]
@@ -127,7 +134,7 @@ fn a_mapped_file_changed_in_place_never_loops() {
     let dir = common::fresh_temp_dir("changed_in_place");
     let path = dir.join("t.kd");
     std::fs::write(&path, &bytes).unwrap();
-    let file = KdFile::open(&path, true).unwrap();
+    let file = KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
     let nodes = section(&bytes, Section::Nodes);
     let mut changed = bytes.clone();
     let (mut loops, mut leaves) = (0, 0);
@@ -216,9 +223,9 @@ fn a_file_read_into_memory_survives_truncation() {
             })
             .collect()
     };
-    let mapped = trace(&KdFile::open(&path, true).unwrap());
+    let mapped = trace(&KdFile::open(&path, slimkd::format::Check::Verify).unwrap());
     assert!(mapped.iter().any(|h| h.is_hit()));
-    let read = KdFile::read(&path, true).unwrap();
+    let read = KdFile::read(&path, slimkd::format::Check::Verify).unwrap();
     std::fs::OpenOptions::new()
         .write(true)
         .open(&path)
@@ -227,18 +234,25 @@ fn a_file_read_into_memory_survives_truncation() {
         .unwrap();
     assert_eq!(trace(&read), mapped);
     assert!(
-        KdFile::read(&path, false).is_err(),
+        KdFile::read(&path, slimkd::format::Check::Header).is_err(),
         "the truncated file is refused"
     );
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// A file of a few words whose slot fields make a DAG (each inner node's
-/// right child is its left child's left child, so a walk would visit 2^k
-/// paths), with counts that add up, is refused at open: every node must
-/// lie where its parent's pre-order says.
+/// A file of a few words whose slot fields make a DAG (node `j`'s children
+/// are nodes `j + 1` and `j + 2`, so 60 nodes have Fib(60) ≈ 2^40 paths),
+/// with counts that add up: it opens (the open reads no node), every
+/// traverser and the depth histogram stop after `2 · words + 1` steps
+/// (without that bound a ray in every split plane walks all 2^40 paths),
+/// and the full check refuses it: every node must lie where its parent's
+/// pre-order says.
 #[test]
-fn shared_subtrees_are_refused() {
+fn shared_subtrees_end_at_the_step_limit_and_are_refused_by_validate() {
+    use slimkd::geom::Ray;
+    use slimkd::trace::packet::{PacketTracer, SimdLevel};
+    use slimkd::trace::{self, Hit, TraceStats};
+
     let scene = strip_scene(2);
     let template = write(
         &strip_tree(&scene, &[vec![0], vec![1]], false),
@@ -264,15 +278,46 @@ fn shared_subtrees_are_refused() {
     set_u64(&mut b, H_ONE_LEAVES, 2);
     set_u32(&mut b, H_MAX_DEPTH, k as u32 + 1);
     let b = with_sections(&b, &sections);
-    match KdFile::from_bytes(aligned_copy(&b)) {
+    let file = KdFile::from_bytes(aligned_copy(&b)).expect("the header is intact");
+    let limit = 2 * (k + 2) + 1;
+    // Rays that start in every split plane (x = 0.75) go down both
+    // children of every node, and miss both triangles, so nothing cuts
+    // the walk short.
+    let rays: Vec<Ray> = (0..16)
+        .map(|i| {
+            let o = glam::Vec3::new(pos, -1.0, 0.03 * i as f32);
+            Ray::new(o, glam::Vec3::Y)
+        })
+        .collect();
+    for any in [false, true] {
+        let mut stats = TraceStats::default();
+        let hit = trace::traverse_counted(&file, &rays[0], any, &mut stats);
+        assert!(!hit.is_hit());
+        assert_eq!(stats.nodes, limit, "any {any}: the walk ends at the limit");
+        for level in SimdLevel::available() {
+            let mut out = [Hit::MISS; 16];
+            let mut stats = TraceStats::default();
+            PacketTracer::with_level(&file, level).trace_counted(&rays, any, &mut out, &mut stats);
+            assert!(out.iter().all(|h| !h.is_hit()), "{level:?}");
+            // One octant of 16 lanes: 16 limits at most, one per lane.
+            assert!(
+                (limit..=16 * limit).contains(&stats.nodes),
+                "{level:?}, any {any}: {} steps",
+                stats.nodes
+            );
+        }
+    }
+    let leaves: u64 = file.leaf_depth_histogram().iter().sum();
+    assert!(leaves <= limit, "{leaves} leaves counted");
+    match file.validate() {
         Err(FormatError::Node { message, .. }) => {
             assert!(message.contains("pre-order"), "{message}")
         }
         Err(e) => panic!("wrong error: {e}"),
-        Ok(_) => panic!("a DAG was accepted"),
+        Ok(()) => panic!("a DAG passed the full check"),
     }
     // The same words as a tree (each right child an empty leaf without a
-    // word, the last node's two leaves): accepted, so the refusal above is
+    // word, the last node's two leaves): valid, so the refusal above is
     // the DAG's.
     let mut tree_nodes: Vec<u64> = (0..k - 1)
         .map(|_| node::encode_inner(0, false, 0, pos))
@@ -281,6 +326,49 @@ fn shared_subtrees_are_refused() {
     tree_nodes.extend([node::encode_leaf1(0), node::encode_leaf1(1)]);
     sections[0] = tree_nodes.iter().flat_map(|w| w.to_le_bytes()).collect();
     let t = with_sections(&b, &sections);
-    let file = KdFile::from_bytes(aligned_copy(&t)).unwrap();
+    let file = KdFile::from_bytes_checked(aligned_copy(&t)).unwrap();
     file.verify().unwrap();
+}
+
+/// A reordered file whose triangle map points past the triangles (its
+/// checksums repaired) opens, and every hit it gives names a triangle of
+/// the file (the entry's own file id), so a caller that looks the hit's
+/// triangle up (shading, `Accel::triangle`) cannot index out of range; the
+/// full check refuses it.
+#[test]
+fn a_triangle_map_out_of_range_still_gives_ids_of_the_file() {
+    use slimkd::format::Section;
+    use slimkd::trace::packet::PacketTracer;
+    use slimkd::trace::{ClosestHit, Hit};
+
+    let mut rng = Rng(9);
+    let scene = random_small_scene(&mut rng, 300, 4);
+    let mut b = write(&std_tree(&scene), &scene, true);
+    let map = section(&b, Section::TriMap);
+    for at in map.step_by(4) {
+        set_u32(&mut b, at, u32::MAX - 1);
+    }
+    fix_all_crcs(&mut b);
+    let file = KdFile::from_bytes(aligned_copy(&b)).expect("the header is intact");
+    let n = file.figures().triangles as u32;
+    let rays = rays_at(&file.bounds(), &mut rng, 256);
+    let single: Vec<Hit> = rays
+        .iter()
+        .map(|r| slimkd::trace::traverse(&file, r))
+        .collect();
+    let mut packet = vec![Hit::MISS; rays.len()];
+    for (rays, out) in rays.chunks(16).zip(packet.chunks_mut(16)) {
+        PacketTracer::new(&file).closest_hit_n(rays, out);
+    }
+    assert!(single.iter().any(|h| h.is_hit()));
+    for h in single.iter().chain(&packet).filter(|h| h.is_hit()) {
+        assert!(h.tri.0 < n, "hit id {} of {n} triangles", h.tri.0);
+    }
+    assert!(matches!(
+        file.validate(),
+        Err(FormatError::Index {
+            section: "tri_map",
+            ..
+        })
+    ));
 }

@@ -196,7 +196,7 @@ fn leaf_at_the_maximum_count() {
         fix_all_crcs(b);
         big
     };
-    let file = KdFile::from_bytes(make(node::encode_leaf32(MAX_LEAF32, 0))).unwrap();
+    let file = KdFile::from_bytes_checked(make(node::encode_leaf32(MAX_LEAF32, 0))).unwrap();
     file.verify().unwrap();
     let w = node::decode(file.nodes()[0]).unwrap();
     assert_eq!(
@@ -214,9 +214,15 @@ fn leaf_at_the_maximum_count() {
     file.leaf(w).for_each(|t| zeros += usize::from(t == 0));
     assert_eq!(zeros, n);
     drop(file);
-    // One index past the end of idx32.
+    // One index past the end of idx32: the file opens (the open reads no
+    // node) and the leaf reads as empty, so a ray through it misses; the
+    // full check refuses it.
+    let file = KdFile::from_bytes(make(node::encode_leaf32(MAX_LEAF32, 1))).unwrap();
+    let w = node::decode(file.nodes()[0]).unwrap();
+    assert!(file.leaf(w).is_empty());
+    assert!(!trace::traverse(&file, &ray).is_hit());
     assert!(matches!(
-        KdFile::from_bytes(make(node::encode_leaf32(MAX_LEAF32, 1))),
+        file.validate(),
         Err(FormatError::Node { index: 0, .. })
     ));
 

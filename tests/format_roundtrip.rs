@@ -93,7 +93,7 @@ fn round_trip_bunny_through_mmap() {
                 ..Default::default()
             };
             format::write_file(&path, tree, &scene, &options).unwrap();
-            let file = KdFile::open(&path, true).unwrap();
+            let file = KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
             assert_eq!(
                 file.as_bytes(),
                 format::write_to_vec(tree, &scene, &options).unwrap()
@@ -253,10 +253,10 @@ fn atomic_writes() {
 
     let path = dir.join("scene.kd");
     format::write_file(&path, &trees[0], &scenes[0], &options).unwrap();
-    let old = KdFile::open(&path, true).unwrap();
+    let old = KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
     let old_bytes = old.as_bytes().to_vec();
     format::write_file(&path, &trees[1], &scenes[1], &options).unwrap();
-    let new = KdFile::open(&path, true).unwrap();
+    let new = KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
     assert_eq!(new.figures().triangles, scenes[1].len() as u64);
     // The old map still shows the old file, intact.
     assert_eq!(old.as_bytes(), &old_bytes[..]);
@@ -286,7 +286,7 @@ fn atomic_writes() {
     });
     let last = std::fs::read(&path).unwrap();
     assert!(expected.contains(&last));
-    KdFile::open(&path, true).unwrap();
+    KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
     assert_eq!(dir_entries(&dir), ["scene.kd"]);
 
     // A path without a file name is refused.

@@ -6,8 +6,14 @@
 //! [`TriangleColumns`](crate::scene::TriangleColumns) ([`write_to_vec`],
 //! [`write_file`]); produces a [`KdFile`] over any byte source
 //! ([`KdFile::from_bytes`], [`KdFile::open`]). [`KdFile::from_bytes`]
-//! validates every count, offset, node and index before any traversal, so
-//! that no byte string makes traversal panic, read out of bounds or loop.
+//! checks the header and the section table in O(1), so that a file of any
+//! size opens without reading its sections; every node, leaf range and
+//! index is checked where a reader reads it, and every walk is bounded by
+//! the node count, so that no byte string makes opening or traversal
+//! panic, read out of bounds or loop (a corrupt section gives wrong hits at
+//! worst). [`KdFile::validate`] checks every node, index and vertex (what
+//! makes hits brute force's), [`KdFile::verify`] every section's checksum;
+//! [`Check`] picks what [`KdFile::open`] runs (`slimkd verify`: all).
 //!
 //! # Layout, version 2
 //!
@@ -22,7 +28,7 @@
 //! leaves without a word and of one-triangle leaves (bytes 340..356, after
 //! the CRC) against the nodes, and the reserved header bytes 356..384 and the
 //! padding after each section must be zero ([`KdFile::from_bytes`]). So any
-//! single corrupted bit makes `from_bytes` or `verify` fail.
+//! single corrupted bit makes `from_bytes`, `validate` or `verify` fail.
 //!
 //! | offset | size | field |
 //! |---:|---:|---|
@@ -62,9 +68,11 @@
 //! indices), `tri_map` (u32: file triangle id → input triangle id; empty
 //! unless reordered). The root is node 0 and the nodes lie in pre-order
 //! ([`node`]: the left child next, the right child at its slot, an empty
-//! child without a word). [`KdFile::from_bytes`] checks that order, which
+//! child without a word). [`KdFile::validate`] checks that order, which
 //! makes every node the child of exactly one parent and every child lie
-//! after its parent, so there are no cycles and no shared subtrees.
+//! after its parent, so there are no cycles and no shared subtrees; a file
+//! opened without it is read as a tree all the same (children only after
+//! their node, at most `2 · words + 1` steps a walk).
 //!
 //! **Limits:** 2^29 node words (4 GiB; the 29-bit slot field), 2^32
 //! triangles, vertices and entries of each index array, 2^27 − 1
@@ -84,7 +92,7 @@ pub mod node;
 mod read;
 mod write;
 
-pub use read::{AlignedBytes, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
+pub use read::{AlignedBytes, Check, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
 pub use write::{
     FileConfig, Preset, SCENE_NAME_LEN, SceneTag, WriteOptions, write_file, write_to_vec,
 };

@@ -1,5 +1,12 @@
-//! Opening a `.kd` file: [`KdFile::from_bytes`] validates everything, then
-//! the accessors hand out typed slices of the bytes without copying.
+//! Opening a `.kd` file: [`KdFile::from_bytes`] checks what can be checked
+//! in O(1) (the header, its checksum, the section table), so that a file of
+//! any size opens without reading its sections; [`KdFile::validate`] checks
+//! every node, index and vertex, and [`KdFile::verify`] every section's
+//! checksum. The accessors hand out typed slices of the bytes without
+//! copying; every read of a node, leaf range or index through them (and
+//! through `trace::FileWalk`) is checked where it is made, so a file that
+//! only passed `from_bytes` never makes a reader panic, read out of bounds
+//! or loop (its results may be wrong).
 
 use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
 use super::write::{FileConfig, Preset, SceneTag};
@@ -13,16 +20,37 @@ use glam::Vec3;
 use std::ops::Range;
 use std::path::Path;
 
-/// A validated `.kd` file over any byte source: a `Vec<u8>`, a `&[u8]`, or
-/// a memory map ([`KdFile::open`]).
+/// A `.kd` file over any byte source: a `Vec<u8>`, a `&[u8]`, or a memory
+/// map ([`KdFile::open`]), its header and section table checked by
+/// [`KdFile::from_bytes`].
+///
+/// What each check guarantees:
+/// - [`KdFile::from_bytes`] (O(1), the default of [`KdFile::open`]): the
+///   header is intact (its CRC), its counts add up, and every section lies
+///   inside the bytes, aligned, with the size the counts give. Nothing in
+///   the sections is read. Every reader stays memory-safe and ends on any
+///   section contents: a child slot outside the node section or not after
+///   its node, a leaf range outside its index array, reads as an empty
+///   leaf; a triangle or vertex index out of range is a triangle that is
+///   never hit; a traversal takes at most one step per node of a tree
+///   ([`crate::trace::Walk::step_limit`]), which bounds it on a file whose
+///   nodes share subtrees. Hits of such a file may be wrong.
+/// - [`KdFile::validate`] (reads the node, index and geometry sections):
+///   the nodes are one tree in pre-order, every split inside its cell,
+///   depth at most [`MAX_DEPTH`], the leaves' ranges cover each index
+///   array once, every index, vertex and the triangle map in range, the
+///   header's counts those of the nodes. Hits are then brute force's, as
+///   far as the leaves list the triangles their cells overlap.
+/// - [`KdFile::verify`] (reads every byte): the sections' CRCs, so that a
+///   flipped bit anywhere is found.
 ///
 /// `D::as_ref` must return the same bytes every time it is called (every
-/// ordinary byte container does); validation happens once, in
-/// [`KdFile::from_bytes`].
+/// ordinary byte container does).
 pub struct KdFile<D> {
     data: D,
     /// Byte ranges of the sections; each starts 64-byte aligned and lies
-    /// inside `data`, checked by `from_bytes`.
+    /// inside `data` with a whole number of elements, checked by
+    /// `from_bytes`.
     ranges: [Range<usize>; 6],
     config: FileConfig,
     reordered: bool,
@@ -175,16 +203,14 @@ fn u64_at(b: &[u8], at: usize) -> u64 {
 }
 
 impl<D: AsRef<[u8]>> KdFile<D> {
-    /// Validates `data` and wraps it. Checks the magic, version, byte
-    /// order, header checksum, every count and section offset, every node
-    /// word (known type and mode bits, the nodes one tree in pre-order with
-    /// every child where its parent's slot field says, splits inside their
-    /// cells, depth at most [`MAX_DEPTH`]), every leaf
-    /// range and index, every vertex index and the triangle map, the
-    /// canonical placement of the sections and the file length, and that
-    /// every byte outside the header and the sections (reserved header
-    /// bytes, padding) is zero. Section checksums are checked by
-    /// [`KdFile::verify`]. Never panics.
+    /// Checks the header and section table of `data` and wraps it, in
+    /// O(1): the magic, version, byte order, header checksum, every count
+    /// (and that they add up) and section offset, the canonical placement
+    /// of the sections and the file length, and that every byte outside
+    /// the header and the sections (reserved header bytes, the at most 63
+    /// bytes of padding after each section) is zero. The sections are not
+    /// read: [`KdFile::validate`] checks their contents, [`KdFile::verify`]
+    /// their checksums. Never panics.
     pub fn from_bytes(data: D) -> Result<KdFile<D>, FormatError> {
         let b = data.as_ref();
         let got = b.len() as u64;
@@ -384,7 +410,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 });
             }
         }
-        let file = KdFile {
+        Ok(KdFile {
             data,
             ranges,
             config,
@@ -392,13 +418,26 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             bounds,
             max_depth,
             counts,
-        };
-        file.validate_contents()?;
+        })
+    }
+
+    /// [`KdFile::from_bytes`] and then [`KdFile::validate`]: a file whose
+    /// every node, index and vertex is checked (not its checksums).
+    pub fn from_bytes_checked(data: D) -> Result<KdFile<D>, FormatError> {
+        let file = KdFile::from_bytes(data)?;
+        file.validate()?;
         Ok(file)
     }
 
-    /// Checks nodes, leaves, indices, vertices and the triangle map.
-    fn validate_contents(&self) -> Result<(), FormatError> {
+    /// Checks the contents of the sections, in one pass over the nodes
+    /// and one over the geometry (reads all but the padding): every node
+    /// word (known type and mode bits, the nodes one tree in pre-order with
+    /// every child where its parent's slot field says, splits inside their
+    /// cells, depth at most the header's maximum and [`MAX_DEPTH`]), every
+    /// leaf range and index (the ranges covering each index array once),
+    /// the header's counts against the nodes, and the geometry
+    /// ([`KdFile::validate_geometry`]). Never panics.
+    pub fn validate(&self) -> Result<(), FormatError> {
         let words = self.nodes();
         let n = words.len() as u64;
         let n_tris = self.counts.triangles;
@@ -635,6 +674,15 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 message: format!("triangle {} of {n_tris}", self.idx32()[p]),
             });
         }
+        self.validate_geometry()
+    }
+
+    /// Checks the geometry sections: every vertex index in range, every
+    /// coordinate finite, not `-0.0` and inside the header's scene bounds,
+    /// and the triangle map a permutation. What [`KdFile::to_columns`]
+    /// needs; part of [`KdFile::validate`].
+    pub fn validate_geometry(&self) -> Result<(), FormatError> {
+        let n_tris = self.counts.triangles;
         super::check_vertex_indices(self.triangles(), self.counts.vertices)?;
         if let Some(p) = self
             .vertices()
@@ -693,7 +741,8 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         Ok(())
     }
 
-    /// Checks every section's checksum.
+    /// Checks every section's checksum (reads the whole file; not the
+    /// contents' structure, which [`KdFile::validate`] checks).
     pub fn verify(&self) -> Result<(), FormatError> {
         let b = self.data.as_ref();
         for s in Section::ALL {
@@ -760,11 +809,12 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         self.reordered.then(|| self.section(Section::TriMap))
     }
 
-    /// The input id of file triangle `t`.
+    /// The input id of file triangle `t` (`t` itself where the map has no
+    /// entry `t`, as `trace::FileWalk` reads it).
     #[inline]
     pub fn input_id(&self, t: u32) -> u32 {
         match self.tri_map() {
-            Some(map) => map[t as usize],
+            Some(map) => map.get(t as usize).copied().unwrap_or(t),
             None => t,
         }
     }
@@ -772,19 +822,27 @@ impl<D: AsRef<[u8]>> KdFile<D> {
     /// The vertices of *file* triangle `t` (the file's numbering, which
     /// differs from the input's when reordered): a hit's triangle id is an
     /// input id, whose vertices [`Accel::triangle`](crate::Accel::triangle)
-    /// gives; [`KdFile::input_id`] maps file ids to input ids.
+    /// gives; [`KdFile::input_id`] maps file ids to input ids. A vertex
+    /// index out of range (a file not [validated](KdFile::validate)) reads
+    /// as the origin.
+    ///
+    /// # Panics
+    ///
+    /// If `t` is not below the number of triangles.
     #[inline]
     pub fn triangle(&self, t: u32) -> [Vec3; 3] {
         let v = self.vertices();
-        self.triangles()[t as usize].map(|i| Vec3::from_array(v[i as usize]))
+        self.triangles()[t as usize].map(|i| v.get(i as usize).map_or(Vec3::ZERO, |&p| p.into()))
     }
 
-    /// The indices of a leaf word (validated by `from_bytes`).
+    /// The indices of a leaf word; a range outside its index array (a file
+    /// not [validated](KdFile::validate)) reads as an empty leaf.
     #[inline]
     pub fn leaf(&self, w: NodeWord) -> LeafIndices<'_> {
+        let range = |start: u32, count: u32| start as usize..start as usize + count as usize;
         match w {
             NodeWord::Leaf32 { count, start } => {
-                LeafIndices::Idx32(&self.idx32()[start as usize..start as usize + count as usize])
+                LeafIndices::Idx32(self.idx32().get(range(start, count)).unwrap_or(&[]))
             }
             NodeWord::Leaf16 {
                 count,
@@ -792,7 +850,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 start,
             } => LeafIndices::Idx16 {
                 upper: u32::from(upper) << 16,
-                low: &self.idx16()[start as usize..start as usize + count as usize],
+                low: self.idx16().get(range(start, count)).unwrap_or(&[]),
             },
             NodeWord::Leaf1 { tri } => LeafIndices::One(tri),
             _ => LeafIndices::Idx32(&[]),
@@ -814,7 +872,8 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         self.max_depth
     }
 
-    /// The header's counts (checked against the nodes by a full open).
+    /// The header's counts (checked against the nodes by
+    /// [`KdFile::validate`]).
     pub fn figures(&self) -> TreeFigures {
         self.counts
     }
@@ -825,17 +884,30 @@ impl<D: AsRef<[u8]>> KdFile<D> {
     }
 
     /// Leaves per depth (root = 0), empty ones too.
+    ///
+    /// Of a file not [validated](KdFile::validate), the walk reads its nodes
+    /// as the traversers do (a child slot outside the node section or not
+    /// after its node is an empty leaf, a malformed word a leaf) and counts
+    /// at most `2 · words + 1` nodes, the most a tree of that many words
+    /// has, so nodes that share subtrees cannot make it take exponential
+    /// time; the counts are then what it reached.
     pub fn leaf_depth_histogram(&self) -> Vec<u64> {
         let words = self.nodes();
         let mut hist = Vec::new();
+        let mut budget = 2 * words.len() + 1;
         // `None`: an empty child without a word.
         let mut stack = vec![(Some(0u32), 0usize)];
         while let Some((i, d)) = stack.pop() {
-            let word = i.map(|i| (i, node::decode(words[i as usize])));
+            if budget == 0 {
+                break;
+            }
+            budget -= 1;
+            let word = i.and_then(|i| Some((i, node::decode(*words.get(i as usize)?))));
             if let Some((i, Ok(NodeWord::Inner { t_ref, right, .. }))) = word {
                 let (l, r) = node::children(i, t_ref, right);
-                stack.push((r, d + 1));
-                stack.push((l, d + 1));
+                let after = |c: Option<u32>| c.filter(|&c| c > i);
+                stack.push((after(r), d + 1));
+                stack.push((after(l), d + 1));
                 continue;
             }
             if hist.len() <= d {
@@ -851,8 +923,11 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         self.data.as_ref()
     }
     /// The geometry back in input order, as columns (for brute force and
-    /// shading by input id).
-    pub fn to_columns(&self) -> crate::scene::TriangleColumns {
+    /// shading by input id): a copy, after
+    /// [`validate_geometry`](KdFile::validate_geometry), whose error it
+    /// returns.
+    pub fn to_columns(&self) -> Result<crate::scene::TriangleColumns, FormatError> {
+        self.validate_geometry()?;
         let positions = self
             .vertices()
             .iter()
@@ -863,7 +938,9 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         for (t, tri) in tris.iter().enumerate() {
             indices[self.input_id(t as u32) as usize] = *tri;
         }
-        crate::scene::TriangleColumns::from_valid_parts(positions, indices)
+        Ok(crate::scene::TriangleColumns::from_valid_parts(
+            positions, indices,
+        ))
     }
 }
 
@@ -886,9 +963,38 @@ impl AsRef<[u8]> for Mapped {
     }
 }
 
+/// How much of a file [`KdFile::open`] and [`KdFile::read`] check before
+/// handing it out (see [`KdFile`] for what each guarantees).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Check {
+    /// [`KdFile::from_bytes`]: the header and section table, in O(1); no
+    /// page of the sections is read (0.1 ms for a 984 MB file, against
+    /// 2.5–3.5 s and the whole file paged in for [`Check::Full`]).
+    #[default]
+    Header,
+    /// Also [`KdFile::validate`]: every node, index and vertex.
+    Full,
+    /// Also [`KdFile::verify`]: every section's checksum (`slimkd verify`).
+    Verify,
+}
+
+impl<D: AsRef<[u8]>> KdFile<D> {
+    /// The checks of `check` beyond [`KdFile::from_bytes`].
+    pub fn check(&self, check: Check) -> Result<(), FormatError> {
+        if check != Check::Header {
+            self.validate()?;
+        }
+        if check == Check::Verify {
+            self.verify()?;
+        }
+        Ok(())
+    }
+}
+
 impl KdFile<Mapped> {
-    /// Maps a file and validates it; with `verify_checksums`, also checks
-    /// every section's checksum (reads the whole file).
+    /// Maps a file and checks it as `check` says: [`Check::Header`], the
+    /// default, reads the header alone, so a file of any size opens at once
+    /// and only the pages a traversal touches are ever read.
     ///
     /// **Soundness.** A memory map is only as immutable as the file behind
     /// it: as `memmap2` documents, the file must not be modified or
@@ -902,7 +1008,7 @@ impl KdFile<Mapped> {
     /// SIGBUS on the next read of a lost page, which ends the process.
     /// Where files may be changed under the reader, read the file into
     /// memory instead ([`KdFile::read`], the CLI's `--no-mmap`).
-    pub fn open(path: &Path, verify_checksums: bool) -> Result<KdFile<Mapped>, FormatError> {
+    pub fn open(path: &Path, check: Check) -> Result<KdFile<Mapped>, FormatError> {
         let io = |source| FormatError::Io {
             path: path.to_path_buf(),
             source,
@@ -914,17 +1020,39 @@ impl KdFile<Mapped> {
         // remaining precondition (nobody modifies the file in place while
         // it is mapped) is the caller's, documented above.
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
-        let kd = KdFile::from_bytes(Mapped(Backing::Map(map)))?;
-        if verify_checksums {
-            kd.verify()?;
+        if check == Check::Header {
+            // A traversal reads a word here and a leaf there: readahead
+            // would page in (and map) whole windows around each (a 256x256
+            // frame of a 984 MB file not in the page cache: 31 MB resident
+            // without, 135 MB with). A hint, so an error is ignored; the
+            // full checks read every byte in order and keep the default,
+            // and `read_ahead` restores it for readers that walk it all.
+            #[cfg(unix)]
+            let _ = map.advise(memmap2::Advice::Random);
         }
+        let kd = KdFile::from_bytes(Mapped(Backing::Map(map)))?;
+        kd.check(check)?;
         Ok(kd)
     }
 
+    /// Restores the kernel's readahead on a map that [`KdFile::open`] made
+    /// with [`Check::Header`] (which turns it off, as traversal reads at
+    /// random), for a reader that walks every node (`slimkd info`: 4–6 s
+    /// on a 984 MB file not in the page cache, 19 s without readahead). A
+    /// hint: nothing changes for a file read into memory, and an error is
+    /// ignored.
+    pub fn read_ahead(&self) {
+        #[cfg(unix)]
+        if let Backing::Map(m) = &self.data.0 {
+            let _ = m.advise(memmap2::Advice::Normal);
+        }
+    }
+
     /// [`KdFile::open`] without a map: the whole file is read into memory
-    /// (anonymous pages, as large as the file) and validated, so nothing
-    /// another process does to the file afterwards reaches the reader.
-    pub fn read(path: &Path, verify_checksums: bool) -> Result<KdFile<Mapped>, FormatError> {
+    /// (anonymous pages, as large as the file) and checked as `check` says,
+    /// so nothing another process does to the file afterwards reaches the
+    /// reader.
+    pub fn read(path: &Path, check: Check) -> Result<KdFile<Mapped>, FormatError> {
         let io = |source| FormatError::Io {
             path: path.to_path_buf(),
             source,
@@ -936,9 +1064,7 @@ impl KdFile<Mapped> {
         )
         .map_err(io)?;
         let kd = KdFile::from_bytes(Mapped(Backing::Heap(aligned_copy(&bytes))))?;
-        if verify_checksums {
-            kd.verify()?;
-        }
+        kd.check(check)?;
         Ok(kd)
     }
 }

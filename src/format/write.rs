@@ -706,7 +706,7 @@ fn write_kd<W: Read + Write + Seek>(
 
 /// Serialises a tree and its scene into the bytes of a `.kd` file.
 ///
-/// Never writes a file that [`KdFile::from_bytes`](super::KdFile::from_bytes)
+/// Never writes a file that [`KdFile::from_bytes_checked`](super::KdFile::from_bytes_checked)
 /// would reject: a tree that does not fit the format
 /// ([`FormatError::TooLarge`]), a malformed tree (a child or leaf list out of
 /// range, a node reached twice, an axis over 2, a split that is not finite

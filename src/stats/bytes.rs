@@ -88,7 +88,8 @@ impl ByteSplit {
         self.idx32_bytes + self.idx16_bytes
     }
 
-    /// The split of a validated file's tree.
+    /// The split of a file's tree: each node word counted once, in file
+    /// order (of a file not validated, whatever its words say).
     pub fn of<D: AsRef<[u8]>>(file: &KdFile<D>) -> ByteSplit {
         let f = file.figures();
         let mut s = ByteSplit {
@@ -123,9 +124,15 @@ impl ByteSplit {
             } else {
                 s.leaf_bytes += 8;
             }
+            // A triangle index out of range (a file not validated) is
+            // skipped.
             leaf.for_each(|t| {
-                cost[t as usize] += u64::from(c);
-                cheapest[t as usize] = cheapest[t as usize].min(c);
+                if let (Some(cost), Some(m)) =
+                    (cost.get_mut(t as usize), cheapest.get_mut(t as usize))
+                {
+                    *cost += u64::from(c);
+                    *m = (*m).min(c);
+                }
             });
         }
         for (&c, &m) in cost.iter().zip(&cheapest) {

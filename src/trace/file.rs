@@ -13,21 +13,26 @@ use glam::Vec3;
 /// 2^29 words), so [`Walk::node`] gives an empty leaf without a load.
 pub(crate) const NO_WORD: u32 = u32::MAX;
 
-/// The sections of a validated [`KdFile`]. Only [`FileWalk::new`] makes
-/// one, so every word, child slot, leaf range and vertex index in it
-/// passed [`KdFile::from_bytes`] when the file was opened.
+/// The sections of a [`KdFile`] whose header and section table passed
+/// [`KdFile::from_bytes`]; their contents are checked where they are read,
+/// not on open (a file need not pass [`KdFile::validate`], and a mapped
+/// file rewritten in place by another process can hold anything).
 ///
-/// **A mapped file changed after it was opened** (rewritten in place by
-/// another process) can hold anything, so every read stays checked, and a
-/// check that fails reads as nothing rather than panicking: a child slot
-/// that does not lie after its node (a loop) or outside the node section,
-/// or a leaf range outside its index array, is an empty leaf; a triangle
-/// index out of range (a one-triangle leaf's too) or a vertex index out of
-/// range is a triangle that is never hit. Each is a
+/// A check that fails reads as nothing rather than panicking: a child
+/// slot that does not lie after its node (a loop) or outside the node
+/// section, or a leaf range outside its index array, is an empty leaf; a
+/// triangle index out of range (a one-triangle leaf's too) or a vertex
+/// index out of range is a triangle that is never hit. Each is a
 /// comparison the slice indexing made anyway, and the first keeps every
-/// walk moving forward through the nodes, so it ends. (A file truncated
-/// under the mapping is another matter: the kernel answers a read of the
-/// lost pages with SIGBUS; see [`KdFile::open`].)
+/// walk moving forward through the nodes. Forward slots can still share
+/// subtrees, whose paths can be exponentially many, so a walk stops after
+/// [`Walk::step_limit`] steps: `2 · words + 1`, the most nodes (words and
+/// empty children without one) a tree of that many words has. A split
+/// outside its cell is not checked: it only sends a ray to a child it
+/// would not have visited, and the walk stays bounded. So a corrupt file
+/// gives wrong hits at worst. (A file truncated under the mapping is
+/// another matter: the kernel answers a read of the lost pages with
+/// SIGBUS; see [`KdFile::open`].)
 #[derive(Clone, Copy)]
 pub struct FileWalk<'a> {
     nodes: &'a [u64],
@@ -37,6 +42,9 @@ pub struct FileWalk<'a> {
     triangles: &'a [[u32; 3]],
     tri_map: Option<&'a [u32]>,
     bounds: Aabb,
+    /// `2 · nodes.len() + 1` (at most 2^30 + 1: [`KdFile::from_bytes`]
+    /// refuses more than 2^29 words).
+    step_limit: u32,
 }
 
 /// A walk is its own source, so a caller that took one once (the facade's
@@ -63,6 +71,7 @@ impl<'a> FileWalk<'a> {
             triangles: file.triangles(),
             tri_map: file.tri_map(),
             bounds: file.bounds(),
+            step_limit: u32::try_from(2 * file.nodes().len() + 1).unwrap_or(u32::MAX),
         }
     }
 }
@@ -155,9 +164,21 @@ impl<'a> Walk<'a> for FileWalk<'a> {
     }
 
     #[inline(always)]
+    fn step_limit(&self) -> u32 {
+        self.step_limit
+    }
+
+    #[inline(always)]
     fn input_id(&self, t: u32) -> TriId {
+        // A map entry out of range (a file not validated) reads as `t`, so
+        // that a hit's id always names a triangle of the file (a triangle
+        // `t` out of range is never hit).
         TriId(match self.tri_map {
-            Some(map) => map.get(t as usize).copied().unwrap_or(t),
+            Some(map) => map
+                .get(t as usize)
+                .copied()
+                .filter(|&i| (i as usize) < map.len())
+                .unwrap_or(t),
             None => t,
         })
     }

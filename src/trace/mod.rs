@@ -197,6 +197,10 @@ pub trait Walk<'a>: Copy + Sync {
     fn triangle(&self, t: u32) -> [Vec3; 3];
     /// The input id reported for a triangle (ties are broken on it).
     fn input_id(&self, t: u32) -> TriId;
+    /// The most nodes one traversal visits: each node of a tree at most
+    /// once, so a walk that takes more steps is on nodes that share
+    /// subtrees (a file not validated) and stops.
+    fn step_limit(&self) -> u32;
 }
 
 /// An in-memory tree and its scene.
@@ -248,6 +252,11 @@ impl<'a> Walk<'a> for TreeTracer<'a> {
     #[inline]
     fn triangle(&self, t: u32) -> [Vec3; 3] {
         self.scene.tri(t)
+    }
+
+    #[inline]
+    fn step_limit(&self) -> u32 {
+        u32::try_from(self.tree.nodes.len()).unwrap_or(u32::MAX)
     }
 
     #[inline]
@@ -456,15 +465,28 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
         return Hit::MISS;
     };
     let rp = RayPrecomp::new(ray);
-    walk_cells::<W, ANY, COUNT>(src, ray, &rp, inv_dir, (0, t0, t1), Hit::MISS, stats)
+    let mut steps_left = u64::from(src.step_limit());
+    let start = (0, t0, t1);
+    walk_cells::<W, ANY, COUNT>(
+        src,
+        ray,
+        &rp,
+        inv_dir,
+        start,
+        Hit::MISS,
+        stats,
+        &mut steps_left,
+    )
 }
 
 /// The scalar walk of the subtree at `start.0` over the ray's interval
 /// `[start.1, start.2]` in its cell, keeping the closest of `best` and
 /// the hits found (any hit under `ANY`). [`walk_ray`] starts it at the
 /// root; the packet traverser hands it a lane of a cell that only that
-/// lane or few others visit.
+/// lane or few others visit. It stops once `steps_left` (a node a step,
+/// shared with the packet walk that hands it lanes) is spent.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     src: W,
     ray: &Ray,
@@ -473,13 +495,14 @@ pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     start: (u32, f32, f32),
     mut best: Hit,
     stats: &mut TraceStats,
+    steps_left: &mut u64,
 ) -> Hit {
     // Pending cells. Entries below `sp` are written; the traversal depth
     // is at most MAX_DEPTH (checked by TreeIr::validate and
-    // KdFile::from_bytes), so `sp` stays below MAX_STACK. The push checks
+    // KdFile::validate), so `sp` stays below MAX_STACK. The push checks
     // it all the same (the compare the indexing made anyway) and drops the
-    // cell of a deeper path, which only a file changed after it was
-    // opened can make. Left uninitialised: zeroing 1.2 KB per ray cost 4 %
+    // cell of a deeper path, which only a file that was not validated can
+    // make. Left uninitialised: zeroing 1.2 KB per ray cost 4 %
     // of short rays' time.
     let mut stack = [const { MaybeUninit::<(u32, f32, f32)>::uninit() }; MAX_STACK];
     let mut sp = 0usize;
@@ -488,6 +511,10 @@ pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     let dir = ray.dir.to_array();
     let inv = inv_dir.to_array();
     loop {
+        if *steps_left == 0 {
+            return best;
+        }
+        *steps_left -= 1;
         if COUNT {
             stats.nodes += 1;
         }

@@ -648,7 +648,15 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
     // The lanes that are done (any-hit queries only).
     let mut done = 0u16;
     let mut stack: ArrayVec<Entry, MAX_STACK> = ArrayVec::new();
+    // Each lane visits a node of a tree at most once, by the packet or
+    // alone: so `LANES` times the step limit bounds this walk and the lanes
+    // it hands to the scalar walk together.
+    let mut steps_left = u64::from(src.step_limit()) * LANES as u64;
     'outer: loop {
+        if steps_left == 0 {
+            return;
+        }
+        steps_left -= 1;
         if ANY && cur.mask != 0 && cur.mask.count_ones() <= SCALAR_LANES {
             // So few lanes left in this cell: each walks its subtree alone.
             let mut m = cur.mask;
@@ -669,6 +677,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                     start,
                     prev,
                     stats,
+                    &mut steps_left,
                 );
                 best.t[i] = h.t;
                 best.id[i] = h.tri.0;
@@ -729,8 +738,8 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                         // An empty child (a file's child without a word) is
                         // not visited. One entry per inner node on the path: the depth
                         // bound (MAX_DEPTH) keeps it below MAX_STACK; a
-                        // deeper path, which only a file changed after it
-                        // was opened can make, drops the cell (as the
+                        // deeper path, which only a file that was not
+                        // validated can make, drops the cell (as the
                         // scalar walk does).
                         let _ = stack.try_push(Entry {
                             node: second.0,

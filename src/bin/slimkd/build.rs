@@ -367,7 +367,7 @@ pub(crate) fn cmd_build(
             // is mapped and checked, so that the two never add up.
             built.tree.nodes = Vec::new();
             built.tree.leaf_tris = Vec::new();
-            let file = open_kd(out, false)?;
+            let file = open_kd(out, slimkd::format::Check::Full)?;
             written = Some((out.to_path_buf(), file.figures(), secs));
         }
         // The whole command: loading, building, writing.

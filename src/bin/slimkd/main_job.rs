@@ -127,7 +127,7 @@ fn write_and_trace(
     };
     format::write_file(&path, tree, &loaded.scene, &options)?;
     let write_s = start.elapsed().as_secs_f64();
-    let file = open_kd(&path, false)?;
+    let file = open_kd(&path, slimkd::format::Check::Header)?;
     let tracer = PacketTracer::new(&file);
     // One untimed frame first: it faults the file's pages in.
     let mut last = Some(render::trace_frame(&tracer, camera));

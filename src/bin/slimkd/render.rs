@@ -2,7 +2,7 @@
 //! the tree (built or a mapped file), frames and their figures.
 
 use crate::*;
-use slimkd::format::{self, KdFile, Mapped};
+use slimkd::format::{self, Check, KdFile, Mapped};
 use slimkd::pipeline;
 use slimkd::progress::Progress;
 use slimkd::render::{self, Camera, HitBuffer, Shading, View};
@@ -40,13 +40,13 @@ pub(crate) fn expect_kd(path: &Path, command: &str) -> Res<()> {
 pub(crate) static NO_MMAP: std::sync::atomic::AtomicBool =
     std::sync::atomic::AtomicBool::new(false);
 
-/// Maps (or with `--no-mmap` reads) and validates a `.kd` file (`verify`:
-/// its checksums too); every error names the file once.
-pub(crate) fn open_kd(path: &Path, verify: bool) -> Res<KdFile<Mapped>> {
+/// Maps (or with `--no-mmap` reads) a `.kd` file and checks it as `check`
+/// says; every error names the file once.
+pub(crate) fn open_kd(path: &Path, check: Check) -> Res<KdFile<Mapped>> {
     let opened = if NO_MMAP.load(std::sync::atomic::Ordering::Relaxed) {
-        KdFile::read(path, verify)
+        KdFile::read(path, check)
     } else {
-        KdFile::open(path, verify)
+        KdFile::open(path, check)
     };
     opened.map_err(|e| match e {
         // It names the file already.
@@ -160,9 +160,17 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
     pool.install(|| {
         let source = if kd_input {
             let start = Instant::now();
-            let file = open_kd(&args.scene, false)?;
+            let file = open_kd(&args.scene, Check::Header)?;
             let open_ms = start.elapsed().as_secs_f64() * 1e3;
-            let columns = (args.mode == ModeArg::Brute).then(|| file.to_columns());
+            // Brute force reads every triangle from columns: the one mode
+            // that copies the geometry, after checking it.
+            let columns = match args.mode {
+                ModeArg::Brute => Some(
+                    file.to_columns()
+                        .map_err(|e| format!("{}: {e}", args.scene.display()))?,
+                ),
+                _ => None,
+            };
             Source::File { file, columns, open_ms }
         } else {
             let loaded = load(&args.scene, ui.bars_off())?;

@@ -82,7 +82,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
         return Err("--reps must be at least 1".into());
     }
     let start = Instant::now();
-    let file = crate::render::open_kd(&args.file, false)?;
+    let file = crate::render::open_kd(&args.file, slimkd::format::Check::Header)?;
     let open_ms = start.elapsed().as_secs_f64() * 1e3;
     let rays = rays::read_rays(&args.rays)?;
     let query = if args.occluded {
