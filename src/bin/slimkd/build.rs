@@ -40,6 +40,20 @@ pub(crate) fn scene_name(path: &Path) -> String {
         .into_owned()
 }
 
+/// Loads every scene of `paths` in turn, each announced on stderr with its
+/// summary unless `ui.quiet` (the multi-scene commands: report, sweep).
+pub(crate) fn load_all(paths: &[PathBuf], ui: Out) -> Res<Vec<Loaded>> {
+    let mut out = Vec::with_capacity(paths.len());
+    for path in paths {
+        let loaded = load(path, ui.bars_off())?;
+        if !ui.quiet {
+            eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
+        }
+        out.push(loaded);
+    }
+    Ok(out)
+}
+
 /// Loads a scene; a progress bar shows the bytes read once loading has
 /// taken a second, unless `quiet`.
 pub(crate) fn load(path: &Path, quiet: bool) -> Res<Loaded> {

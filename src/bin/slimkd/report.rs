@@ -20,14 +20,10 @@ pub(crate) fn cmd_report(args: &ReportArgs, ui: Out) -> Res<()> {
     report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
     check_output_dir(&args.output)?;
     let views = crate::read_views(args.views.as_deref())?;
-    let mut scenes = Vec::new();
-    for path in &args.scenes {
-        let loaded = load(path, ui.bars_off())?;
-        if !ui.quiet {
-            eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
-        }
-        scenes.push((loaded.name(), loaded.scene, loaded.seconds));
-    }
+    let scenes: Vec<_> = load_all(&args.scenes, ui)?
+        .into_iter()
+        .map(|loaded| (loaded.name(), loaded.scene, loaded.seconds))
+        .collect();
     let all_threads = match args.threads {
         Some(0) => return Err(Usage("--threads must be at least 1".into()).into()),
         Some(n) => n,

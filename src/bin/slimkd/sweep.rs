@@ -52,14 +52,10 @@ pub(crate) fn cmd_sweep(args: &SweepArgs, ui: Out) -> Res<()> {
         Err(e) => return Err(format!("{}: {e}", args.output.display()).into()),
     }
     let views = crate::read_views(args.views.as_deref())?;
-    let mut scenes = Vec::new();
-    for path in &args.scenes {
-        let loaded = load(path, ui.bars_off())?;
-        if !ui.quiet {
-            eprintln!("loaded {} ({})", loaded.path.display(), loaded.summary);
-        }
-        scenes.push((loaded.name(), loaded.scene));
-    }
+    let scenes: Vec<_> = load_all(&args.scenes, ui)?
+        .into_iter()
+        .map(|loaded| (loaded.name(), loaded.scene))
+        .collect();
     let options = report::FrontOptions {
         scenes,
         views,
