@@ -52,6 +52,29 @@ fn draw_mesh(
         .map_err(plot_err)
 }
 
+/// A whole-figure chart on `root` (filled white): the caption, the plot
+/// over `xs` × `ys` with a `y_label`-pixel label area, and its axes
+/// ([`draw_mesh`], tick decimals from the ranges).
+fn figure_chart<'a, 'b>(
+    root: &'a DrawingArea<SVGBackend<'b>, Shift>,
+    title: &str,
+    y_label: u32,
+    (xs, ys): (std::ops::Range<f64>, std::ops::Range<f64>),
+    axes: (&str, &str),
+) -> Result<Chart<'a, 'b>, PlotError> {
+    root.fill(&WHITE).map_err(plot_err)?;
+    let decimals = (tick_decimals(&xs), tick_decimals(&ys));
+    let mut chart = ChartBuilder::on(root)
+        .caption(title, ("sans-serif", 18))
+        .margin(16)
+        .x_label_area_size(44)
+        .y_label_area_size(y_label)
+        .build_cartesian_2d(xs, ys)
+        .map_err(plot_err)?;
+    draw_mesh(&mut chart, axes, decimals)?;
+    Ok(chart)
+}
+
 /// Draws the legend of the chart's series at `position`.
 fn draw_legend<'a, 'b: 'a>(
     chart: &mut Chart<'a, 'b>,
@@ -163,20 +186,11 @@ pub fn scatter_svg(
             [p.y, lo, hi]
         }),
     );
-    let (xd, yd) = (tick_decimals(&xs), tick_decimals(&ys));
     let (x0, x1, y0, y1) = (xs.start, xs.end, ys.start, ys.end);
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
-        root.fill(&WHITE).map_err(plot_err)?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 18))
-            .margin(16)
-            .x_label_area_size(44)
-            .y_label_area_size(56)
-            .build_cartesian_2d(xs, ys)
-            .map_err(plot_err)?;
-        draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
+        let mut chart = figure_chart(&root, title, 56, (xs, ys), (x_desc, y_desc))?;
         let zero = BLACK.mix(0.5).stroke_width(1);
         chart
             .draw_series([
@@ -255,19 +269,10 @@ pub fn front_svg(
         0.08,
     );
     let ys = padded_range(points.iter().filter(finite).map(|p| p.y), 0.08);
-    let (xd, yd) = (tick_decimals(&xs), tick_decimals(&ys));
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
-        root.fill(&WHITE).map_err(plot_err)?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 18))
-            .margin(16)
-            .x_label_area_size(44)
-            .y_label_area_size(64)
-            .build_cartesian_2d(xs, ys)
-            .map_err(plot_err)?;
-        draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
+        let mut chart = figure_chart(&root, title, 64, (xs, ys), (x_desc, y_desc))?;
         // The front: sorted by x, each step across then down.
         let mut front: Vec<&TradeOffPoint> = points
             .iter()
