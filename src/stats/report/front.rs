@@ -20,7 +20,7 @@
 //! The result, a [`FrontReport`], renders as Markdown, JSON (documented in
 //! `docs/json-schema.md`) and one SVG chart per scene ([`FrontReport::write`]).
 
-use super::run::{cameras_of, write_tree};
+use super::run::{cameras_of, check_timing_options, write_tree};
 use super::tables::check_hits;
 use super::*;
 use crate::pipeline::{JSON_SCHEMA, file_config};
@@ -263,17 +263,7 @@ pub fn run_front(
     bar: Option<&Progress>,
     log: &mut dyn FnMut(&str),
 ) -> Result<FrontReport, ReportError> {
-    if options.reps == 0 {
-        return Err(ReportError::Options("reps must be at least 1".into()));
-    }
-    if options.threads == 0 {
-        return Err(ReportError::Options("threads must be at least 1".into()));
-    }
-    if options.size.0 == 0 || options.size.1 == 0 {
-        return Err(ReportError::Options(
-            "the image size must not be zero".into(),
-        ));
-    }
+    check_timing_options(options.reps, options.threads, options.size)?;
     let grid = options.grid.clone().unwrap_or_else(default_grid);
     if grid.settings.is_empty() {
         return Err(ReportError::Options("the grid has no settings".into()));

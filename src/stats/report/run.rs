@@ -122,6 +122,27 @@ impl Steps<'_> {
     }
 }
 
+/// The options every timed run needs: at least one rep and one thread,
+/// and frames of some size (the report's and the sweep's rule).
+pub(crate) fn check_timing_options(
+    reps: usize,
+    threads: usize,
+    size: (u32, u32),
+) -> Result<(), ReportError> {
+    if reps == 0 {
+        return Err(ReportError::Options("reps must be at least 1".into()));
+    }
+    if threads == 0 {
+        return Err(ReportError::Options("threads must be at least 1".into()));
+    }
+    if size.0 == 0 || size.1 == 0 {
+        return Err(ReportError::Options(
+            "the image size must not be zero".into(),
+        ));
+    }
+    Ok(())
+}
+
 /// Builds, writes and traces every scene; `progress` gets one line per
 /// step.
 pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Report, ReportError> {
@@ -137,17 +158,7 @@ pub fn run_with_progress(
     bar: Option<&Progress>,
     log: &mut dyn FnMut(&str),
 ) -> Result<Report, ReportError> {
-    if options.reps == 0 {
-        return Err(ReportError::Options("reps must be at least 1".into()));
-    }
-    if options.all_threads == 0 {
-        return Err(ReportError::Options("threads must be at least 1".into()));
-    }
-    if options.size.0 == 0 || options.size.1 == 0 {
-        return Err(ReportError::Options(
-            "the image size must not be zero".into(),
-        ));
-    }
+    check_timing_options(options.reps, options.all_threads, options.size)?;
     let pool = |n: usize| {
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
