@@ -883,18 +883,26 @@ impl<D: AsRef<[u8]>> KdFile<D> {
         self.reordered
     }
 
+    /// The most nodes (words and empty children without one) a tree of
+    /// this file's node words has, `2 · words + 1`: a walk that visits more
+    /// is on nodes that share subtrees (a file not validated), and the
+    /// traversers and readers stop there.
+    pub fn node_limit(&self) -> usize {
+        2 * self.nodes().len() + 1
+    }
+
     /// Leaves per depth (root = 0), empty ones too.
     ///
     /// Of a file not [validated](KdFile::validate), the walk reads its nodes
     /// as the traversers do (a child slot outside the node section or not
     /// after its node is an empty leaf, a malformed word a leaf) and counts
-    /// at most `2 · words + 1` nodes, the most a tree of that many words
-    /// has, so nodes that share subtrees cannot make it take exponential
-    /// time; the counts are then what it reached.
+    /// at most [`KdFile::node_limit`] nodes, so nodes that share subtrees
+    /// cannot make it take exponential time; the counts are then what it
+    /// reached.
     pub fn leaf_depth_histogram(&self) -> Vec<u64> {
         let words = self.nodes();
         let mut hist = Vec::new();
-        let mut budget = 2 * words.len() + 1;
+        let mut budget = self.node_limit();
         // `None`: an empty child without a word.
         let mut stack = vec![(Some(0u32), 0usize)];
         while let Some((i, d)) = stack.pop() {

@@ -26,7 +26,7 @@ pub(crate) const NO_WORD: u32 = u32::MAX;
 /// comparison the slice indexing made anyway, and the first keeps every
 /// walk moving forward through the nodes. Forward slots can still share
 /// subtrees, whose paths can be exponentially many, so a walk stops after
-/// [`Walk::step_limit`] steps: `2 · words + 1`, the most nodes (words and
+/// [`Walk::step_limit`] steps: [`KdFile::node_limit`], the most nodes (words and
 /// empty children without one) a tree of that many words has. A split
 /// outside its cell is not checked: it only sends a ray to a child it
 /// would not have visited, and the walk stays bounded. So a corrupt file
@@ -71,7 +71,7 @@ impl<'a> FileWalk<'a> {
             triangles: file.triangles(),
             tri_map: file.tri_map(),
             bounds: file.bounds(),
-            step_limit: u32::try_from(2 * file.nodes().len() + 1).unwrap_or(u32::MAX),
+            step_limit: u32::try_from(file.node_limit()).unwrap_or(u32::MAX),
         }
     }
 }
