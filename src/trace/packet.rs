@@ -507,6 +507,12 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
     out: &mut [Hit],
     stats: &mut TraceStats,
 ) {
+    if rays.len() < MIN_LANES as usize {
+        for (r, o) in rays.iter().zip(out.iter_mut()) {
+            *o = super::walk_ray::<_, ANY, COUNT>(src, r, stats);
+        }
+        return;
+    }
     let p = Packet::new(rays);
     let mut best = Best {
         t: [f32::INFINITY; LANES],
@@ -517,15 +523,7 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
     } else {
         (1u16 << rays.len()) - 1
     };
-    if rays.len() >= MIN_LANES as usize {
-        walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats);
-    } else {
-        for (i, r) in rays.iter().enumerate() {
-            let h = super::walk_ray::<_, ANY, COUNT>(src, r, stats);
-            best.t[i] = h.t;
-            best.id[i] = h.tri.0;
-        }
-    }
+    walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats);
     for (i, o) in out.iter_mut().enumerate() {
         *o = if best.id[i] == u32::MAX {
             Hit::MISS
