@@ -22,10 +22,16 @@ use slimkd::trace::{self, ClosestHit, Hit, KdSource, Scalar, TraceStats, TreeTra
 fn check_queries(src: &impl KdSource, scene: &slimkd::scene::TriangleColumns, rays: &[Ray]) {
     let want: Vec<Hit> = rays.iter().map(|r| trace::brute_force(scene, r)).collect();
     let want_occ: Vec<bool> = want.iter().zip(rays).map(|(h, r)| h.t < r.tmax).collect();
-    let scalar = Scalar::new(src);
+    for level in SimdLevel::available() {
+        let scalar = Scalar::with_level(src, level);
+        assert_eq!(scalar.level(), level);
+        for (i, r) in rays.iter().enumerate() {
+            assert_eq!(scalar.closest_hit(r), want[i], "scalar {level:?} ray {i}");
+            let occ = scalar.occluded(r);
+            assert_eq!(occ, want_occ[i], "scalar {level:?} occluded ray {i}");
+        }
+    }
     for (i, r) in rays.iter().enumerate() {
-        assert_eq!(scalar.closest_hit(r), want[i], "scalar ray {i}");
-        assert_eq!(scalar.occluded(r), want_occ[i], "scalar occluded ray {i}");
         assert_eq!(trace::occluded(src, r), want_occ[i]);
         let mut stats = TraceStats::default();
         assert_eq!(trace::traverse_counted(src, r, false, &mut stats), want[i]);

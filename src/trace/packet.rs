@@ -411,11 +411,18 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
 
 impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
     fn closest_hit(&self, ray: &Ray) -> Hit {
-        super::walk_ray::<_, false, false>(self.walk, ray, &mut TraceStats::default())
+        let w = self.walk;
+        crate::simd_dispatch!(self.level, |_WIDE| {
+            super::walk_ray::<_, false, false>(w, ray, &mut TraceStats::default())
+        })
     }
 
     fn occluded(&self, ray: &Ray) -> bool {
-        super::walk_ray::<_, true, false>(self.walk, ray, &mut TraceStats::default()).is_hit()
+        let w = self.walk;
+        crate::simd_dispatch!(self.level, |_WIDE| {
+            super::walk_ray::<_, true, false>(w, ray, &mut TraceStats::default())
+        })
+        .is_hit()
     }
 
     fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
