@@ -43,7 +43,7 @@
 mod files;
 
 pub use files::{
-    CellId, CellInput, PLAN_NAME, Plan, PlanCell, cell_path, part_path, plan_path, read_cell,
+    CellId, CellInput, PLAN_NAME, cell_id, Plan, PlanCell, cell_path, part_path, plan_path, read_cell,
     read_part, read_plan, write_cell, write_part, write_plan,
 };
 
@@ -329,9 +329,25 @@ pub fn prepare(
             )
         }
     };
-    let done = (0..plan.cells.len())
+    let done: Vec<bool> = (0..plan.cells.len())
         .map(|i| read_part(&part_path(dir, i), plan.cells[i].id).is_ok())
         .collect();
+    // A cell to build whose file is missing or damaged: plan again (the
+    // same files; the parts kept stay valid).
+    let damaged = (0..plan.cells.len())
+        .any(|i| !done[i] && cell_id(&cell_path(dir, i)).ok() != Some(plan.cells[i].id));
+    if damaged && !planned {
+        let top = self::plan(scene, config, options, k, progress)?;
+        let plan = write_plan_dir(dir, scene, config, k, small, scene_hash, top)?;
+        let done = (0..plan.cells.len())
+            .map(|i| read_part(&part_path(dir, i), plan.cells[i].id).is_ok())
+            .collect();
+        return Ok(Prepared {
+            plan,
+            planned: true,
+            done,
+        });
+    }
     Ok(Prepared {
         plan,
         planned,
