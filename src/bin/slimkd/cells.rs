@@ -270,8 +270,11 @@ pub(crate) fn cmd_stitch(
         }
         let start = Instant::now();
         let missing: Vec<String> = (0..plan.cells.len())
-            .filter(|&i| cells::read_part(&cells::part_path(dir, i), plan.cells[i].id).is_err())
-            .map(|i| cells::cell_path(dir, i).display().to_string())
+            .filter_map(|i| {
+                cells::read_part(&cells::part_path(dir, i), plan.cells[i].id)
+                    .err()
+                    .map(|e| e.to_string())
+            })
             .collect();
         if !missing.is_empty() {
             return Err(format!(
@@ -279,7 +282,7 @@ pub(crate) fn cmd_stitch(
                 dir.display(),
                 missing.len(),
                 plan.cells.len(),
-                missing.join(", ")
+                missing.join("; ")
             )
             .into());
         }

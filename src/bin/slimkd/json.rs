@@ -214,7 +214,7 @@ pub(crate) struct BuildCmdJson {
     #[serde(flatten)]
     pub(crate) memory: MemoryJson,
     /// A build in cells (`build --cells`, `stitch`).
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(flatten)]
     pub(crate) cells: Option<CellsJson>,
 }
 
