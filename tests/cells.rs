@@ -121,7 +121,9 @@ fn build_cells_writes_the_file_of_build_o() {
             let extra: &[&str] = if reorder { &["--reorder"] } else { &[] };
             let mono = dir.join("mono.kd");
             let m = mono.display().to_string();
-            ok(slimkd(&[&["build", &scene, "-q", "-o", &m], extra].concat()));
+            ok(slimkd(
+                &[&["build", &scene, "-q", "-o", &m], extra].concat(),
+            ));
             for k in ["1", "2", "7", "64"] {
                 let out = dir.join(format!("c{k}.kd"));
                 let o = out.display().to_string();
@@ -144,7 +146,15 @@ fn build_cells_writes_the_file_of_build_o() {
 fn build_cells(scene: &str, k: &str, dir: &Path, out: &Path) -> serde_json::Value {
     let (d, o) = (dir.display().to_string(), out.display().to_string());
     json(&ok(slimkd(&[
-        "build", scene, "--cells", k, "--cells-dir", &d, "-o", &o, "--json",
+        "build",
+        scene,
+        "--cells",
+        k,
+        "--cells-dir",
+        &d,
+        "-o",
+        &o,
+        "--json",
     ])))
 }
 
@@ -162,7 +172,13 @@ fn a_deleted_or_corrupt_part_is_rebuilt_on_resume() {
     let dir = fresh_temp_dir("resume");
     let scene = scene_files(&dir)[3].clone();
     let mono = dir.join("mono.kd");
-    ok(slimkd(&["build", &scene, "-q", "-o", &mono.display().to_string()]));
+    ok(slimkd(&[
+        "build",
+        &scene,
+        "-q",
+        "-o",
+        &mono.display().to_string(),
+    ]));
     let work = dir.join("work");
     let out = dir.join("cells.kd");
     let first = build_cells(&scene, "7", &work, &out);
@@ -199,16 +215,33 @@ fn cells_built_elsewhere_are_kept_and_stitched() {
     let dir = fresh_temp_dir("elsewhere");
     let scene = scene_files(&dir)[3].clone();
     let mono = dir.join("mono.kd");
-    ok(slimkd(&["build", &scene, "-q", "-o", &mono.display().to_string(), "--reorder"]));
+    ok(slimkd(&[
+        "build",
+        &scene,
+        "-q",
+        "-o",
+        &mono.display().to_string(),
+        "--reorder",
+    ]));
     let work = dir.join("work");
     let d = work.display().to_string();
     let plan = json(&ok(slimkd(&[
-        "build", &scene, "--cells", "5", "--cells-dir", &d, "--plan-only", "--json",
+        "build",
+        &scene,
+        "--cells",
+        "5",
+        "--cells-dir",
+        &d,
+        "--plan-only",
+        "--json",
     ])));
     assert_eq!(plan["command"], "plan");
     let list = plan["cell_list"].as_array().unwrap().clone();
     assert!(list.len() >= 2);
-    assert!(!cells::part_path(&work, 0).exists(), "--plan-only builds no cell");
+    assert!(
+        !cells::part_path(&work, 0).exists(),
+        "--plan-only builds no cell"
+    );
     // Stitching before every part is built names the cells left.
     let out = dir.join("stitched.kd");
     let o = out.display().to_string();
@@ -226,7 +259,14 @@ fn cells_built_elsewhere_are_kept_and_stitched() {
         assert!(cells::part_path(&work, i).exists());
     }
     let doc = json(&ok(slimkd(&[
-        "stitch", &scene, "--cells-dir", &d, "-o", &o, "--reorder", "--json",
+        "stitch",
+        &scene,
+        "--cells-dir",
+        &d,
+        "-o",
+        &o,
+        "--reorder",
+        "--json",
     ])));
     assert_eq!(doc["command"], "stitch");
     assert!(bytes(&out) == bytes(&mono));
@@ -235,8 +275,16 @@ fn cells_built_elsewhere_are_kept_and_stitched() {
     let ad = build_cells(&scene, "5", &work, &again);
     assert!(kept(&ad).iter().all(|&k| k));
     let with_reorder = ok(slimkd(&[
-        "build", &scene, "--cells", "5", "--cells-dir", &d, "-o",
-        &again.display().to_string(), "--reorder", "-q",
+        "build",
+        &scene,
+        "--cells",
+        "5",
+        "--cells-dir",
+        &d,
+        "-o",
+        &again.display().to_string(),
+        "--reorder",
+        "-q",
     ]));
     drop(with_reorder);
     assert!(bytes(&again) == bytes(&mono));
@@ -248,7 +296,13 @@ fn a_build_killed_while_building_cells_finishes_with_the_same_file() {
     let dir = fresh_temp_dir("killed");
     let scene = scene_files(&dir)[3].clone();
     let mono = dir.join("mono.kd");
-    ok(slimkd(&["build", &scene, "-q", "-o", &mono.display().to_string()]));
+    ok(slimkd(&[
+        "build",
+        &scene,
+        "-q",
+        "-o",
+        &mono.display().to_string(),
+    ]));
     let work = dir.join("work");
     let out = dir.join("cells.kd");
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_slimkd"))
@@ -270,8 +324,14 @@ fn a_build_killed_while_building_cells_finishes_with_the_same_file() {
     child.wait().unwrap();
     let _ = std::fs::remove_file(&out);
     let doc = build_cells(&scene, "64", &work, &out);
-    assert_eq!(doc["planned"], false, "the plan written before the kill is kept");
-    assert!(kept(&doc).iter().any(|&k| k), "the part built before the kill is kept");
+    assert_eq!(
+        doc["planned"], false,
+        "the plan written before the kill is kept"
+    );
+    assert!(
+        kept(&doc).iter().any(|&k| k),
+        "the part built before the kill is kept"
+    );
     assert!(bytes(&out) == bytes(&mono));
 }
 
@@ -295,7 +355,10 @@ fn corrupt_plan_cell_and_part_files_name_the_file() {
     for path in &files {
         let good = bytes(path);
         let bad = dir.join("bad");
-        let mut variants: Vec<Vec<u8>> = (0..good.len()).step_by(7).map(|l| good[..l].to_vec()).collect();
+        let mut variants: Vec<Vec<u8>> = (0..good.len())
+            .step_by(7)
+            .map(|l| good[..l].to_vec())
+            .collect();
         for at in (0..good.len()).step_by(good.len() / 97 + 1) {
             let mut b = good.clone();
             b[at] ^= 0x41;
@@ -325,10 +388,20 @@ fn corrupt_plan_cell_and_part_files_name_the_file() {
     part[40] ^= 1;
     std::fs::write(cells::part_path(&dir, 1), &part).unwrap();
     let o = dir.join("out.kd").display().to_string();
-    let st = slimkd(&["stitch", &obj.display().to_string(), "--cells-dir", &d, "-o", &o]);
+    let st = slimkd(&[
+        "stitch",
+        &obj.display().to_string(),
+        "--cells-dir",
+        &d,
+        "-o",
+        &o,
+    ]);
     assert_eq!(st.status.code(), Some(1));
     let err = String::from_utf8_lossy(&st.stderr);
-    assert!(err.contains("cell-00001.kdpart: corrupt part file (checksum mismatch)"), "{err}");
+    assert!(
+        err.contains("cell-00001.kdpart: corrupt part file (checksum mismatch)"),
+        "{err}"
+    );
     let cell = cells::cell_path(&dir, 0);
     let mut c = bytes(&cell);
     c.truncate(c.len() - 1);
@@ -336,9 +409,22 @@ fn corrupt_plan_cell_and_part_files_name_the_file() {
     let bc = slimkd(&["build-cell", &cell.display().to_string()]);
     assert_eq!(bc.status.code(), Some(1));
     let err = String::from_utf8_lossy(&bc.stderr);
-    assert!(err.contains(&format!("{}: truncated or overlong cell file", cell.display())), "{err}");
+    assert!(
+        err.contains(&format!(
+            "{}: truncated or overlong cell file",
+            cell.display()
+        )),
+        "{err}"
+    );
     std::fs::write(cells::plan_path(&dir), b"SLIMKPL\0").unwrap();
-    let st = slimkd(&["stitch", &obj.display().to_string(), "--cells-dir", &d, "-o", &o]);
+    let st = slimkd(&[
+        "stitch",
+        &obj.display().to_string(),
+        "--cells-dir",
+        &d,
+        "-o",
+        &o,
+    ]);
     assert_eq!(st.status.code(), Some(1));
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("plan.kdplan: truncated plan file"), "{err}");
@@ -349,12 +435,25 @@ fn a_plan_of_another_scene_is_refused_by_stitch() {
     let dir = fresh_temp_dir("other-scene");
     let files = scene_files(&dir);
     let d = dir.join("work").display().to_string();
-    ok(slimkd(&["build", &files[0], "--cells", "3", "--cells-dir", &d, "-o", &dir.join("a.kd").display().to_string(), "-q"]));
+    ok(slimkd(&[
+        "build",
+        &files[0],
+        "--cells",
+        "3",
+        "--cells-dir",
+        &d,
+        "-o",
+        &dir.join("a.kd").display().to_string(),
+        "-q",
+    ]));
     let o = dir.join("b.kd").display().to_string();
     let st = slimkd(&["stitch", &files[1], "--cells-dir", &d, "-o", &o]);
     assert_eq!(st.status.code(), Some(1));
     let err = String::from_utf8_lossy(&st.stderr);
-    assert!(err.contains("plan.kdplan: the plan of another scene"), "{err}");
+    assert!(
+        err.contains("plan.kdplan: the plan of another scene"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -362,11 +461,34 @@ fn usage_errors_of_a_build_in_cells() {
     let dir = fresh_temp_dir("usage");
     let o = dir.join("x.kd").display().to_string();
     for (args, says) in [
-        (vec!["build", "default", "--cells", "0", "-o", &o], "at least 1"),
-        (vec!["build", "default", "--cells", "4", "--preset", "fast", "-o", &o], "std tree only"),
-        (vec!["build", "default", "--cells", "4", "--builder", "sweep", "-o", &o], "level builder"),
+        (
+            vec!["build", "default", "--cells", "0", "-o", &o],
+            "at least 1",
+        ),
+        (
+            vec![
+                "build", "default", "--cells", "4", "--preset", "fast", "-o", &o,
+            ],
+            "std tree only",
+        ),
+        (
+            vec![
+                "build",
+                "default",
+                "--cells",
+                "4",
+                "--builder",
+                "sweep",
+                "-o",
+                &o,
+            ],
+            "level builder",
+        ),
         (vec!["build", "default", "--cells", "4"], "needs -o"),
-        (vec!["build", "default", "--cells-dir", "w", "-o", &o], "--cells"),
+        (
+            vec!["build", "default", "--cells-dir", "w", "-o", &o],
+            "--cells",
+        ),
         (vec!["build", "default", "--plan-only", "-o", &o], "--cells"),
     ] {
         let out = slimkd(&args);

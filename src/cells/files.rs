@@ -393,8 +393,7 @@ impl<'a> In<'a> {
             max_depth: None,
         };
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        if !positive(p.k_t) || !positive(p.k_i) || !(p.lambda_empty > 0.0 && p.lambda_empty <= 1.0)
-        {
+        if !(positive(p.k_t) && positive(p.k_i) && p.lambda_empty > 0.0 && p.lambda_empty <= 1.0) {
             return Err(self.corrupt("corrupt SAH parameters".into()));
         }
         Ok(p)

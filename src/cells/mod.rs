@@ -43,8 +43,8 @@
 mod files;
 
 pub use files::{
-    CellId, CellInput, PLAN_NAME, cell_id, Plan, PlanCell, cell_path, part_path, plan_path, read_cell,
-    read_part, read_plan, write_cell, write_part, write_plan,
+    CellId, CellInput, PLAN_NAME, Plan, PlanCell, cell_id, cell_path, part_path, plan_path,
+    read_cell, read_part, read_plan, write_cell, write_part, write_plan,
 };
 
 use crate::build::level::{self, CutCell, LevelOptions, TopTree};

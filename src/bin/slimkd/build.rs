@@ -424,7 +424,7 @@ pub(crate) fn write_and_print(
             print_json(
                 command,
                 BuildCmdJson {
-                    scene: SceneJson::of(&loaded),
+                    scene: SceneJson::of(loaded),
                     tree: TreeJson::of(&stats),
                     build: BuildJson::of(&built),
                     threads: rayon::current_num_threads(),
@@ -442,7 +442,7 @@ pub(crate) fn write_and_print(
                 },
             )?;
         } else if !ui.quiet {
-            print_summary(&loaded, &built, &stats, ui.verbose);
+            print_summary(loaded, &built, &stats, ui.verbose);
             if let Some((out, fig, secs)) = &written {
                 println!(
                     "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",

@@ -312,6 +312,15 @@ pub(crate) fn cmd_stitch(
             &vec![true; plan.cells.len()],
             &vec![None; plan.cells.len()],
         );
-        write_and_print("stitch", &loaded, built, Some(output), reorder, ui, &watch, Some(json))
+        write_and_print(
+            "stitch",
+            &loaded,
+            built,
+            Some(output),
+            reorder,
+            ui,
+            &watch,
+            Some(json),
+        )
     })
 }

@@ -184,7 +184,9 @@ fn main() -> ExitCode {
             reorder,
             cells,
         }) => match cells.cells {
-            Some(k) => cells::cmd_build_cells(&scene, &build, output.as_deref(), reorder, k, &cells, ui),
+            Some(k) => {
+                cells::cmd_build_cells(&scene, &build, output.as_deref(), reorder, k, &cells, ui)
+            }
             None => cmd_build(&scene, &build, output.as_deref(), reorder, ui),
         },
         Some(Command::BuildCell {
