@@ -391,77 +391,75 @@ pub(crate) fn write_and_print(
     watch: &PeakRss,
     cells: Option<CellsJson>,
 ) -> Res<()> {
-    {
-        let stats = TreeStats::of(&built.tree, &built.config.sah);
-        let mut written = None;
-        if let Some(out) = output {
-            let start = Instant::now();
-            let options = WriteOptions {
-                reorder,
-                config: FileConfig {
-                    scene: SceneTag::new(&loaded.name(), &loaded.scene),
-                    ..pipeline::file_config(
-                        &built.config,
-                        loaded.scene.len(),
-                        built.preset,
-                        built.slim.as_ref().map(|(p, _, _)| p),
-                    )
+    let stats = TreeStats::of(&built.tree, &built.config.sah);
+    let mut written = None;
+    if let Some(out) = output {
+        let start = Instant::now();
+        let options = WriteOptions {
+            reorder,
+            config: FileConfig {
+                scene: SceneTag::new(&loaded.name(), &loaded.scene),
+                ..pipeline::file_config(
+                    &built.config,
+                    loaded.scene.len(),
+                    built.preset,
+                    built.slim.as_ref().map(|(p, _, _)| p),
+                )
+            },
+        };
+        format::write_file(out, &built.tree, &loaded.scene, &options)?;
+        let secs = start.elapsed().as_secs_f64();
+        // Only figures are left to print: free the tree before the file
+        // is mapped and checked, so that the two never add up.
+        built.tree.nodes = Vec::new();
+        built.tree.leaf_tris = Vec::new();
+        let file = open_kd(out, slimkd::format::Check::Full)?;
+        written = Some((out.to_path_buf(), file.figures(), secs));
+    }
+    // The whole command: loading, building, writing.
+    let (peak_anon, peak_file) = watch.peaks();
+    let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
+    if ui.json {
+        print_json(
+            command,
+            BuildCmdJson {
+                scene: SceneJson::of(loaded),
+                tree: TreeJson::of(&stats),
+                build: BuildJson::of(&built),
+                threads: rayon::current_num_threads(),
+                written: written.as_ref().map(|(out, fig, secs)| WrittenJson {
+                    output: out.display().to_string(),
+                    write_s: *secs,
+                    reorder,
+                    storage: FiguresJson::of(fig).storage,
+                }),
+                memory: MemoryJson {
+                    peak_rss_anon_bytes: peak_anon,
+                    peak_rss_file_bytes: peak_file,
                 },
-            };
-            format::write_file(out, &built.tree, &loaded.scene, &options)?;
-            let secs = start.elapsed().as_secs_f64();
-            // Only figures are left to print: free the tree before the file
-            // is mapped and checked, so that the two never add up.
-            built.tree.nodes = Vec::new();
-            built.tree.leaf_tris = Vec::new();
-            let file = open_kd(out, slimkd::format::Check::Full)?;
-            written = Some((out.to_path_buf(), file.figures(), secs));
-        }
-        // The whole command: loading, building, writing.
-        let (peak_anon, peak_file) = watch.peaks();
-        let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
-        if ui.json {
-            print_json(
-                command,
-                BuildCmdJson {
-                    scene: SceneJson::of(loaded),
-                    tree: TreeJson::of(&stats),
-                    build: BuildJson::of(&built),
-                    threads: rayon::current_num_threads(),
-                    written: written.as_ref().map(|(out, fig, secs)| WrittenJson {
-                        output: out.display().to_string(),
-                        write_s: *secs,
-                        reorder,
-                        storage: FiguresJson::of(fig).storage,
-                    }),
-                    memory: MemoryJson {
-                        peak_rss_anon_bytes: peak_anon,
-                        peak_rss_file_bytes: peak_file,
-                    },
-                    cells,
-                },
-            )?;
-        } else if !ui.quiet {
-            print_summary(loaded, &built, &stats, ui.verbose);
-            if let Some((out, fig, secs)) = &written {
-                println!(
-                    "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
-                    out.display(),
-                    secs,
-                    fig.tree_bytes() as f64 / (1 << 20) as f64,
-                    fig.idx32,
-                    fig.idx16,
-                    fig.geometry_bytes() as f64 / (1 << 20) as f64
-                );
-            }
+                cells,
+            },
+        )?;
+    } else if !ui.quiet {
+        print_summary(loaded, &built, &stats, ui.verbose);
+        if let Some((out, fig, secs)) = &written {
             println!(
-                "memory     peak RssAnon {:.1} MiB, peak RssFile {:.1} MiB (load, build and write)",
-                peak_anon as f64 / (1 << 20) as f64,
-                peak_file as f64 / (1 << 20) as f64
+                "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
+                out.display(),
+                secs,
+                fig.tree_bytes() as f64 / (1 << 20) as f64,
+                fig.idx32,
+                fig.idx16,
+                fig.geometry_bytes() as f64 / (1 << 20) as f64
             );
         }
-        Ok(())
+        println!(
+            "memory     peak RssAnon {:.1} MiB, peak RssFile {:.1} MiB (load, build and write)",
+            peak_anon as f64 / (1 << 20) as f64,
+            peak_file as f64 / (1 << 20) as f64
+        );
     }
+    Ok(())
 }
 
 #[cfg(test)]

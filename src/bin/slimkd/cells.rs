@@ -97,7 +97,7 @@ pub(crate) fn cmd_build_cells(
             }
             return Ok(());
         }
-        let std_start = Instant::now();
+        let stitch_start = Instant::now();
         let tree = cells::stitch_dir(&dir, plan)?;
         let built = Built {
             tree,
@@ -112,7 +112,7 @@ pub(crate) fn cmd_build_cells(
         if ui.verbose && !ui.json {
             eprintln!(
                 "cells      stitched in {:.3} s",
-                std_start.elapsed().as_secs_f64()
+                stitch_start.elapsed().as_secs_f64()
             );
         }
         write_and_print("build", &loaded, built, output, reorder, ui, &watch, Some(json))
@@ -197,7 +197,8 @@ pub(crate) fn cmd_build_cell(
         let start = Instant::now();
         let (input, id) = cells::read_cell(cell)?;
         let read_s = start.elapsed().as_secs_f64();
-        let tree = cells::build_cell(&input, &level_options_default())?;
+        // No build flag changes the tree, so `build-cell` takes none.
+        let tree = cells::build_cell(&input, &level::LevelOptions::default())?;
         let build_s = start.elapsed().as_secs_f64() - read_s;
         cells::write_part(&output, id, &tree)?;
         let total_s = start.elapsed().as_secs_f64();
@@ -232,12 +233,6 @@ pub(crate) fn cmd_build_cell(
         }
         Ok(())
     })
-}
-
-/// The level options of `build-cell`, which takes no build flags: none of
-/// them changes the tree.
-fn level_options_default() -> level::LevelOptions {
-    level::LevelOptions::default()
 }
 
 /// `slimkd stitch SCENE --cells-dir DIR -o OUT`.
