@@ -70,7 +70,7 @@ fn the_ray_driver_writes_the_file_of_build_o() {
     let doc = ray_cells(&py, &scene, &work, &out);
     assert_eq!(doc["command"], "ray_cells");
     let cells = doc["cells"].as_u64().unwrap();
-    assert!(cells >= 2 && cells <= 8, "{cells} cells");
+    assert!((2..=8).contains(&cells), "{cells} cells");
     assert_eq!(doc["built"], cells);
     assert!(std::fs::read(&out).unwrap() == std::fs::read(&mono).unwrap());
     // A rerun builds nothing: every part is kept.
