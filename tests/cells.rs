@@ -498,3 +498,32 @@ fn usage_errors_of_a_build_in_cells() {
         assert!(!Path::new(&o).exists());
     }
 }
+
+#[test]
+fn the_cut_makes_at_most_k_cells_none_below_its_minimum() {
+    let config = BuildConfig::default();
+    let options = LevelOptions::default();
+    for (name, scene) in scenes() {
+        for k in [1, 2, 7, 64] {
+            let cut = cells::cut_for(scene.len(), k, options.small_threshold);
+            let top = cells::plan(&scene, &config, &options, k, None).unwrap();
+            assert!(
+                top.cells.len() <= k,
+                "{name}, K = {k}: {} cells",
+                top.cells.len()
+            );
+            for (node, cell) in &top.cells {
+                assert!(cell.tris.len() >= cut.min_refs, "{name}, K = {k}");
+                assert!(
+                    matches!(
+                        top.tree.nodes[node.0 as usize],
+                        slimkd::tree::Node::Leaf { count: 0, .. }
+                    ),
+                    "{name}, K = {k}: a cell stands at an empty leaf"
+                );
+            }
+            let nodes: Vec<_> = top.cells.iter().map(|c| c.0).collect();
+            assert!(nodes.windows(2).all(|w| w[0] < w[1]), "cells in pre-order");
+        }
+    }
+}

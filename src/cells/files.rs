@@ -343,7 +343,7 @@ impl<'a> In<'a> {
         }
     }
 
-    /// Checks that the file is `8·… + expect` bytes long (from the header's
+    /// Checks that the file is `expect` bytes long (from the header's
     /// counts) and that its checksum holds; returns its identity.
     fn check(&self, kind: &str, expect: Option<u64>) -> Result<CellId, CellsError> {
         let len = self.data.len() as u64;

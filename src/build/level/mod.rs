@@ -230,9 +230,7 @@ fn run(
         options,
         scratch: &scratch,
         depth_limit: config.sah.depth_limit(scene.len()),
-        small_threshold: cut.map_or(options.small_threshold, |c| {
-            options.small_threshold.min(c.min_refs)
-        }),
+        small_threshold: cut.map_or(options.small_threshold, |c| c.min_refs),
         cut: cut.map(|rule| (rule, Vec::new())),
         recs: vec![Rec::Open],
         leaf_tris: Vec::new(),
