@@ -66,6 +66,7 @@
 
 pub mod accel;
 pub mod build;
+pub mod cells;
 pub(crate) mod columns;
 pub mod format;
 #[doc(hidden)] // the CLI's atomic writes and input checks

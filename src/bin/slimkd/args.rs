@@ -85,6 +85,14 @@ const EXAMPLES: &str = "Examples:
   slimkd report a.obj b.kds --views views.txt --reps 9 -o report.md
   slimkd trace scene.kd rays.bin --occluded";
 
+/// The examples of the commands of a build in cells.
+const CELLS_EXAMPLES: &str = "Examples:
+  slimkd build scene.obj --cells 64 -o scene.kd          plan, build the cells, stitch (resumes)
+  slimkd build scene.obj --cells 64 --cells-dir w --plan-only --json
+  slimkd build-cell w/cell-00012.kdcell                  writes w/cell-00012.kdpart
+  slimkd stitch scene.obj --cells-dir w -o scene.kd
+  python3 tools/ray_cells.py scene.obj --cells 64 --cells-dir /shared/w -o scene.kd";
+
 /// The camera `render` uses without a view or camera flags.
 const DEFAULT_CAMERA: &str = "Without --view and camera flags the camera is the default one: it \
     looks at the centre C of the scene's box from C + normalize(0.6, 0.4, 1.0) * 1.2 * (the box's \
@@ -106,7 +114,45 @@ pub(crate) enum Command {
         #[arg(long)]
         reorder: bool,
         #[command(flatten)]
+        cells: CellsArgs,
+        #[command(flatten)]
         build: BuildArgs,
+    },
+    /// Build one cell of a build in cells (a cell file that `build
+    /// --cells` wrote) into its part file: the cell's subtree, exactly as
+    /// the whole build makes it. The cell file is all it reads.
+    #[command(after_help = CELLS_EXAMPLES)]
+    BuildCell {
+        /// A cell file (`cell-NNNNN.kdcell` in a work directory).
+        cell: PathBuf,
+        /// The part file to write (atomically); default: the cell file's
+        /// name with `.kdpart`, beside it, where `build --cells` and
+        /// `stitch` look for it.
+        #[arg(short = 'o', long)]
+        output: Option<PathBuf>,
+        /// Worker threads (default, or 0: all cores).
+        #[arg(short = 'j', long)]
+        threads: Option<usize>,
+    },
+    /// Stitch the top tree and the parts of a build in cells into one .kd
+    /// file, byte for byte the file `build -o` writes.
+    #[command(after_help = CELLS_EXAMPLES)]
+    Stitch {
+        /// The scene the plan was made of (its geometry hash is checked).
+        scene: PathBuf,
+        /// The work directory (plan, cell and part files).
+        #[arg(long)]
+        cells_dir: PathBuf,
+        /// The .kd file to write (atomically).
+        #[arg(short = 'o', long)]
+        output: PathBuf,
+        /// Renumber triangles in Morton order before writing (as `build
+        /// --reorder`).
+        #[arg(long)]
+        reorder: bool,
+        /// Worker threads (default, or 0: all cores).
+        #[arg(short = 'j', long)]
+        threads: Option<usize>,
     },
     /// Render a scene (built on the fly) or a .kd file.
     #[command(after_help = EXAMPLES, long_about = format!(
@@ -184,6 +230,30 @@ pub(crate) struct ReportArgs {
     /// The Markdown report; report.json and the SVG figures go beside it.
     #[arg(short = 'o', long, default_value = "report.md")]
     pub(crate) output: PathBuf,
+}
+
+/// `build --cells`: a build in cells (see docs/cells.md).
+#[derive(clap::Args, Clone)]
+#[command(next_help_heading = "Build in cells (docs/cells.md)")]
+pub(crate) struct CellsArgs {
+    /// Cut the top of the tree into at most K cells (of about N/K
+    /// references each), write each cell's references to a cell file,
+    /// build each cell's subtree (as `build-cell` does) and stitch them:
+    /// the same .kd file as without --cells, byte for byte. Finished parts
+    /// in the work directory are kept (checked against their cell's
+    /// checksum), so an interrupted build resumes. The std preset only.
+    #[arg(long, value_name = "K", value_parser = parse_positive)]
+    pub(crate) cells: Option<usize>,
+    /// The work directory of a build in cells (made if missing; kept
+    /// afterwards, remove it when done). Default: OUTPUT.cells beside the
+    /// .kd file.
+    #[arg(long, value_name = "DIR", requires = "cells")]
+    pub(crate) cells_dir: Option<PathBuf>,
+    /// Write the plan and the cell files and stop: the cells are built
+    /// elsewhere (`build-cell`, tools/ray_cells.py) and joined by
+    /// `stitch`. With --json, the cells and which are built already.
+    #[arg(long, requires = "cells")]
+    pub(crate) plan_only: bool,
 }
 
 #[derive(clap::Args, Clone)]

@@ -104,28 +104,13 @@ pub(crate) fn build_tree(
     quiet: bool,
     reordered: bool,
 ) -> Res<Built> {
-    let mut config = BuildConfig::default();
-    config.sah.max_depth = args.max_depth;
-    config.sah.k_t = args.kt;
-    config.sah.k_i = args.ki;
-    config.sah.lambda_empty = args.lambda;
+    let config = build_config(args);
     let progress = Progress::default();
     let status = Arc::new(level::LevelStatus::default());
-    let mut options = level::LevelOptions {
+    let options = level::LevelOptions {
         status: Some(status.clone()),
-        new_events: match args.new_events {
-            NewEventsArg::Merge => level::NewEvents::SortMerge,
-            NewEventsArg::Bucket => level::NewEvents::Bucket,
-        },
-        tiny_threshold: usize::from(args.tiny),
-        ..level::LevelOptions::default()
+        ..level_options(args)
     };
-    if let Some(b) = args.mem_budget {
-        options.mem_budget = b;
-    }
-    if let Some(d) = &args.scratch {
-        options.scratch_dir = d.clone();
-    }
     let start = Instant::now();
     let level_message = || match args.builder {
         BuilderArg::Level => level_message(&status),
@@ -185,6 +170,35 @@ pub(crate) fn build_tree(
             BuilderArg::Naive => "naive",
         },
     })
+}
+
+/// The cost model and depth limit of the build flags.
+pub(crate) fn build_config(args: &BuildArgs) -> BuildConfig {
+    let mut config = BuildConfig::default();
+    config.sah.max_depth = args.max_depth;
+    config.sah.k_t = args.kt;
+    config.sah.k_i = args.ki;
+    config.sah.lambda_empty = args.lambda;
+    config
+}
+
+/// The level builder's options of the build flags (no status).
+pub(crate) fn level_options(args: &BuildArgs) -> level::LevelOptions {
+    let mut options = level::LevelOptions {
+        new_events: match args.new_events {
+            NewEventsArg::Merge => level::NewEvents::SortMerge,
+            NewEventsArg::Bucket => level::NewEvents::Bucket,
+        },
+        tiny_threshold: usize::from(args.tiny),
+        ..level::LevelOptions::default()
+    };
+    if let Some(b) = args.mem_budget {
+        options.mem_budget = b;
+    }
+    if let Some(d) = &args.scratch {
+        options.scratch_dir = d.clone();
+    }
+    options
 }
 
 /// The build bar's message for the level builder: the level, its open
@@ -358,76 +372,94 @@ pub(crate) fn cmd_build(
     let watch = PeakRss::start();
     pool.install(|| {
         let loaded = load(path, ui.bars_off())?;
-        let mut built = build_tree(&loaded.scene, args, ui.bars_off(), reorder)?;
-        let stats = TreeStats::of(&built.tree, &built.config.sah);
-        let mut written = None;
-        if let Some(out) = output {
-            let start = Instant::now();
-            let options = WriteOptions {
-                reorder,
-                config: FileConfig {
-                    scene: SceneTag::new(&loaded.name(), &loaded.scene),
-                    ..pipeline::file_config(
-                        &built.config,
-                        loaded.scene.len(),
-                        built.preset,
-                        built.slim.as_ref().map(|(p, _, _)| p),
-                    )
+        let built = build_tree(&loaded.scene, args, ui.bars_off(), reorder)?;
+        write_and_print("build", &loaded, built, output, reorder, ui, &watch, None)
+    })
+}
+
+/// The end of `build` (and of `build --cells`, `stitch`): the tree
+/// written to `output` (if given) as `build -o` writes it, then its
+/// summary or JSON (under `command`, with the cells' figures if any).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_and_print(
+    command: &'static str,
+    loaded: &Loaded,
+    mut built: Built,
+    output: Option<&Path>,
+    reorder: bool,
+    ui: Out,
+    watch: &PeakRss,
+    cells: Option<CellsJson>,
+) -> Res<()> {
+    let stats = TreeStats::of(&built.tree, &built.config.sah);
+    let mut written = None;
+    if let Some(out) = output {
+        let start = Instant::now();
+        let options = WriteOptions {
+            reorder,
+            config: FileConfig {
+                scene: SceneTag::new(&loaded.name(), &loaded.scene),
+                ..pipeline::file_config(
+                    &built.config,
+                    loaded.scene.len(),
+                    built.preset,
+                    built.slim.as_ref().map(|(p, _, _)| p),
+                )
+            },
+        };
+        format::write_file(out, &built.tree, &loaded.scene, &options)?;
+        let secs = start.elapsed().as_secs_f64();
+        // Only figures are left to print: free the tree before the file
+        // is mapped and checked, so that the two never add up.
+        built.tree.nodes = Vec::new();
+        built.tree.leaf_tris = Vec::new();
+        let file = open_kd(out, slimkd::format::Check::Full)?;
+        written = Some((out.to_path_buf(), file.figures(), secs));
+    }
+    // The whole command: loading, building, writing.
+    let (peak_anon, peak_file) = watch.peaks();
+    let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
+    if ui.json {
+        print_json(
+            command,
+            BuildCmdJson {
+                scene: SceneJson::of(loaded),
+                tree: TreeJson::of(&stats),
+                build: BuildJson::of(&built),
+                threads: rayon::current_num_threads(),
+                written: written.as_ref().map(|(out, fig, secs)| WrittenJson {
+                    output: out.display().to_string(),
+                    write_s: *secs,
+                    reorder,
+                    storage: FiguresJson::of(fig).storage,
+                }),
+                memory: MemoryJson {
+                    peak_rss_anon_bytes: peak_anon,
+                    peak_rss_file_bytes: peak_file,
                 },
-            };
-            format::write_file(out, &built.tree, &loaded.scene, &options)?;
-            let secs = start.elapsed().as_secs_f64();
-            // Only figures are left to print: free the tree before the file
-            // is mapped and checked, so that the two never add up.
-            built.tree.nodes = Vec::new();
-            built.tree.leaf_tris = Vec::new();
-            let file = open_kd(out, slimkd::format::Check::Full)?;
-            written = Some((out.to_path_buf(), file.figures(), secs));
-        }
-        // The whole command: loading, building, writing.
-        let (peak_anon, peak_file) = watch.peaks();
-        let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
-        if ui.json {
-            print_json(
-                "build",
-                BuildCmdJson {
-                    scene: SceneJson::of(&loaded),
-                    tree: TreeJson::of(&stats),
-                    build: BuildJson::of(&built),
-                    threads: pool.current_num_threads(),
-                    written: written.as_ref().map(|(out, fig, secs)| WrittenJson {
-                        output: out.display().to_string(),
-                        write_s: *secs,
-                        reorder,
-                        storage: FiguresJson::of(fig).storage,
-                    }),
-                    memory: MemoryJson {
-                        peak_rss_anon_bytes: peak_anon,
-                        peak_rss_file_bytes: peak_file,
-                    },
-                },
-            )?;
-        } else if !ui.quiet {
-            print_summary(&loaded, &built, &stats, ui.verbose);
-            if let Some((out, fig, secs)) = &written {
-                println!(
-                    "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
-                    out.display(),
-                    secs,
-                    fig.tree_bytes() as f64 / (1 << 20) as f64,
-                    fig.idx32,
-                    fig.idx16,
-                    fig.geometry_bytes() as f64 / (1 << 20) as f64
-                );
-            }
+                cells,
+            },
+        )?;
+    } else if !ui.quiet {
+        print_summary(loaded, &built, &stats, ui.verbose);
+        if let Some((out, fig, secs)) = &written {
             println!(
-                "memory     peak RssAnon {:.1} MiB, peak RssFile {:.1} MiB (load, build and write)",
-                peak_anon as f64 / (1 << 20) as f64,
-                peak_file as f64 / (1 << 20) as f64
+                "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",
+                out.display(),
+                secs,
+                fig.tree_bytes() as f64 / (1 << 20) as f64,
+                fig.idx32,
+                fig.idx16,
+                fig.geometry_bytes() as f64 / (1 << 20) as f64
             );
         }
-        Ok(())
-    })
+        println!(
+            "memory     peak RssAnon {:.1} MiB, peak RssFile {:.1} MiB (load, build and write)",
+            peak_anon as f64 / (1 << 20) as f64,
+            peak_file as f64 / (1 << 20) as f64
+        );
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -213,6 +213,46 @@ pub(crate) struct BuildCmdJson {
     pub(crate) written: Option<WrittenJson>,
     #[serde(flatten)]
     pub(crate) memory: MemoryJson,
+    /// A build in cells (`build --cells`, `stitch`).
+    #[serde(flatten)]
+    pub(crate) cells: Option<CellsJson>,
+}
+
+/// A build in cells: its work directory and cells.
+#[derive(Serialize)]
+pub(crate) struct CellsJson {
+    pub(crate) cells_dir: String,
+    /// Whether the plan was made by this command (false: resumed or read).
+    pub(crate) planned: bool,
+    pub(crate) plan_s: f64,
+    /// Per cell, in pre-order.
+    pub(crate) cell_list: Vec<CellJson>,
+}
+
+/// `slimkd build-cell --json`.
+#[derive(Serialize)]
+pub(crate) struct BuildCellJson {
+    pub(crate) cell: String,
+    pub(crate) part: String,
+    pub(crate) refs: u64,
+    pub(crate) nodes: u64,
+    pub(crate) read_s: f64,
+    pub(crate) build_s: f64,
+    /// Reading, building and writing.
+    pub(crate) total_s: f64,
+    pub(crate) threads: usize,
+}
+
+/// One cell of a build in cells.
+#[derive(Serialize)]
+pub(crate) struct CellJson {
+    pub(crate) cell: String,
+    pub(crate) part: String,
+    pub(crate) refs: u64,
+    /// Its part was there and valid before this command.
+    pub(crate) kept: bool,
+    /// Seconds this command took to build it (null: not built here).
+    pub(crate) build_s: Option<f64>,
 }
 
 /// A `.kd` file opened.

@@ -7,6 +7,7 @@
 mod args;
 mod build;
 mod calibrate;
+mod cells;
 mod info;
 mod json;
 mod main_job;
@@ -181,7 +182,25 @@ fn main() -> ExitCode {
             build,
             output,
             reorder,
-        }) => cmd_build(&scene, &build, output.as_deref(), reorder, ui),
+            cells,
+        }) => match cells.cells {
+            Some(k) => {
+                cells::cmd_build_cells(&scene, &build, output.as_deref(), reorder, k, &cells, ui)
+            }
+            None => cmd_build(&scene, &build, output.as_deref(), reorder, ui),
+        },
+        Some(Command::BuildCell {
+            cell,
+            output,
+            threads,
+        }) => cells::cmd_build_cell(&cell, output.as_deref(), threads, ui),
+        Some(Command::Stitch {
+            scene,
+            cells_dir,
+            output,
+            reorder,
+            threads,
+        }) => cells::cmd_stitch(&scene, &cells_dir, &output, reorder, threads, ui),
         Some(Command::Render(args)) => cmd_render(&args, ui),
         Some(Command::Info { file }) => cmd_info(&file, ui),
         Some(Command::Verify { file }) => cmd_verify(&file, ui),

@@ -39,6 +39,8 @@ pub enum Rec {
     /// A subtree finished depth-first at this depth: the next one in that
     /// level's [`SubStream`].
     Sub(u32),
+    /// Cell `k` of a cut (`super::build_top`): an empty leaf here.
+    Cell(u32),
 }
 
 /// The smallest chunk, in `u32` words (1 MiB).
@@ -213,15 +215,17 @@ impl SubStore {
     }
 }
 
-/// The tree, in pre-order from record 0; consumes the subtrees. Its two
-/// columns are reserved whole up front, so a tree that does not fit in
-/// memory is an error naming them.
+/// The tree, in pre-order from record 0, and the leaves that stand for
+/// cells (`Rec::Cell`) with their cell numbers, in pre-order; consumes the
+/// subtrees. Its two columns are reserved whole up front, so a tree that
+/// does not fit in memory is an error naming them.
+#[allow(clippy::type_complexity)]
 pub fn assemble(
     bounds: crate::geom::Aabb,
     recs: &[Rec],
     tris: &[TriId],
     mut subs: SubStore,
-) -> Result<TreeIr, ColumnsError> {
+) -> Result<(TreeIr, Vec<(NodeId, u32)>), ColumnsError> {
     let n_nodes = recs.iter().filter(|r| !matches!(r, Rec::Sub(_))).count() + subs.nodes;
     let n_tris = tris.len() + subs.tris;
     let mut nodes = Vec::new();
@@ -230,6 +234,7 @@ pub fn assemble(
         .map_err(ColumnsError::OutOfMemory)?;
     crate::sys::try_reserve(&mut leaf_tris, n_tris, "the tree's leaf triangle lists")
         .map_err(ColumnsError::OutOfMemory)?;
+    let mut cells = Vec::new();
     // (record, inner node whose right child it is)
     let mut stack = vec![(0u32, None::<usize>)];
     while let Some((r, parent)) = stack.pop() {
@@ -261,6 +266,13 @@ pub fn assemble(
                 leaf_tris.extend_from_slice(&tris[start..start + count as usize]);
                 nodes.push(Node::Leaf { start: at, count });
             }
+            Rec::Cell(k) => {
+                cells.push((NodeId(nodes.len() as u32), k));
+                nodes.push(Node::Leaf {
+                    start: leaf_tris.len() as u32,
+                    count: 0,
+                });
+            }
             Rec::Sub(depth) => {
                 let (rec, packed, sub_tris) = subs.levels[depth as usize]
                     .pop()
@@ -289,9 +301,12 @@ pub fn assemble(
     }
     debug_assert_eq!(nodes.len(), n_nodes);
     debug_assert_eq!(leaf_tris.len(), n_tris);
-    Ok(TreeIr {
-        bounds,
-        nodes,
-        leaf_tris,
-    })
+    Ok((
+        TreeIr {
+            bounds,
+            nodes,
+            leaf_tris,
+        },
+        cells,
+    ))
 }

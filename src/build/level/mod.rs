@@ -112,7 +112,7 @@ use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::sys::lap;
-use crate::tree::{TreeIr, TriId};
+use crate::tree::{NodeId, TreeIr, TriId};
 use rayon::prelude::*;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
@@ -124,6 +124,98 @@ pub fn build(
     progress: Option<&Progress>,
     options: &LevelOptions,
 ) -> Result<(TreeIr, LevelReport), ColumnsError> {
+    let (tree, _, report) = run(scene, config, progress, options, None, None)?;
+    Ok((tree, report))
+}
+
+/// How [`build_top`] cuts the top of the tree into cells.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Cut {
+    /// At most this many cells (at least 1).
+    pub max_cells: usize,
+    /// An open node of at most this many references becomes a cell; a
+    /// larger one is split further while the cell count allows.
+    pub max_refs: usize,
+    /// Open nodes with fewer references are finished in the top tree
+    /// (depth-first, as [`build`] finishes its small nodes), not cut.
+    pub min_refs: usize,
+}
+
+/// An open node cut off the top of the tree: all that the build of its
+/// subtree needs ([`build_node`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CutCell {
+    /// The node's cell.
+    pub cell: Aabb,
+    /// The node's depth (root = 0).
+    pub depth: u32,
+    /// Its references: triangle ids, ascending.
+    pub tris: Vec<u32>,
+    /// Each reference's box (the triangle clipped to the cells above),
+    /// inside `cell`.
+    pub boxes: Vec<Aabb>,
+}
+
+/// The top of a tree cut into cells ([`build_top`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TopTree {
+    /// The tree above the cells; each cell is an empty leaf here.
+    pub tree: TreeIr,
+    /// The cells in pre-order of the tree, each with the node that stands
+    /// for it in `tree`.
+    pub cells: Vec<(NodeId, CutCell)>,
+}
+
+/// Builds the top of the tree breadth-first, as [`build`] does, but cuts
+/// open nodes off as cells by the rule of `cut`: at each level, the open
+/// nodes of `cut.min_refs` to `cut.max_refs` references become cells; of
+/// the larger ones, the largest are split as long as the cells made so
+/// far plus the open nodes stay within `cut.max_cells` (each split adds
+/// at most one node to that count), and the rest become cells too. So
+/// there are at most `cut.max_cells` cells, and a cell exceeds
+/// `cut.max_refs` only where the count forces it. Replacing each cell's
+/// leaf by [`build_node`]'s subtree of it gives [`build`]'s tree.
+pub fn build_top(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    progress: Option<&Progress>,
+    options: &LevelOptions,
+    cut: Cut,
+) -> Result<(TopTree, LevelReport), ColumnsError> {
+    assert!(cut.max_cells >= 1, "at least one cell");
+    let (tree, cells, report) = run(scene, config, progress, options, None, Some(cut))?;
+    Ok((TopTree { tree, cells }, report))
+}
+
+/// Builds the subtree of one cell of [`build_top`] breadth-first (and its
+/// small nodes depth-first), as [`build`] builds it within the whole tree.
+/// `scene` holds at least the triangles `node.tris` names (a cell's
+/// triangles alone, renumbered in the same order, do); `config.sah` must
+/// give the whole scene's depth limit (`max_depth: Some(limit)`), since
+/// the limit of `scene` alone may differ. The result's `bounds` is
+/// `node.cell`.
+pub fn build_node(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    progress: Option<&Progress>,
+    options: &LevelOptions,
+    node: &CutCell,
+) -> Result<(TreeIr, LevelReport), ColumnsError> {
+    let (tree, _, report) = run(scene, config, progress, options, Some(node), None)?;
+    Ok((tree, report))
+}
+
+/// The build from the scene's root, or from `start`; cut into cells by
+/// `cut` if given.
+#[allow(clippy::type_complexity)]
+fn run(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    progress: Option<&Progress>,
+    options: &LevelOptions,
+    start: Option<&CutCell>,
+    cut: Option<Cut>,
+) -> Result<(TreeIr, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let scratch = Scratch::new(ScratchConfig {
         mem_budget: options.mem_budget,
         dir: options.scratch_dir.clone(),
@@ -138,6 +230,8 @@ pub fn build(
         options,
         scratch: &scratch,
         depth_limit: config.sah.depth_limit(scene.len()),
+        small_threshold: cut.map_or(options.small_threshold, |c| c.min_refs),
+        cut: cut.map(|rule| (rule, Vec::new())),
         recs: vec![Rec::Open],
         leaf_tris: Vec::new(),
         subs: SubStore::default(),
@@ -149,11 +243,14 @@ pub fn build(
         },
     };
     let mut clock = Instant::now();
-    let (bounds, root_level) = b.root()?;
+    let (bounds, root_level) = match start {
+        None => b.root()?,
+        Some(node) => (node.cell, b.node_level(node)?),
+    };
     b.report.phases.setup_s = lap(&mut clock);
     b.sample_rss();
+    let mut depth = root_level.depth;
     let mut level = Some(root_level);
-    let mut depth = 0;
     while let Some(l) = level {
         level = b.level(l, depth)?;
         depth += 1;
@@ -161,7 +258,20 @@ pub fn build(
     // The levels' memory kept for reuse is not needed from here.
     scratch.release_pool();
     clock = Instant::now();
-    let tree = assemble(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
+    let (tree, slots) = assemble(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
+    let mut cut_cells: Vec<Option<CutCell>> = b
+        .cut
+        .take()
+        .map_or_else(Vec::new, |(_, c)| c.into_iter().map(Some).collect());
+    let cells = slots
+        .into_iter()
+        .map(|(node, k)| {
+            let cell = cut_cells[k as usize]
+                .take()
+                .expect("each cell has one leaf");
+            (node, cell)
+        })
+        .collect();
     b.report.phases.assemble_s = lap(&mut clock);
     b.sample_rss();
     let mut report = b.report;
@@ -169,7 +279,7 @@ pub fn build(
     report.cpu_s = start_cpu
         .zip(cpu_seconds())
         .map_or(0.0, |(start, end)| end - start);
-    Ok((tree, report))
+    Ok((tree, cells, report))
 }
 
 /// One node of a level.
@@ -210,6 +320,10 @@ struct Builder<'a> {
     options: &'a LevelOptions,
     scratch: &'a Scratch,
     depth_limit: u32,
+    /// Open nodes with fewer references are finished depth-first.
+    small_threshold: usize,
+    /// The rule of a cut into cells, and the cells cut so far.
+    cut: Option<(Cut, Vec<CutCell>)>,
     /// One per node, in the order nodes were opened; record 0 is the root.
     recs: Vec<Rec>,
     /// The triangle lists of the breadth-first leaves.
@@ -399,6 +513,32 @@ impl<'a> Builder<'a> {
                 .map(to_aabb)
                 .reduce(|| Aabb::EMPTY, |a, b| a.union(&b)),
         );
+        Ok((bounds, self.first_level(tri, boxes, bounds, 0)?))
+    }
+
+    /// The level of one node: `node`'s references and their events.
+    fn node_level(&mut self, node: &CutCell) -> Result<Level<'a>, ColumnsError> {
+        let n = node.tris.len();
+        Self::capacity(n)?;
+        let mut tri = self.scratch.column_for_overwrite::<u32>("tri", n)?;
+        let mut boxes = self.scratch.column_for_overwrite::<Box6>("bounds", n)?;
+        tri.copy_from_slice(&node.tris);
+        for (b, a) in boxes.iter_mut().zip(&node.boxes) {
+            *b = to_box(a);
+        }
+        self.first_level(tri, boxes, node.cell, node.depth)
+    }
+
+    /// The level of one node at `depth` with cell `cell` and the
+    /// references `tri` with boxes `boxes`: their events sorted.
+    fn first_level(
+        &mut self,
+        tri: Column<'a, u32>,
+        boxes: Column<'a, Box6>,
+        cell: Aabb,
+        depth: u32,
+    ) -> Result<Level<'a>, ColumnsError> {
+        let n = tri.len();
         // Each axis's events, generated in reference order and sorted by
         // (position, kind) with a stable radix sort, which leaves them in
         // (position, kind, reference) order. The sort ping-pongs between
@@ -429,7 +569,7 @@ impl<'a> Builder<'a> {
             .collect();
         let ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
         let node = LNode {
-            cell: bounds,
+            cell,
             refs: 0,
             n,
             ev: [0; 3],
@@ -437,24 +577,22 @@ impl<'a> Builder<'a> {
             weight: Progress::TOTAL,
             rec: 0,
         };
-        Ok((
-            bounds,
-            Level {
-                depth: 0,
-                nodes: vec![node],
-                tri,
-                bounds: boxes,
-                ev,
-            },
-        ))
+        Ok(Level {
+            depth,
+            nodes: vec![node],
+            tri,
+            bounds: boxes,
+            ev,
+        })
     }
 
     /// Processes level `depth`; returns the next one, or `None` when no
     /// node is left open.
     fn level(&mut self, l: Level<'a>, depth: u32) -> Result<Option<Level<'a>>, ColumnsError> {
-        let threshold = self.options.small_threshold;
+        let threshold = self.small_threshold;
         let (small, big): (Vec<usize>, Vec<usize>) =
             (0..l.nodes.len()).partition(|&j| l.nodes[j].n < threshold);
+        let big = self.cut_cells(&l, big, depth);
         if let Some(s) = &self.options.status {
             s.level.store(depth, Ordering::Relaxed);
             s.open_nodes.store(big.len() as u64, Ordering::Relaxed);
@@ -495,6 +633,46 @@ impl<'a> Builder<'a> {
         self.report.phases.small_s += small_s;
         self.sample_rss();
         next
+    }
+
+    /// Under a cut ([`build_top`]): turns the big nodes that become cells
+    /// into cells, and returns the others.
+    fn cut_cells(&mut self, l: &Level<'a>, big: Vec<usize>, depth: u32) -> Vec<usize> {
+        let Some((rule, cells)) = self.cut.as_mut() else {
+            return big;
+        };
+        // The largest first, ties in node order (a stable sort).
+        let mut large: Vec<usize> = big
+            .iter()
+            .copied()
+            .filter(|&j| l.nodes[j].n > rule.max_refs)
+            .collect();
+        large.sort_by_key(|&j| std::cmp::Reverse(l.nodes[j].n));
+        let splits = rule.max_cells.saturating_sub(cells.len() + big.len());
+        let mut split = vec![false; l.nodes.len()];
+        for &j in large.iter().take(splits) {
+            split[j] = true;
+        }
+        let mut open = Vec::with_capacity(big.len());
+        for j in big {
+            if split[j] {
+                open.push(j);
+                continue;
+            }
+            let nd = &l.nodes[j];
+            self.recs[nd.rec as usize] = Rec::Cell(cells.len() as u32);
+            cells.push(CutCell {
+                cell: nd.cell,
+                depth,
+                tris: l.tri[nd.refs..nd.refs + nd.n].to_vec(),
+                boxes: l.bounds[nd.refs..nd.refs + nd.n]
+                    .iter()
+                    .map(to_aabb)
+                    .collect(),
+            });
+            Progress::add(self.progress, nd.weight);
+        }
+        open
     }
 
     /// The passes over the big nodes of a level (steps 2 to 5 of the module
