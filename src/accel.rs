@@ -35,6 +35,7 @@ use crate::trace::{ClosestHit, FileWalk, Hit, Scalar, Walk};
 use glam::Vec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 /// Which tree to build.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -246,8 +247,10 @@ macro_rules! with_file {
 pub struct Accel {
     image: Image,
     /// Input triangle id → file triangle id (the inverse of the file's
-    /// `tri_map`; empty when the file is not reordered).
-    file_id: Vec<u32>,
+    /// `tri_map`; empty when the file is not reordered), made on the first
+    /// hit record or triangle that needs it rather than on open: a pass
+    /// over the whole map, where opening is O(1).
+    file_id: OnceLock<Vec<u32>>,
     /// The mapped file (for errors).
     path: Option<PathBuf>,
 }
@@ -364,25 +367,31 @@ impl Accel {
     }
 
     fn new(image: Image, path: Option<PathBuf>) -> Accel {
-        let file_id = with_file!(&image, |f| match f.tri_map() {
-            Some(map) => {
-                let mut inv = vec![0u32; map.len()];
-                // A map that is not a permutation (a file not validated)
-                // leaves some entries 0: never an index out of range.
-                for (file, &input) in map.iter().enumerate() {
-                    if let Some(slot) = inv.get_mut(input as usize) {
-                        *slot = file as u32;
-                    }
-                }
-                inv
-            }
-            None => Vec::new(),
-        });
         Accel {
             image,
-            file_id,
+            file_id: OnceLock::new(),
             path,
         }
+    }
+
+    /// [`Accel::file_id`]'s map, made on first use.
+    fn file_id(&self) -> &[u32] {
+        self.file_id.get_or_init(|| {
+            with_file!(&self.image, |f| match f.tri_map() {
+                Some(map) => {
+                    let mut inv = vec![0u32; map.len()];
+                    // A map that is not a permutation (a file not validated)
+                    // leaves some entries 0: never an index out of range.
+                    for (file, &input) in map.iter().enumerate() {
+                        if let Some(slot) = inv.get_mut(input as usize) {
+                            *slot = file as u32;
+                        }
+                    }
+                    inv
+                }
+                None => Vec::new(),
+            })
+        })
     }
 
     /// Whether the tree is a mapped file (from [`Accel::open`]).
@@ -416,10 +425,11 @@ impl Accel {
     ///
     /// If `prim` is not below [`Accel::len`].
     pub fn triangle(&self, prim: u32) -> [Vec3; 3] {
-        let id = if self.file_id.is_empty() {
+        let file_id = self.file_id();
+        let id = if file_id.is_empty() {
             prim
         } else {
-            self.file_id[prim as usize]
+            file_id[prim as usize]
         };
         with_file!(&self.image, |f| f.triangle(id))
     }
@@ -456,7 +466,7 @@ impl Accel {
     pub fn tracer(&self) -> AccelTracer<'_> {
         AccelTracer {
             walk: with_file!(&self.image, |f| FileWalk::new(f)),
-            file_id: &self.file_id,
+            owner: self,
             level: SimdLevel::detect(),
         }
     }
@@ -468,8 +478,8 @@ impl Accel {
 pub struct AccelTracer<'a> {
     /// The file's sections.
     walk: FileWalk<'a>,
-    /// [`Accel::file_id`]'s map (empty: the identity).
-    file_id: &'a [u32],
+    /// The accel, for its `file_id` map (made on the first hit record).
+    owner: &'a Accel,
     /// The packets' instruction set, detected once.
     level: SimdLevel,
 }
@@ -517,10 +527,11 @@ impl AccelTracer<'_> {
     fn record(&self, ray: &Ray, hit: Hit) -> Option<HitRecord> {
         hit.is_hit().then(|| {
             let prim = hit.tri.0;
-            let id = if self.file_id.is_empty() {
+            let file_id = self.owner.file_id();
+            let id = if file_id.is_empty() {
                 prim
             } else {
-                self.file_id[prim as usize]
+                file_id[prim as usize]
             };
             record(ray, hit, self.walk.triangle(id))
         })
