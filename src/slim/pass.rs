@@ -188,15 +188,21 @@ pub(super) fn rebuild_pick(
         return (Outcome::Skipped, tris.len());
     }
     clip_all(refs);
-    let fresh = builder.build(refs.iter().copied(), p.at.cell, p.at.depth);
-    let outcome = if matches!(fresh.nodes[0], Node::Leaf { .. }) {
+    // Decided on the builder's own slices: only a kept subtree is copied
+    // out (two in three rebuilds are cancelled or rejected).
+    let (nodes, leaf_tris) = builder.build(refs.iter().copied(), p.at.cell, p.at.depth);
+    let outcome = if matches!(nodes[0], Node::Leaf { .. }) {
         Outcome::Cancelled
     } else if let (Some(m), Some(old)) = (&ctx.bytes, old)
-        && m.tree(&fresh) + 8 >= old
+        && m.nodes(nodes, leaf_tris) + 8 >= old
     {
         Outcome::Rejected
     } else {
-        Outcome::Hoisted(fresh)
+        Outcome::Hoisted(TreeIr {
+            bounds: p.at.cell,
+            nodes: nodes.to_vec(),
+            leaf_tris: leaf_tris.to_vec(),
+        })
     };
     (outcome, tris.len())
 }
