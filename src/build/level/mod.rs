@@ -309,13 +309,16 @@ impl<'a> SubtreeBuilder<'a> {
     /// 2³⁰), under the depth limit of the whole scene: its nodes and leaf
     /// lists in pre-order (the [`TreeIr`] of bounds `cell`), borrowed until
     /// the next build, so that the slim pass copies out only the subtrees
-    /// it keeps.
+    /// it keeps. `None` if the build stopped because the subtree takes at
+    /// least `byte_limit` bytes in the file ([`Finisher::with_byte_limit`];
+    /// `u64::MAX`: never).
     pub fn build(
         &mut self,
         refs: impl IntoIterator<Item = (TriId, Aabb)>,
         cell: Aabb,
         depth: u32,
-    ) -> (&[Node], &[TriId]) {
+        byte_limit: u64,
+    ) -> Option<(&[Node], &[TriId])> {
         self.tri.clear();
         self.boxes.clear();
         for (t, b) in refs {
@@ -339,8 +342,12 @@ impl<'a> SubtreeBuilder<'a> {
             ev.sort_unstable();
         }
         let ev = [0, 1, 2].map(|k| self.ev[k].as_slice());
-        self.finisher
-            .build(&self.tri, &self.boxes, ev, 0, cell, depth, Progress::TOTAL)
+        let finisher = self.finisher.with_byte_limit(byte_limit);
+        finisher.build(&self.tri, &self.boxes, ev, 0, cell, depth, Progress::TOTAL);
+        if finisher.stopped() {
+            return None;
+        }
+        Some(finisher.output())
     }
 }
 
