@@ -96,16 +96,23 @@ impl ByteModel {
     }
 
     pub(super) fn tree(&self, t: &TreeIr) -> u64 {
-        let empty = |i: usize| matches!(t.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
-        let nodes: u64 = t
-            .nodes
+        self.nodes(&t.nodes, &t.leaf_tris)
+    }
+
+    /// [`ByteModel::tree`] of a tree given as its pre-order nodes and leaf
+    /// lists.
+    pub(super) fn nodes(&self, nodes: &[Node], leaf_tris: &[TriId]) -> u64 {
+        let empty = |i: usize| matches!(nodes.get(i), Some(Node::Leaf { count: 0, .. }));
+        let words: u64 = nodes
             .iter()
             .enumerate()
             .map(|(i, n)| match *n {
                 Node::Inner { t_ref, right, .. } => {
                     self.inner(t_ref.is_some(), empty(i + 1) && empty(right.0 as usize))
                 }
-                Node::Leaf { start, count } => self.leaf(t.leaf(start, count)),
+                Node::Leaf { start, count } => {
+                    self.leaf(&leaf_tris[start as usize..(start + count) as usize])
+                }
             })
             .sum();
         // An empty root keeps its word.
@@ -114,7 +121,7 @@ impl ByteModel {
         } else {
             0
         };
-        nodes + root
+        words + root
     }
 
     /// The bytes of the contiguous subtree `work.nodes[node..node + size]`

@@ -72,7 +72,10 @@
 //! - *Skips.* Under the byte rule, a pick whose subtree takes at most 8
 //!   bytes more than the least any rebuilt subtree of its references could
 //!   take ([`min_subtree_bytes`]) is rejected without a rebuild; it could
-//!   not pass the rule.
+//!   not pass the rule. A rebuild stops, rejected, as soon as a lower
+//!   bound of its bytes (the finished nodes' bytes, 8 to 16 per pending
+//!   node with references) reaches the replaced subtree's bytes less 8,
+//!   which the rule rejects (`SubtreeBuilder::build`'s byte limit).
 //! - *Passes.* Each pass finds, in every pending subtree, the highest nodes
 //!   where a triangle is picked, rebuilds those (disjoint) subtrees in
 //!   parallel, and queues their children. A node's pick depends only on
@@ -325,6 +328,85 @@ pub(crate) fn huge_over_grid() -> TriangleColumns {
 mod tests {
     use super::*;
     use crate::build::{self, Builder};
+    use std::collections::BTreeSet;
+
+    /// The end of the subtree of node `i` in pre-order.
+    fn subtree_end(tree: &TreeIr, i: usize) -> usize {
+        match tree.nodes[i] {
+            Node::Leaf { .. } => i + 1,
+            Node::Inner { right, .. } => subtree_end(tree, right.0 as usize),
+        }
+    }
+
+    #[test]
+    fn a_rebuild_stops_only_where_the_byte_rule_rejects() {
+        // Every inner node of two std trees (the root of the second takes
+        // the event sweep, the rest the tiny one) rebuilt, as a pick is,
+        // without its smallest triangle, under every byte limit up to its
+        // bytes + 1: a build that stops is one whose whole subtree takes at
+        // least the limit, and one that does not is the whole subtree.
+        let mut tris = crate::scene::slanted_grid(9);
+        tris.push([
+            glam::Vec3::new(-1.0, 0.5, -1.0),
+            glam::Vec3::new(19.0, 0.5, -1.0),
+            glam::Vec3::new(-1.0, 0.5, 19.0),
+        ]);
+        let config = BuildConfig::default();
+        for scene in [
+            huge_over_grid(),
+            TriangleColumns::from_triangles(&tris).unwrap(),
+        ] {
+            let std_tree = build::build(&scene, &config, Builder::Sweep, None).unwrap();
+            let model = ByteModel::new(&scene, false);
+            let mut builder = SubtreeBuilder::new(&scene, &config);
+            let (mut stops, mut rebuilt) = (0, 0);
+            let mut stack = vec![(0, std_tree.bounds, 0)];
+            while let Some((i, cell, depth)) = stack.pop() {
+                let Node::Inner {
+                    axis, pos, right, ..
+                } = std_tree.nodes[i]
+                else {
+                    continue;
+                };
+                let (lc, rc) = cell.split(axis as usize, pos);
+                stack.push((i + 1, lc, depth + 1));
+                stack.push((right.0 as usize, rc, depth + 1));
+                let under: BTreeSet<u32> = std_tree.nodes[i..subtree_end(&std_tree, i)]
+                    .iter()
+                    .flat_map(|n| match *n {
+                        Node::Leaf { start, count } => std_tree.leaf(start, count).to_vec(),
+                        Node::Inner { .. } => Vec::new(),
+                    })
+                    .map(|t| t.0)
+                    .collect();
+                let refs: Vec<(TriId, Aabb)> = under
+                    .iter()
+                    .skip(1)
+                    .filter_map(|&t| clip_triangle(&scene.tri(t), &cell).map(|b| (TriId(t), b)))
+                    .collect();
+                let (nodes, leaf_tris) = builder
+                    .build(refs.iter().copied(), cell, depth, u64::MAX)
+                    .map(|(n, l)| (n.to_vec(), l.to_vec()))
+                    .unwrap();
+                let bytes = model.nodes(&nodes, &leaf_tris);
+                rebuilt += 1;
+                for limit in 0..=bytes + 1 {
+                    match builder.build(refs.iter().copied(), cell, depth, limit) {
+                        None => {
+                            assert!(bytes >= limit, "node {i}: stopped at {limit} of {bytes}");
+                            assert!(matches!(nodes[0], Node::Inner { .. }));
+                            stops += 1;
+                        }
+                        Some((n, l)) => assert_eq!((n, l), (&nodes[..], &leaf_tris[..])),
+                    }
+                }
+            }
+            assert!(
+                rebuilt > 10 && stops > rebuilt,
+                "{rebuilt} rebuilds, {stops} stops"
+            );
+        }
+    }
 
     #[test]
     fn huge_triangle_is_hoisted() {

@@ -188,15 +188,30 @@ pub(super) fn rebuild_pick(
         return (Outcome::Skipped, tris.len());
     }
     clip_all(refs);
-    let fresh = builder.build(refs.iter().copied(), p.at.cell, p.at.depth);
-    let outcome = if matches!(fresh.nodes[0], Node::Leaf { .. }) {
+    // The byte rule rejects the hoist once the rebuilt subtree takes
+    // `old - 8` bytes, so the build stops as soon as a lower bound of its
+    // bytes reaches that (it stops at a split, so the root is inner and the
+    // hoist is not cancelled). What is built is decided on the builder's
+    // own slices: only a kept subtree is copied out (two in three rebuilds
+    // are cancelled or rejected).
+    let limit = old.map_or(u64::MAX, |old| old.saturating_sub(8));
+    let Some((nodes, leaf_tris)) =
+        builder.build(refs.iter().copied(), p.at.cell, p.at.depth, limit)
+    else {
+        return (Outcome::Rejected, tris.len());
+    };
+    let outcome = if matches!(nodes[0], Node::Leaf { .. }) {
         Outcome::Cancelled
     } else if let (Some(m), Some(old)) = (&ctx.bytes, old)
-        && m.tree(&fresh) + 8 >= old
+        && m.nodes(nodes, leaf_tris) + 8 >= old
     {
         Outcome::Rejected
     } else {
-        Outcome::Hoisted(fresh)
+        Outcome::Hoisted(TreeIr {
+            bounds: p.at.cell,
+            nodes: nodes.to_vec(),
+            leaf_tris: leaf_tris.to_vec(),
+        })
     };
     (outcome, tris.len())
 }

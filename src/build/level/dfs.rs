@@ -84,6 +84,15 @@ pub struct Finisher<'a> {
     /// written.
     right_tri: Vec<u32>,
     right_boxes: Vec<Box6>,
+    /// A lower bound on the bytes the subtree being built takes in the
+    /// file ([`pending_bytes`], [`leaf_bytes`]), kept while `byte_limit` is
+    /// set: the finished leaves' and inner nodes' bytes plus the pending
+    /// nodes' bounds.
+    bytes_lb: u64,
+    /// The build stops once `bytes_lb` reaches this at a split
+    /// ([`Finisher::with_byte_limit`]); `u64::MAX`: never.
+    byte_limit: u64,
+    stopped: bool,
 }
 
 impl<'a> Finisher<'a> {
@@ -116,7 +125,31 @@ impl<'a> Finisher<'a> {
             tiny_scratch: Box::default(),
             right_tri: Vec::new(),
             right_boxes: Vec::new(),
+            bytes_lb: 0,
+            byte_limit: u64::MAX,
+            stopped: false,
         }
+    }
+
+    /// The next [`Finisher::build`] stops once the subtree is known to take
+    /// at least `limit` bytes in the file (format version 2; the bound is
+    /// checked where a node splits, so a subtree that is a single leaf is
+    /// always built whole); [`Finisher::stopped`] then says so and the
+    /// returned nodes are incomplete. `u64::MAX`: never (the default). The
+    /// slim pass stops a rebuild whose hoist the byte rule must reject.
+    pub fn with_byte_limit(&mut self, limit: u64) -> &mut Self {
+        self.byte_limit = limit;
+        self
+    }
+
+    /// The nodes and leaf lists of the last build.
+    pub fn output(&self) -> (&[Node], &[TriId]) {
+        (&self.nodes, &self.leaf_tris)
+    }
+
+    /// Whether the last build stopped at its byte limit.
+    pub fn stopped(&self) -> bool {
+        self.stopped
     }
 
     /// Nodes of at most `tiny` references (clamped to [`MAX_TINY`]) are
@@ -167,6 +200,8 @@ impl<'a> Finisher<'a> {
             *top = src.len();
         }
         let nev = [0, 1, 2].map(|k| ev[k].len());
+        self.bytes_lb = pending_bytes(tri.len());
+        self.stopped = false;
         self.node(0, tri.len(), [0; 3], nev, cell, depth);
         // The whole subtree's share at once: its leaves' shares sum to it,
         // and one shared counter updated per leaf by every worker cost
@@ -184,6 +219,9 @@ impl<'a> Finisher<'a> {
         cell: Aabb,
         depth: u32,
     ) {
+        if self.stopped {
+            return;
+        }
         if n <= self.tiny {
             self.tiny_node(r0, n, cell, depth, tiny::Boxes::Count);
             return;
@@ -239,11 +277,11 @@ impl<'a> Finisher<'a> {
                     }
                 }
                 debug_assert_eq!(straddler, self.clipped.len());
-                self.nodes.push(Node::Leaf {
-                    start,
-                    count: self.leaf_tris.len() as u32 - start,
-                });
+                let count = self.leaf_tris.len() as u32 - start;
+                self.nodes.push(Node::Leaf { start, count });
+                self.bytes_lb += leaf_bytes(count as usize);
             }
+            self.bytes_lb = self.bytes_lb + 8 - pending_bytes(n);
             return;
         }
 
@@ -252,6 +290,9 @@ impl<'a> Finisher<'a> {
         // are this node's, in the same order, and it works on them in
         // place (no copy, no partition); the other child is an empty leaf.
         if self.clipped.is_empty() && (c.n[0] == 0 || c.n[1] == 0) {
+            if self.split_bytes(n, c.n) {
+                return;
+            }
             let me = self.open_inner(&split);
             if c.n[0] == 0 {
                 self.leaf(r0, 0);
@@ -265,6 +306,9 @@ impl<'a> Finisher<'a> {
             return;
         }
 
+        if self.split_bytes(n, c.n) {
+            return;
+        }
         // Child references: left at [c0[0], c0[1]), right at [c0[1], end).
         let l0 = self.ref_top;
         let c0 = [l0, l0 + c.n[0]];
@@ -417,6 +461,7 @@ impl<'a> Finisher<'a> {
 
     /// A leaf of the references `r0..r0 + n`.
     fn leaf(&mut self, r0: usize, n: usize) {
+        self.bytes_lb = self.bytes_lb + leaf_bytes(n) - pending_bytes(n);
         let start = self.leaf_tris.len() as u32;
         self.leaf_tris
             .extend(self.tri[r0..r0 + n].iter().map(|&t| TriId(t)));
@@ -436,6 +481,9 @@ impl<'a> Finisher<'a> {
     /// parent counted (the parent's split sent them all, unclipped, to
     /// this side).
     fn tiny_node(&mut self, r0: usize, n: usize, cell: Aabb, depth: u32, which: tiny::Boxes) {
+        if self.stopped {
+            return;
+        }
         let sa = cell.surface_area();
         let mut best = None;
         if n > 0 && sa > 0.0 && depth < self.depth_limit {
@@ -488,6 +536,10 @@ impl<'a> Finisher<'a> {
         self.tri[r1..r1 + n_r].copy_from_slice(&self.right_tri[..n_r]);
         self.boxes[r1..r1 + n_r].copy_from_slice(&self.right_boxes[..n_r]);
         self.ref_top = r1 + n_r;
+        if self.split_bytes(n, [n_l, n_r]) {
+            self.ref_top = l0;
+            return;
+        }
 
         // A split that moves every box unchanged to one side (cutting off
         // empty space): that child prices this node's counts again. The
@@ -502,6 +554,17 @@ impl<'a> Finisher<'a> {
         self.right_child_next(me);
         self.tiny_node(r1, n_r, rc, depth + 1, which);
         self.ref_top = l0;
+    }
+
+    /// Accounts a node of `n` references split into children of `counts`
+    /// references in the byte bound: its word, and the children pending.
+    /// Returns whether the build stops here (the bound reached the limit).
+    #[inline]
+    fn split_bytes(&mut self, n: usize, counts: [usize; 2]) -> bool {
+        self.bytes_lb = self.bytes_lb + 8 + pending_bytes(counts[0]) + pending_bytes(counts[1])
+            - pending_bytes(n);
+        self.stopped = self.bytes_lb >= self.byte_limit;
+        self.stopped
     }
 
     /// Fills `place` and `clipped` for the node's references; returns the
@@ -527,6 +590,29 @@ impl<'a> Finisher<'a> {
         }
         c
     }
+}
+
+/// The fewest bytes (format version 2) a leaf of `n` references takes: no
+/// word when empty, one word for one triangle, else a word and at least 2
+/// bytes per index.
+#[inline]
+fn leaf_bytes(n: usize) -> u64 {
+    match n {
+        0 => 0,
+        1 => 8,
+        n => 8 + 2 * n as u64,
+    }
+}
+
+/// The fewest bytes the subtree of a node of `n` references can take,
+/// whatever it becomes: a leaf takes [`leaf_bytes`]; an inner node its
+/// word, and either a child with a reference (at least 8 bytes more) or
+/// the word an inner node with two empty children keeps (clipping may
+/// leave a straddler in neither child, so the children need not hold `n`
+/// references between them).
+#[inline]
+fn pending_bytes(n: usize) -> u64 {
+    leaf_bytes(n).min(16)
 }
 
 /// Makes `v` at least `len` long (new entries are zero; existing ones are
