@@ -119,11 +119,7 @@ fn build_cells_writes_the_file_of_build_o() {
     for scene in scene_files(&dir) {
         for reorder in [false, true] {
             let extra: &[&str] = if reorder { &["--reorder"] } else { &[] };
-            let mono = dir.join("mono.kd");
-            let m = mono.display().to_string();
-            ok(slimkd(
-                &[&["build", &scene, "-q", "-o", &m], extra].concat(),
-            ));
+            let mono = build_mono(&dir, &scene, extra);
             for k in ["1", "2", "7", "64"] {
                 let out = dir.join(format!("c{k}.kd"));
                 let o = out.display().to_string();
@@ -158,6 +154,14 @@ fn build_cells(scene: &str, k: &str, dir: &Path, out: &Path) -> serde_json::Valu
     ])))
 }
 
+/// The monolithic `build -o` of `scene` (with `extra` flags) in `dir`.
+fn build_mono(dir: &std::path::Path, scene: &str, extra: &[&str]) -> std::path::PathBuf {
+    let mono = dir.join("mono.kd");
+    let m = mono.display().to_string();
+    ok(slimkd(&[&["build", scene, "-q", "-o", &m], extra].concat()));
+    mono
+}
+
 fn kept(doc: &serde_json::Value) -> Vec<bool> {
     doc["cell_list"]
         .as_array()
@@ -171,14 +175,7 @@ fn kept(doc: &serde_json::Value) -> Vec<bool> {
 fn a_deleted_or_corrupt_part_is_rebuilt_on_resume() {
     let dir = fresh_temp_dir("resume");
     let scene = scene_files(&dir)[3].clone();
-    let mono = dir.join("mono.kd");
-    ok(slimkd(&[
-        "build",
-        &scene,
-        "-q",
-        "-o",
-        &mono.display().to_string(),
-    ]));
+    let mono = build_mono(&dir, &scene, &[]);
     let work = dir.join("work");
     let out = dir.join("cells.kd");
     let first = build_cells(&scene, "7", &work, &out);
@@ -214,15 +211,7 @@ fn a_deleted_or_corrupt_part_is_rebuilt_on_resume() {
 fn cells_built_elsewhere_are_kept_and_stitched() {
     let dir = fresh_temp_dir("elsewhere");
     let scene = scene_files(&dir)[3].clone();
-    let mono = dir.join("mono.kd");
-    ok(slimkd(&[
-        "build",
-        &scene,
-        "-q",
-        "-o",
-        &mono.display().to_string(),
-        "--reorder",
-    ]));
+    let mono = build_mono(&dir, &scene, &["--reorder"]);
     let work = dir.join("work");
     let d = work.display().to_string();
     let plan = json(&ok(slimkd(&[
@@ -295,14 +284,7 @@ fn a_build_killed_while_building_cells_finishes_with_the_same_file() {
     use std::io::BufRead;
     let dir = fresh_temp_dir("killed");
     let scene = scene_files(&dir)[3].clone();
-    let mono = dir.join("mono.kd");
-    ok(slimkd(&[
-        "build",
-        &scene,
-        "-q",
-        "-o",
-        &mono.display().to_string(),
-    ]));
+    let mono = build_mono(&dir, &scene, &[]);
     let work = dir.join("work");
     let out = dir.join("cells.kd");
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_slimkd"))
