@@ -19,7 +19,7 @@
 //! copy together stay within about one chunk per level of the tree alone.
 
 use crate::columns::ColumnsError;
-use crate::tree::{Node, NodeId, TreeIr, TriId};
+use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TreeIrSink, TriId};
 use memmap2::MmapMut;
 use std::collections::VecDeque;
 
@@ -224,7 +224,7 @@ pub fn assemble(
     bounds: crate::geom::Aabb,
     recs: &[Rec],
     tris: &[TriId],
-    mut subs: SubStore,
+    subs: SubStore,
 ) -> Result<(TreeIr, Vec<(NodeId, u32)>), ColumnsError> {
     let n_nodes = recs.iter().filter(|r| !matches!(r, Rec::Sub(_))).count() + subs.nodes;
     let n_tris = tris.len() + subs.tris;
@@ -234,16 +234,34 @@ pub fn assemble(
         .map_err(ColumnsError::OutOfMemory)?;
     crate::sys::try_reserve(&mut leaf_tris, n_tris, "the tree's leaf triangle lists")
         .map_err(ColumnsError::OutOfMemory)?;
+    let mut sink = TreeIrSink::with_capacity(nodes, leaf_tris);
+    let cells = assemble_into(bounds, recs, tris, subs, &mut sink)
+        .expect("a TreeIrSink takes any one tree");
+    let tree = sink.finish().expect("the records form one tree");
+    debug_assert_eq!(tree.nodes.len(), n_nodes);
+    debug_assert_eq!(tree.leaf_tris.len(), n_tris);
+    Ok((tree, cells))
+}
+
+/// Hands the tree to `sink` in pre-order from record 0, consuming the
+/// subtrees as it goes (each chunk unmapped once read, so the build's
+/// memory shrinks while the sink takes the tree); returns the pre-order
+/// positions of the leaves that stand for cells (`Rec::Cell`, given to the
+/// sink as empty leaves) with their cell numbers.
+pub fn assemble_into(
+    bounds: crate::geom::Aabb,
+    recs: &[Rec],
+    tris: &[TriId],
+    mut subs: SubStore,
+    sink: &mut impl PreOrderSink,
+) -> Result<Vec<(NodeId, u32)>, SinkStop> {
+    sink.bounds(bounds)?;
     let mut cells = Vec::new();
-    // (record, inner node whose right child it is)
-    let mut stack = vec![(0u32, None::<usize>)];
-    while let Some((r, parent)) = stack.pop() {
-        if let Some(p) = parent {
-            let next = NodeId(nodes.len() as u32);
-            if let Node::Inner { right, .. } = &mut nodes[p] {
-                *right = next;
-            }
-        }
+    // Nodes handed out so far: the next node's pre-order position.
+    let mut count = 0usize;
+    let mut list = Vec::new();
+    let mut stack = vec![0u32];
+    while let Some(r) = stack.pop() {
         match recs[r as usize] {
             Rec::Open => unreachable!("every record is decided before assembly"),
             Rec::Inner {
@@ -252,61 +270,42 @@ pub fn assemble(
                 left,
                 right,
             } => {
-                nodes.push(Node::Inner {
-                    axis,
-                    pos,
-                    right: NodeId(u32::MAX),
-                    t_ref: None,
-                });
-                stack.push((right, Some(nodes.len() - 1)));
-                stack.push((left, None));
+                sink.inner(axis, pos, None)?;
+                count += 1;
+                stack.push(right);
+                stack.push(left);
             }
-            Rec::Leaf { start, count } => {
-                let at = leaf_tris.len() as u32;
-                leaf_tris.extend_from_slice(&tris[start..start + count as usize]);
-                nodes.push(Node::Leaf { start: at, count });
+            Rec::Leaf { start, count: n } => {
+                sink.leaf(&tris[start..start + n as usize])?;
+                count += 1;
             }
             Rec::Cell(k) => {
-                cells.push((NodeId(nodes.len() as u32), k));
-                nodes.push(Node::Leaf {
-                    start: leaf_tris.len() as u32,
-                    count: 0,
-                });
+                cells.push((NodeId(count as u32), k));
+                sink.leaf(&[])?;
+                count += 1;
             }
             Rec::Sub(depth) => {
                 let (rec, packed, sub_tris) = subs.levels[depth as usize]
                     .pop()
                     .expect("each small node has its subtree");
                 assert_eq!(rec, r, "a level's subtrees are read in its node order");
-                let base = nodes.len() as u32;
-                let tbase = leaf_tris.len() as u32;
-                nodes.extend(packed.chunks_exact(NODE_WORDS).map(|w| {
+                // The packed nodes are in pre-order already.
+                for w in packed.chunks_exact(NODE_WORDS) {
                     if w[0] == LEAF {
-                        Node::Leaf {
-                            start: w[1] + tbase,
-                            count: w[2],
-                        }
+                        list.clear();
+                        list.extend(
+                            sub_tris[w[1] as usize..(w[1] + w[2]) as usize]
+                                .iter()
+                                .map(|&t| TriId(t)),
+                        );
+                        sink.leaf(&list)?;
                     } else {
-                        Node::Inner {
-                            axis: w[0] as u8,
-                            pos: f32::from_bits(w[1]),
-                            right: NodeId(w[2] + base),
-                            t_ref: None,
-                        }
+                        sink.inner(w[0] as u8, f32::from_bits(w[1]), None)?;
                     }
-                }));
-                leaf_tris.extend(sub_tris.iter().map(|&t| TriId(t)));
+                    count += 1;
+                }
             }
         }
     }
-    debug_assert_eq!(nodes.len(), n_nodes);
-    debug_assert_eq!(leaf_tris.len(), n_tris);
-    Ok((
-        TreeIr {
-            bounds,
-            nodes,
-            leaf_tris,
-        },
-        cells,
-    ))
+    Ok(cells)
 }

@@ -97,7 +97,7 @@ pub use self::report::{LevelReport, Phases};
 pub use crate::columns::ScratchStats;
 pub use crate::sys::{cpu_seconds, rss};
 
-use self::assemble::{Rec, SubStore, SubStream, assemble};
+use self::assemble::{Rec, SubStore, SubStream, assemble, assemble_into};
 use self::classify::{Classified, SideCounts, classify_pass, piece_carries, write_children};
 use self::dfs::Finisher;
 use self::events::{
@@ -112,7 +112,7 @@ use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::sys::lap;
-use crate::tree::{NodeId, TreeIr, TriId};
+use crate::tree::{NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
 use rayon::prelude::*;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
@@ -124,8 +124,37 @@ pub fn build(
     progress: Option<&Progress>,
     options: &LevelOptions,
 ) -> Result<(TreeIr, LevelReport), ColumnsError> {
-    let (tree, _, report) = run(scene, config, progress, options, None, None)?;
+    let (tree, _, report) = run(scene, config, progress, options, None, None, assemble)?;
     Ok((tree, report))
+}
+
+/// Builds the standard tree as [`build`] does, but hands it to `sink` in
+/// pre-order instead of assembling a [`TreeIr`]: the depth-first subtrees
+/// go to the sink straight from their packed streams, each chunk unmapped
+/// once read, so the whole tree is never in memory as nodes. `Ok(None)`
+/// when the sink stopped (it holds the reason).
+pub fn build_into(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    progress: Option<&Progress>,
+    options: &LevelOptions,
+    sink: &mut impl PreOrderSink,
+) -> Result<Option<LevelReport>, ColumnsError> {
+    let (fed, _, report) = run(
+        scene,
+        config,
+        progress,
+        options,
+        None,
+        None,
+        |bounds, recs, tris, subs| {
+            Ok(match assemble_into(bounds, recs, tris, subs, sink) {
+                Ok(cells) => (true, cells),
+                Err(SinkStop) => (false, Vec::new()),
+            })
+        },
+    )?;
+    Ok(fed.then_some(report))
 }
 
 /// How [`build_top`] cuts the top of the tree into cells.
@@ -183,7 +212,7 @@ pub fn build_top(
     cut: Cut,
 ) -> Result<(TopTree, LevelReport), ColumnsError> {
     assert!(cut.max_cells >= 1, "at least one cell");
-    let (tree, cells, report) = run(scene, config, progress, options, None, Some(cut))?;
+    let (tree, cells, report) = run(scene, config, progress, options, None, Some(cut), assemble)?;
     Ok((TopTree { tree, cells }, report))
 }
 
@@ -201,21 +230,24 @@ pub fn build_node(
     options: &LevelOptions,
     node: &CutCell,
 ) -> Result<(TreeIr, LevelReport), ColumnsError> {
-    let (tree, _, report) = run(scene, config, progress, options, Some(node), None)?;
+    let (tree, _, report) = run(scene, config, progress, options, Some(node), None, assemble)?;
     Ok((tree, report))
 }
 
 /// The build from the scene's root, or from `start`; cut into cells by
-/// `cut` if given.
+/// `cut` if given; the result made by `out` (from the bounds, records,
+/// breadth-first leaf lists and subtrees: [`assemble`] or a sink) with the
+/// pre-order positions of the cells' leaves.
 #[allow(clippy::type_complexity)]
-fn run(
+fn run<T>(
     scene: &TriangleColumns,
     config: &BuildConfig,
     progress: Option<&Progress>,
     options: &LevelOptions,
     start: Option<&CutCell>,
     cut: Option<Cut>,
-) -> Result<(TreeIr, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
+    out: impl FnOnce(Aabb, &[Rec], &[TriId], SubStore) -> Result<(T, Vec<(NodeId, u32)>), ColumnsError>,
+) -> Result<(T, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let scratch = Scratch::new(ScratchConfig {
         mem_budget: options.mem_budget,
         dir: options.scratch_dir.clone(),
@@ -258,7 +290,7 @@ fn run(
     // The levels' memory kept for reuse is not needed from here.
     scratch.release_pool();
     clock = Instant::now();
-    let (tree, slots) = assemble(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
+    let (tree, slots) = out(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
     let mut cut_cells: Vec<Option<CutCell>> = b
         .cut
         .take()
