@@ -100,20 +100,25 @@ fn streamed_files_equal_write_to_vec_on_bundled_scenes() {
     assert_streams_equal(&load_scene("bunny_npm.obj"), &dir, &LevelOptions::default());
 }
 
-/// Under a budget so small that the level columns go to scratch files,
-/// the small-node threshold low enough that the subtrees are many, the
-/// file is the same.
+/// Under a budget so small that the level columns and the depth-first
+/// subtrees go to scratch files, the small-node threshold low enough that
+/// the subtrees are many, the file is the same.
 #[test]
 fn streamed_files_equal_write_to_vec_under_a_memory_budget() {
     let dir = fresh_temp_dir("stream-budget");
     let scratch = fresh_temp_dir("stream-budget-scratch");
     let options = LevelOptions {
         mem_budget: 1 << 16,
-        scratch_dir: scratch,
+        scratch_dir: scratch.clone(),
         small_threshold: 64,
         ..LevelOptions::default()
     };
     assert_streams_equal(&load_scene("bunny_npm.obj"), &dir, &options);
+    // The subtrees' chunk files were unlinked once mapped.
+    assert_eq!(
+        slimkd::fsio::entry_names(&scratch).unwrap(),
+        Vec::<String>::new()
+    );
 }
 
 /// A tree whose inner nodes have both children empty (the left one keeps

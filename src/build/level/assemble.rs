@@ -22,6 +22,9 @@ use crate::columns::ColumnsError;
 use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TreeIrSink, TriId};
 use memmap2::MmapMut;
 use std::collections::VecDeque;
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What became of one node of a level.
 #[derive(Clone, Copy, Debug)]
@@ -64,14 +67,32 @@ struct Chunk {
     read: usize,
 }
 
+/// Distinguishes the chunk files of one process.
+static CHUNK_FILES: AtomicU64 = AtomicU64::new(0);
+
 impl Chunk {
-    fn new(words: usize) -> Result<Chunk, ColumnsError> {
+    /// An anonymous mapping, or with `dir` a mapping of an unlinked
+    /// scratch file there (its pages are the page cache's, which the
+    /// kernel writes back and reclaims under pressure, not the process's
+    /// anonymous memory).
+    fn new(words: usize, dir: Option<&Path>) -> Result<Chunk, ColumnsError> {
         let bytes = words * 4;
-        Ok(Chunk {
-            map: MmapMut::map_anon(bytes).map_err(|source| ColumnsError::Memory {
+        let map = match dir {
+            Some(dir) => {
+                let path = dir.join(format!(
+                    ".slimkd-subtrees.{}.{}",
+                    std::process::id(),
+                    CHUNK_FILES.fetch_add(1, Ordering::Relaxed)
+                ));
+                crate::columns::map_file(&path, bytes as u64)?.expect("a chunk is never empty")
+            }
+            None => MmapMut::map_anon(bytes).map_err(|source| ColumnsError::Memory {
                 bytes: bytes as u64,
                 source,
             })?,
+        };
+        Ok(Chunk {
+            map,
             len: 0,
             read: 0,
         })
@@ -97,16 +118,19 @@ pub struct SubStream {
     /// The size of a new chunk (a subtree larger than it gets a chunk of
     /// its own size).
     chunk_words: usize,
+    /// Where chunks are scratch files (under a memory budget).
+    dir: Option<Arc<Path>>,
     subs: usize,
     nodes: usize,
     tris: usize,
 }
 
 impl SubStream {
-    pub fn new(chunk_words: usize) -> SubStream {
+    pub fn new(chunk_words: usize, dir: Option<Arc<Path>>) -> SubStream {
         SubStream {
             chunks: VecDeque::new(),
             chunk_words: chunk_words.max(MIN_CHUNK_WORDS),
+            dir,
             subs: 0,
             nodes: 0,
             tris: 0,
@@ -128,7 +152,7 @@ impl SubStream {
             .is_none_or(|c| c.capacity() - c.len < need)
         {
             self.chunks
-                .push_back(Chunk::new(need.max(self.chunk_words))?);
+                .push_back(Chunk::new(need.max(self.chunk_words), self.dir.as_deref())?);
         }
         let c = self.chunks.back_mut().expect("a chunk was just made");
         let at = c.len;
@@ -187,15 +211,28 @@ impl SubStream {
 }
 
 /// The depth-first subtrees of the whole build: one stream per depth.
-#[derive(Default)]
 pub struct SubStore {
     levels: Vec<SubStream>,
+    /// Where the streams' chunks are scratch files, if anywhere.
+    pub dir: Option<Arc<Path>>,
     words: usize,
     nodes: usize,
     tris: usize,
 }
 
 impl SubStore {
+    /// An empty store whose chunks are anonymous mappings, or with `dir`
+    /// scratch files there.
+    pub fn new(dir: Option<Arc<Path>>) -> SubStore {
+        SubStore {
+            levels: Vec::new(),
+            dir,
+            words: 0,
+            nodes: 0,
+            tris: 0,
+        }
+    }
+
     /// The chunk size for new streams: at least 1 MiB, and large enough
     /// that the store never needs more than a few thousand mappings.
     pub fn chunk_words(&self) -> usize {
@@ -206,7 +243,9 @@ impl SubStore {
     pub fn add(&mut self, depth: u32, s: SubStream) {
         let d = depth as usize;
         if self.levels.len() <= d {
-            self.levels.resize_with(d + 1, || SubStream::new(0));
+            let dir = &self.dir;
+            self.levels
+                .resize_with(d + 1, || SubStream::new(0, dir.clone()));
         }
         self.words += HEADER_WORDS * s.subs + NODE_WORDS * s.nodes + s.tris;
         self.nodes += s.nodes;

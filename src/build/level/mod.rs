@@ -114,6 +114,7 @@ use crate::scene::TriangleColumns;
 use crate::sys::lap;
 use crate::tree::{NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
 use rayon::prelude::*;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
@@ -266,7 +267,11 @@ fn run<T>(
         cut: cut.map(|rule| (rule, Vec::new())),
         recs: vec![Rec::Open],
         leaf_tris: Vec::new(),
-        subs: SubStore::default(),
+        // Under a budget the subtrees, most of the tree, are scratch files
+        // too: held in anonymous memory they would grow past any budget.
+        subs: SubStore::new(
+            (options.mem_budget != u64::MAX).then(|| Arc::from(options.scratch_dir.as_path())),
+        ),
         report: LevelReport {
             start_rss_anon_bytes: start_rss.0,
             peak_rss_anon_bytes: start_rss.0,
@@ -290,7 +295,12 @@ fn run<T>(
     // The levels' memory kept for reuse is not needed from here.
     scratch.release_pool();
     clock = Instant::now();
-    let (tree, slots) = out(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
+    let (tree, slots) = out(
+        bounds,
+        &b.recs,
+        &b.leaf_tris,
+        std::mem::replace(&mut b.subs, SubStore::new(None)),
+    )?;
     let mut cut_cells: Vec<Option<CutCell>> = b
         .cut
         .take()
@@ -373,6 +383,7 @@ struct Finish<'a> {
     depth_limit: u32,
     progress: Option<&'a Progress>,
     chunk_words: usize,
+    chunk_dir: Option<Arc<std::path::Path>>,
     mode: NewEvents,
     tiny: usize,
 }
@@ -398,7 +409,7 @@ impl Finish<'_> {
                         Finisher::new(self.scene, &self.params, self.depth_limit, self.progress)
                             .with_new_events(self.mode)
                             .with_tiny(self.tiny),
-                        Ok(SubStream::new(self.chunk_words)),
+                        Ok(SubStream::new(self.chunk_words, self.chunk_dir.clone())),
                     )
                 },
                 |(first, mut fin, out), (k, &j)| {
@@ -649,6 +660,7 @@ impl<'a> Builder<'a> {
             depth_limit: self.depth_limit,
             progress: self.progress,
             chunk_words: self.subs.chunk_words(),
+            chunk_dir: self.subs.dir.clone(),
             mode: self.options.new_events,
             tiny: self.options.tiny_threshold,
         };
