@@ -275,3 +275,63 @@ fn bad_nodes_in_a_stream_are_errors_naming_the_node() {
         assert!(err.to_string().contains(message), "{message}: {err}");
     }
 }
+
+/// `build -o` of a std level tree (streamed) writes the bytes and prints
+/// the figures of the path through a `TreeIr` (`--builder sweep`), with
+/// and without `--reorder` and a budget.
+#[test]
+fn build_o_streamed_equals_the_tree_path() {
+    let dir = fresh_temp_dir("stream-cli");
+    let scene = manifest_dir().join("scenes/nexuiz_dieselpower.obj");
+    let scratch = fresh_temp_dir("stream-cli-scratch");
+    let run = |out: &Path, extra: &[&str]| -> serde_json::Value {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_slimkd"))
+            .arg("build")
+            .arg(&scene)
+            .arg("-o")
+            .arg(out)
+            .args(["--json", "-q"])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice(&o.stdout).unwrap()
+    };
+    let scratch_arg = scratch.to_str().unwrap();
+    for reorder in [&[][..], &["--reorder"][..]] {
+        let a = dir.join("streamed.kd");
+        let b = dir.join("tree.kd");
+        let c = dir.join("budget.kd");
+        let ja = run(&a, reorder);
+        let jb = run(&b, &[reorder, &["--builder", "sweep"]].concat());
+        let jc = run(
+            &c,
+            &[reorder, &["--mem-budget", "64K", "--scratch", scratch_arg]].concat(),
+        );
+        let bytes = std::fs::read(&b).unwrap();
+        assert!(std::fs::read(&a).unwrap() == bytes, "{reorder:?}");
+        assert!(std::fs::read(&c).unwrap() == bytes, "{reorder:?}");
+        for key in [
+            "nodes_total",
+            "nodes_leaf",
+            "refs",
+            "max_depth",
+            "mean_leaf_depth",
+            "sah_cost",
+            "leaf_depth_histogram",
+            "idx16",
+            "idx32",
+            "tree_bytes",
+        ] {
+            assert_eq!(ja[key], jb[key], "{key}");
+            assert_eq!(jc[key], jb[key], "{key}");
+        }
+    }
+    assert_eq!(
+        slimkd::fsio::entry_names(&scratch).unwrap(),
+        Vec::<String>::new()
+    );
+    let mut names = slimkd::fsio::entry_names(&dir).unwrap();
+    names.sort();
+    assert_eq!(names, ["budget.kd", "streamed.kd", "tree.kd"]);
+}
