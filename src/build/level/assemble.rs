@@ -11,12 +11,15 @@
 //! **Memory.** The depth-first subtrees are most of the tree, so they are
 //! never held twice. They are stored packed (12 bytes a node instead of a
 //! [`Node`]'s 20), one stream per level in the level's node order, in
-//! chunks that are anonymous mappings of their own. A level's nodes are in
+//! chunks that are mappings of their own (anonymous, or under a budget
+//! unlinked scratch files). A level's nodes are in
 //! left-to-right order of the tree, so pre-order reads each level's stream
 //! front to back: the assembly copies every subtree once, and each chunk is
 //! unmapped (its pages returned to the system, whatever the allocator
 //! does) as soon as it has been read. The tree and the subtrees left to
-//! copy together stay within about one chunk per level of the tree alone.
+//! copy together stay within about one chunk per level of the tree alone;
+//! [`assemble_into`] hands the nodes to a sink instead, so with the
+//! streamed writer only the subtrees left to read are held.
 
 use crate::columns::ColumnsError;
 use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TreeIrSink, TriId};
