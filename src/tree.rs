@@ -514,6 +514,208 @@ impl std::fmt::Display for TreeError {
 
 impl std::error::Error for TreeError {}
 
+/// A consumer of a tree in canonical pre-order, one node at a time: what
+/// a builder hands its tree to when the whole [`TreeIr`] need not exist
+/// (the streamed `.kd` writer, the statistics, [`TreeIrSink`]).
+/// `bounds` comes first, then every node: an inner node is followed by its
+/// left subtree, then its right subtree. A sink that cannot go on returns
+/// [`SinkStop`] and keeps the reason itself; the producer then stops.
+pub trait PreOrderSink {
+    /// The root cell, before any node.
+    fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop>;
+    /// An inner node split by the plane `axis = pos`, with its hoisted
+    /// triangle if any.
+    fn inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), SinkStop>;
+    /// A leaf and its triangles (ascending; none for an empty leaf).
+    fn leaf(&mut self, tris: &[TriId]) -> Result<(), SinkStop>;
+}
+
+/// A [`PreOrderSink`]'s refusal of further nodes; the sink holds the
+/// reason.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SinkStop;
+
+/// Both sinks get every call (the first that stops ends it).
+impl<A: PreOrderSink, B: PreOrderSink> PreOrderSink for (A, B) {
+    fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop> {
+        self.0.bounds(bounds)?;
+        self.1.bounds(bounds)
+    }
+    fn inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), SinkStop> {
+        self.0.inner(axis, pos, t_ref)?;
+        self.1.inner(axis, pos, t_ref)
+    }
+    fn leaf(&mut self, tris: &[TriId]) -> Result<(), SinkStop> {
+        self.0.leaf(tris)?;
+        self.1.leaf(tris)
+    }
+}
+
+impl<S: PreOrderSink + ?Sized> PreOrderSink for &mut S {
+    fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop> {
+        (**self).bounds(bounds)
+    }
+    fn inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), SinkStop> {
+        (**self).inner(axis, pos, t_ref)
+    }
+    fn leaf(&mut self, tris: &[TriId]) -> Result<(), SinkStop> {
+        (**self).leaf(tris)
+    }
+}
+
+impl TreeIr {
+    /// Hands the tree to `sink` in pre-order (a well-formed tree: one
+    /// that [`TreeIr::validate`] accepts, or at least one whose children
+    /// and leaf lists are in range and form a tree).
+    pub fn feed(&self, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
+        sink.bounds(self.bounds)?;
+        let mut stack = vec![NodeId::ROOT];
+        while let Some(id) = stack.pop() {
+            match self.nodes[id.0 as usize] {
+                Node::Inner {
+                    axis,
+                    pos,
+                    right,
+                    t_ref,
+                } => {
+                    sink.inner(axis, pos, t_ref)?;
+                    stack.push(right);
+                    stack.push(NodeId(id.0 + 1));
+                }
+                Node::Leaf { start, count } => sink.leaf(self.leaf(start, count))?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Where the next node of a pre-order stream goes: the root, a left child
+/// (the next node after its parent) or the right child of an inner node.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PreOrderPlace {
+    /// The first node.
+    Root,
+    /// The left child of the node before it.
+    Left,
+    /// The right child of the inner node at this pre-order position.
+    Right(usize),
+}
+
+/// The places of a pre-order stream's nodes: the stack of the right
+/// children still to come, which every [`PreOrderSink`] keeps.
+#[derive(Clone, Debug, Default)]
+pub struct PreOrderStack {
+    /// `(place, depth)` of the nodes to come, the next on top.
+    stack: Vec<(PreOrderPlace, u32)>,
+    /// Nodes seen.
+    count: usize,
+}
+
+impl PreOrderStack {
+    /// The place and depth of the next node, and its pre-order position;
+    /// `None` once the tree is complete. `inner`: whether that node is an
+    /// inner node (its children then come next).
+    pub fn next(&mut self, inner: bool) -> Option<(PreOrderPlace, u32, usize)> {
+        let (place, depth) = if self.count == 0 {
+            (PreOrderPlace::Root, 0)
+        } else {
+            self.stack.pop()?
+        };
+        let at = self.count;
+        self.count += 1;
+        if inner {
+            self.stack.push((PreOrderPlace::Right(at), depth + 1));
+            self.stack.push((PreOrderPlace::Left, depth + 1));
+        }
+        Some((place, depth, at))
+    }
+
+    /// Whether a whole tree has been seen.
+    pub fn complete(&self) -> bool {
+        self.count > 0 && self.stack.is_empty()
+    }
+
+    /// Nodes seen.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+}
+
+/// A [`PreOrderSink`] that collects the [`TreeIr`]. [`TreeIrSink::finish`]
+/// refuses a stream that is not one whole tree.
+#[derive(Debug, Default)]
+pub struct TreeIrSink {
+    /// The tree so far.
+    pub tree: TreeIr,
+    places: PreOrderStack,
+}
+
+impl Default for TreeIr {
+    fn default() -> TreeIr {
+        TreeIr {
+            bounds: Aabb::EMPTY,
+            nodes: Vec::new(),
+            leaf_tris: Vec::new(),
+        }
+    }
+}
+
+impl TreeIrSink {
+    /// A sink whose tree reserves `nodes` nodes and `tris` leaf entries.
+    pub fn with_capacity(nodes: Vec<Node>, leaf_tris: Vec<TriId>) -> TreeIrSink {
+        TreeIrSink {
+            tree: TreeIr {
+                bounds: Aabb::EMPTY,
+                nodes,
+                leaf_tris,
+            },
+            places: PreOrderStack::default(),
+        }
+    }
+
+    fn place(&mut self, inner: bool) -> Result<(), SinkStop> {
+        let (place, _, at) = self.places.next(inner).ok_or(SinkStop)?;
+        if let PreOrderPlace::Right(parent) = place
+            && let Node::Inner { right, .. } = &mut self.tree.nodes[parent]
+        {
+            *right = NodeId(at as u32);
+        }
+        Ok(())
+    }
+
+    /// The tree, if the stream was one whole tree.
+    pub fn finish(self) -> Option<TreeIr> {
+        self.places.complete().then_some(self.tree)
+    }
+}
+
+impl PreOrderSink for TreeIrSink {
+    fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop> {
+        self.tree.bounds = bounds;
+        Ok(())
+    }
+    fn inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), SinkStop> {
+        self.place(true)?;
+        self.tree.nodes.push(Node::Inner {
+            axis,
+            pos,
+            right: NodeId(u32::MAX),
+            t_ref,
+        });
+        Ok(())
+    }
+    fn leaf(&mut self, tris: &[TriId]) -> Result<(), SinkStop> {
+        self.place(false)?;
+        let start = self.tree.leaf_tris.len() as u32;
+        self.tree.leaf_tris.extend_from_slice(tris);
+        self.tree.nodes.push(Node::Leaf {
+            start,
+            count: tris.len() as u32,
+        });
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

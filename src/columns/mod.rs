@@ -504,7 +504,7 @@ impl Scratch {
 
 /// Creates `path` (it must not exist), reserves `bytes` for it, maps it
 /// and, on Unix, unlinks it. Nothing is left at `path` on error.
-fn map_file(path: &Path, bytes: u64) -> Result<Option<MmapMut>, ColumnsError> {
+pub(crate) fn map_file(path: &Path, bytes: u64) -> Result<Option<MmapMut>, ColumnsError> {
     let err = |op, source| ColumnsError::File {
         path: path.to_path_buf(),
         op,

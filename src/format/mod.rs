@@ -90,9 +90,11 @@
 
 pub mod node;
 mod read;
+mod stream;
 mod write;
 
 pub use read::{AlignedBytes, Check, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
+pub use stream::{StreamWriter, write_file_streamed};
 pub use write::{
     FileConfig, Preset, SCENE_NAME_LEN, SceneTag, WriteOptions, write_file, write_to_vec,
 };

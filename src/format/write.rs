@@ -5,6 +5,7 @@ use super::{
     ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SCENE_HASH_AT,
     SCENE_NAME_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
 };
+use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId, WalkFault};
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -181,30 +182,30 @@ pub struct WriteOptions {
 }
 
 /// Node words per window of [`Words`] (8 MiB).
-const WINDOW: usize = 1 << 20;
+pub(super) const WINDOW: usize = 1 << 20;
 
 /// The node words as the layout makes them, streamed out in windows of
 /// [`WINDOW`] words. A word is set when its node is laid out, which for a
 /// right child is after its whole left sibling subtree; a word set after
 /// its window has gone out is kept in `late` and patched in afterwards
 /// (a few per window: the right children waiting on the layout stack).
-struct Words<'f> {
+pub(super) struct Words<'f> {
     /// Words per window ([`WINDOW`] but in tests).
-    window: usize,
+    pub(super) window: usize,
     /// Words already handed to `flush`.
-    base: usize,
-    buf: Vec<u64>,
+    pub(super) base: usize,
+    pub(super) buf: Vec<u64>,
     /// `(slot, word)` of the words set after their window went out.
-    late: Vec<(usize, u64)>,
-    flush: &'f mut dyn FnMut(&[u64]) -> Result<(), FormatError>,
+    pub(super) late: Vec<(usize, u64)>,
+    pub(super) flush: &'f mut dyn FnMut(&[u64]) -> Result<(), FormatError>,
 }
 
 impl Words<'_> {
-    fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.base + self.buf.len()
     }
 
-    fn push(&mut self, w: u64) -> Result<(), FormatError> {
+    pub(super) fn push(&mut self, w: u64) -> Result<(), FormatError> {
         self.buf.push(w);
         if self.buf.len() >= self.window {
             (self.flush)(&self.buf)?;
@@ -214,7 +215,7 @@ impl Words<'_> {
         Ok(())
     }
 
-    fn set(&mut self, slot: usize, w: u64) {
+    pub(super) fn set(&mut self, slot: usize, w: u64) {
         match slot.checked_sub(self.base) {
             Some(i) => self.buf[i] = w,
             None => self.late.push((slot, w)),
@@ -222,7 +223,7 @@ impl Words<'_> {
     }
 
     /// Hands out the last words; returns the late ones.
-    fn finish(self) -> Result<Vec<(usize, u64)>, FormatError> {
+    pub(super) fn finish(self) -> Result<Vec<(usize, u64)>, FormatError> {
         (self.flush)(&self.buf)?;
         Ok(self.late)
     }
@@ -404,24 +405,7 @@ fn layout(
                 ids.clear();
                 ids.extend(list.iter().map(|&t| new_id(t)));
                 ids.sort_unstable();
-                let word = if let [t] = ids[..] {
-                    out.n_one_leaves += 1;
-                    node::encode_leaf1(t)
-                } else if ids.is_empty() {
-                    // The one form of an empty leaf with a word.
-                    node::encode_leaf32(0, 0)
-                } else if node::fits_leaf16(ids.len(), ids.iter().copied()) {
-                    let upper = ids.first().map_or(0, |&t| t >> 16);
-                    let first = u32::try_from(out.idx16.len())
-                        .map_err(|_| too_large("idx16 over 2^32 entries"))?;
-                    out.idx16.extend(ids.iter().map(|&t| t as u16));
-                    node::encode_leaf16(ids.len() as u32, upper as u16, first)
-                } else {
-                    let first = u32::try_from(out.idx32.len())
-                        .map_err(|_| too_large("idx32 over 2^32 entries"))?;
-                    out.idx32.extend_from_slice(&ids);
-                    node::encode_leaf32(ids.len() as u32, first)
-                };
+                let word = leaf_word(&ids, &mut out.idx32, &mut out.idx16, &mut out.n_one_leaves)?;
                 words.push(word)?;
                 Ok(None)
             }
@@ -436,6 +420,66 @@ fn layout(
     Ok(out)
 }
 
+/// Where a leaf's index list goes: an index array in memory, or one
+/// streamed through a file (`super::stream`).
+pub(super) trait Entries {
+    /// Entries so far.
+    fn count(&self) -> u64;
+    /// Appends `ids` (cut to the array's width).
+    fn put(&mut self, ids: &[u32]) -> Result<(), FormatError>;
+}
+
+impl Entries for Vec<u32> {
+    fn count(&self) -> u64 {
+        self.len() as u64
+    }
+    fn put(&mut self, ids: &[u32]) -> Result<(), FormatError> {
+        self.extend_from_slice(ids);
+        Ok(())
+    }
+}
+
+impl Entries for Vec<u16> {
+    fn count(&self) -> u64 {
+        self.len() as u64
+    }
+    fn put(&mut self, ids: &[u32]) -> Result<(), FormatError> {
+        self.extend(ids.iter().map(|&t| t as u16));
+        Ok(())
+    }
+}
+
+/// The word of a leaf with the (new, ascending) triangle ids `ids`: one
+/// triangle in the word, an empty leaf, or a list appended to `idx16`
+/// when it fits 2-byte mode, else to `idx32`; `one` counts the leaves of
+/// one triangle.
+pub(super) fn leaf_word(
+    ids: &[u32],
+    idx32: &mut impl Entries,
+    idx16: &mut impl Entries,
+    one: &mut u64,
+) -> Result<u64, FormatError> {
+    let too_large = |what: &str| FormatError::TooLarge(what.to_string());
+    Ok(if let [t] = ids[..] {
+        *one += 1;
+        node::encode_leaf1(t)
+    } else if ids.is_empty() {
+        // The one form of an empty leaf with a word.
+        node::encode_leaf32(0, 0)
+    } else if node::fits_leaf16(ids.len(), ids.iter().copied()) {
+        let upper = ids.first().map_or(0, |&t| t >> 16);
+        let first =
+            u32::try_from(idx16.count()).map_err(|_| too_large("idx16 over 2^32 entries"))?;
+        idx16.put(ids)?;
+        node::encode_leaf16(ids.len() as u32, upper as u16, first)
+    } else {
+        let first =
+            u32::try_from(idx32.count()).map_err(|_| too_large("idx32 over 2^32 entries"))?;
+        idx32.put(ids)?;
+        node::encode_leaf32(ids.len() as u32, first)
+    })
+}
+
 fn put_u32(b: &mut [u8], at: usize, v: u32) {
     b[at..at + 4].copy_from_slice(&v.to_le_bytes());
 }
@@ -445,8 +489,7 @@ fn put_u64(b: &mut [u8], at: usize, v: u64) {
 }
 
 /// Refuses a scene the reader would reject (see [`write_to_vec`]).
-fn check_scene(tree: &TreeIr, scene: &TriangleColumns) -> Result<(), FormatError> {
-    let b = tree.bounds;
+pub(super) fn check_scene(b: Aabb, scene: &TriangleColumns) -> Result<(), FormatError> {
     if !(b.min.is_finite() && b.max.is_finite() && b.min.cmple(b.max).all()) {
         return Err(FormatError::Header(
             "scene bounds are not a finite box".into(),
@@ -489,7 +532,7 @@ const SINK_BUF: usize = 1 << 20;
 
 /// Writes one section after another, each checksummed and padded to
 /// [`SECTION_ALIGN`].
-struct SectionSink<'w, W: Write> {
+pub(super) struct SectionSink<'w, W: Write> {
     out: &'w mut W,
     buf: Vec<u8>,
     crc: crc32fast::Hasher,
@@ -499,7 +542,7 @@ struct SectionSink<'w, W: Write> {
 
 impl<W: Write> SectionSink<'_, W> {
     #[inline]
-    fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+    pub(super) fn put(&mut self, bytes: &[u8]) -> std::io::Result<()> {
         self.buf.extend_from_slice(bytes);
         if self.buf.len() >= SINK_BUF {
             self.flush()?;
@@ -549,7 +592,7 @@ fn write_kd<W: Read + Write + Seek>(
     io: &dyn Fn(std::io::Error) -> FormatError,
     window: usize,
 ) -> Result<(), FormatError> {
-    check_scene(tree, scene)?;
+    check_scene(tree.bounds, scene)?;
     let n_tris = scene.len();
     let perm: Option<Vec<u32>> = options.reorder.then(|| scene.morton_order());
     out.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
@@ -580,7 +623,73 @@ fn write_kd<W: Read + Write + Seek>(
         let lay = layout(tree, n_tris, &new_id, &mut words)?;
         (lay, words.finish()?)
     };
-    let nodes_len = lay.n_words * 8;
+    let counts = Counts {
+        n_words: lay.n_words,
+        n_inner: lay.n_inner,
+        n_t_inner: lay.n_t_inner,
+        n_leaves: lay.n_leaves,
+        n_implicit_empty: lay.n_implicit_empty,
+        n_one_leaves: lay.n_one_leaves,
+        max_depth: lay.max_depth,
+        n_idx32: lay.idx32.len() as u64,
+        n_idx16: lay.idx16.len() as u64,
+    };
+    let mut put_idx = |section: Section, sink: &mut SectionSink<'_, W>| match section {
+        Section::Idx32 => lay
+            .idx32
+            .iter()
+            .try_for_each(|w| sink.put(&w.to_le_bytes())),
+        _ => lay
+            .idx16
+            .iter()
+            .try_for_each(|w| sink.put(&w.to_le_bytes())),
+    };
+    finish_kd(
+        out,
+        late,
+        &counts,
+        &mut put_idx,
+        scene,
+        perm.as_deref(),
+        options,
+        tree.bounds,
+        io,
+    )
+}
+
+/// What a finished layout counts (the header's figures).
+pub(super) struct Counts {
+    pub(super) n_words: u64,
+    pub(super) n_inner: u64,
+    pub(super) n_t_inner: u64,
+    pub(super) n_leaves: u64,
+    pub(super) n_implicit_empty: u64,
+    pub(super) n_one_leaves: u64,
+    pub(super) max_depth: u32,
+    pub(super) n_idx32: u64,
+    pub(super) n_idx16: u64,
+}
+
+/// The file after its node words (which `out` holds from [`HEADER_SIZE`]
+/// on, up to where it stands): the `late` words patched in, the node
+/// section read back for its checksum and padded, the index sections
+/// (written by `put_idx` for `Section::Idx32` and `Section::Idx16`), the
+/// geometry (renumbered by `perm`, new to old id), and the header, at
+/// offset 0.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn finish_kd<W: Read + Write + Seek>(
+    out: &mut W,
+    late: Vec<(usize, u64)>,
+    counts: &Counts,
+    put_idx: &mut dyn FnMut(Section, &mut SectionSink<'_, W>) -> std::io::Result<()>,
+    scene: &TriangleColumns,
+    perm: Option<&[u32]>,
+    options: &WriteOptions,
+    b: Aabb,
+    io: &dyn Fn(std::io::Error) -> FormatError,
+) -> Result<(), FormatError> {
+    let n_tris = scene.len();
+    let nodes_len = counts.n_words * 8;
     let crc_nodes = (|| {
         for (slot, w) in late {
             out.seek(SeekFrom::Start(HEADER_SIZE as u64 + 8 * slot as u64))?;
@@ -615,27 +724,20 @@ fn write_kd<W: Read + Write + Seek>(
     for section in &Section::ALL[1..] {
         match section {
             Section::Nodes => unreachable!("written above"),
-            Section::Idx32 => lay
-                .idx32
-                .iter()
-                .try_for_each(|w| sink.put(&w.to_le_bytes())),
-            Section::Idx16 => lay
-                .idx16
-                .iter()
-                .try_for_each(|w| sink.put(&w.to_le_bytes())),
+            Section::Idx32 | Section::Idx16 => put_idx(*section, &mut sink),
             Section::Vertices => scene.positions().iter().try_for_each(|p| {
                 [p.x, p.y, p.z]
                     .iter()
                     .try_for_each(|v| sink.put(&v.to_le_bytes()))
             }),
             Section::Triangles => (0..n_tris).try_for_each(|new| {
-                let old = perm.as_ref().map_or(new, |p| p[new] as usize);
+                let old = perm.map_or(new, |p| p[new] as usize);
                 scene.indices()[old]
                     .iter()
                     .try_for_each(|v| sink.put(&v.to_le_bytes()))
             }),
             Section::TriMap => perm
-                .iter()
+                .into_iter()
                 .flatten()
                 .try_for_each(|w| sink.put(&w.to_le_bytes())),
         }
@@ -645,7 +747,6 @@ fn write_kd<W: Read + Write + Seek>(
         crcs[*section as usize] = crc;
     }
 
-    let b = tree.bounds;
     let mut header = [0u8; HEADER_SIZE];
     header[0..8].copy_from_slice(&MAGIC);
     put_u32(&mut header, 8, VERSION);
@@ -665,15 +766,19 @@ fn write_kd<W: Read + Write + Seek>(
     put_u32(&mut header, 56, c.tau_occu.to_bits());
     put_u32(&mut header, 60, c.tau_freq.to_bits());
     put_u32(&mut header, 64, c.max_t2rn);
-    put_u32(&mut header, 68, lay.max_depth);
-    put_u64(&mut header, 72, lay.n_words);
-    put_u64(&mut header, 80, lay.n_inner);
-    put_u64(&mut header, 88, lay.n_t_inner);
-    put_u64(&mut header, 96, lay.n_leaves);
-    put_u64(&mut header, super::IMPLICIT_EMPTY_AT, lay.n_implicit_empty);
-    put_u64(&mut header, super::ONE_LEAVES_AT, lay.n_one_leaves);
-    put_u64(&mut header, 104, lay.idx32.len() as u64);
-    put_u64(&mut header, 112, lay.idx16.len() as u64);
+    put_u32(&mut header, 68, counts.max_depth);
+    put_u64(&mut header, 72, counts.n_words);
+    put_u64(&mut header, 80, counts.n_inner);
+    put_u64(&mut header, 88, counts.n_t_inner);
+    put_u64(&mut header, 96, counts.n_leaves);
+    put_u64(
+        &mut header,
+        super::IMPLICIT_EMPTY_AT,
+        counts.n_implicit_empty,
+    );
+    put_u64(&mut header, super::ONE_LEAVES_AT, counts.n_one_leaves);
+    put_u64(&mut header, 104, counts.n_idx32);
+    put_u64(&mut header, 112, counts.n_idx16);
     put_u64(&mut header, 120, n_tris as u64);
     put_u64(&mut header, 128, scene.positions().len() as u64);
     for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
@@ -745,7 +850,7 @@ pub fn write_file(
     options: &WriteOptions,
 ) -> Result<(), FormatError> {
     // Refuse a bad scene before any file is made.
-    check_scene(tree, scene)?;
+    check_scene(tree.bounds, scene)?;
     let io = |source| FormatError::Io {
         path: path.to_path_buf(),
         source,

@@ -10,7 +10,8 @@ pub(crate) mod plot;
 pub mod report;
 
 use crate::build::sah::SahParams;
-use crate::tree::{Node, TreeIr};
+use crate::geom::Aabb;
+use crate::tree::{PreOrderSink, SinkStop, TreeIr, TriId};
 
 /// Summary figures of one tree.
 #[derive(Clone, Debug, PartialEq)]
@@ -41,57 +42,116 @@ pub struct TreeStats {
 impl TreeStats {
     /// The figures of `tree`, its SAH cost priced with `params`.
     pub fn of(tree: &TreeIr, params: &SahParams) -> TreeStats {
-        let sa_root = tree.bounds.surface_area();
-        let mut s = TreeStats {
-            nodes: tree.nodes.len(),
-            inner: 0,
-            t_inner: 0,
-            leaves: 0,
-            empty_leaves: 0,
+        let mut sink = StatsSink::new(params);
+        tree.feed(&mut sink)
+            .expect("the statistics take any one tree");
+        TreeStats {
+            // Every entry, listed by a leaf or not.
             refs: tree.leaf_tris.len(),
-            max_depth: 0,
-            mean_leaf_depth: 0.0,
-            leaf_depths: Vec::new(),
-            sah_cost: 0.0,
+            ..sink.finish()
+        }
+    }
+}
+
+/// [`TreeStats`] of a tree handed over in pre-order (what a streamed build
+/// prints without the tree in memory); [`TreeStats::of`] is this sink fed
+/// with a [`TreeIr`].
+#[derive(Clone, Debug)]
+pub struct StatsSink {
+    params: SahParams,
+    sa_root: f64,
+    /// Cells and depths of the nodes to come, the next on top.
+    stack: Vec<(Aabb, u32)>,
+    depth_sum: u64,
+    s: TreeStats,
+}
+
+impl StatsSink {
+    /// A sink pricing the SAH cost with `params`.
+    pub fn new(params: &SahParams) -> StatsSink {
+        StatsSink {
+            params: *params,
+            sa_root: 0.0,
+            stack: Vec::new(),
+            depth_sum: 0,
+            s: TreeStats {
+                nodes: 0,
+                inner: 0,
+                t_inner: 0,
+                leaves: 0,
+                empty_leaves: 0,
+                refs: 0,
+                max_depth: 0,
+                mean_leaf_depth: 0.0,
+                leaf_depths: Vec::new(),
+                sah_cost: 0.0,
+            },
+        }
+    }
+
+    /// The next node's cell and depth, and its share of the root's area.
+    fn next(&mut self) -> Result<(Aabb, u32, f64), SinkStop> {
+        let (cell, depth) = self.stack.pop().ok_or(SinkStop)?;
+        self.s.nodes += 1;
+        self.s.max_depth = self.s.max_depth.max(depth);
+        let p = if self.sa_root > 0.0 {
+            cell.surface_area() / self.sa_root
+        } else {
+            1.0
         };
-        let mut depth_sum = 0u64;
-        tree.walk(|_, node, cell, depth| {
-            let p = if sa_root > 0.0 {
-                cell.surface_area() / sa_root
-            } else {
-                1.0
-            };
-            s.max_depth = s.max_depth.max(depth);
-            match *node {
-                Node::Inner { t_ref, .. } => {
-                    if t_ref.is_some() {
-                        s.t_inner += 1;
-                    } else {
-                        s.inner += 1;
-                    }
-                    s.sah_cost += params.k_t * p;
-                }
-                Node::Leaf { count, .. } => {
-                    s.leaves += 1;
-                    if count == 0 {
-                        s.empty_leaves += 1;
-                    } else {
-                        depth_sum += u64::from(depth);
-                    }
-                    if s.leaf_depths.len() <= depth as usize {
-                        s.leaf_depths.resize(depth as usize + 1, 0);
-                    }
-                    s.leaf_depths[depth as usize] += 1;
-                    s.sah_cost += params.k_i * f64::from(count) * p;
-                }
-            }
-        });
+        Ok((cell, depth, p))
+    }
+
+    /// The figures of the nodes seen.
+    pub fn finish(self) -> TreeStats {
+        let mut s = self.s;
         let full = s.leaves - s.empty_leaves;
         s.mean_leaf_depth = if full > 0 {
-            depth_sum as f64 / full as f64
+            self.depth_sum as f64 / full as f64
         } else {
             0.0
         };
         s
+    }
+}
+
+impl PreOrderSink for StatsSink {
+    fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop> {
+        self.sa_root = bounds.surface_area();
+        self.stack = vec![(bounds, 0)];
+        Ok(())
+    }
+
+    fn inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), SinkStop> {
+        let (cell, depth, p) = self.next()?;
+        if t_ref.is_some() {
+            self.s.t_inner += 1;
+        } else {
+            self.s.inner += 1;
+        }
+        self.s.sah_cost += self.params.k_t * p;
+        let (l, r) = cell.split(usize::from(axis), pos);
+        self.stack.push((r, depth + 1));
+        self.stack.push((l, depth + 1));
+        Ok(())
+    }
+
+    fn leaf(&mut self, tris: &[TriId]) -> Result<(), SinkStop> {
+        let (_, depth, p) = self.next()?;
+        let s = &mut self.s;
+        let count = tris.len() as u32;
+        s.refs += tris.len();
+        s.leaves += 1;
+        if count == 0 {
+            s.empty_leaves += 1;
+        } else {
+            self.depth_sum += u64::from(depth);
+        }
+        if s.leaf_depths.len() <= depth as usize {
+            s.leaf_depths.resize(depth as usize + 1, 0);
+        }
+        s.leaf_depths[depth as usize] += 1;
+        s.sah_cost += self.params.k_i * f64::from(count) * p;
+        Ok(())
     }
 }

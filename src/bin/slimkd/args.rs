@@ -317,7 +317,8 @@ pub(crate) struct BuildArgs {
     #[arg(long, value_enum, default_value_t = BuilderArg::Level)]
     pub(crate) builder: BuilderArg,
     /// Level builder: bytes of per-level columns kept in RAM (e.g. 1G,
-    /// 512M); above it they go to mapped scratch files. Default: no limit.
+    /// 512M); above it they go to mapped scratch files, and the finished
+    /// depth-first subtrees go to scratch files too. Default: no limit.
     #[arg(long, value_parser = parse_bytes)]
     pub(crate) mem_budget: Option<u64>,
     /// Level builder: directory for scratch files (default: the system

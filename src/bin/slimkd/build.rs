@@ -9,7 +9,7 @@ use slimkd::pipeline::{self, FiguresJson};
 use slimkd::progress::Progress;
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::slim::{self, SlimParams, SlimPhases, SlimReport};
-use slimkd::stats::{TreeStats, report};
+use slimkd::stats::{StatsSink, TreeStats, report};
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -372,9 +372,103 @@ pub(crate) fn cmd_build(
     let watch = PeakRss::start();
     pool.install(|| {
         let loaded = load(path, ui.bars_off())?;
+        if let Some(out) = output
+            && matches!(args.builder, BuilderArg::Level)
+            && args.slim(reorder).0.is_none()
+        {
+            return build_streamed(&loaded, args, out, reorder, ui, &watch);
+        }
         let built = build_tree(&loaded.scene, args, ui.bars_off(), reorder)?;
         write_and_print("build", &loaded, built, output, reorder, ui, &watch, None)
     })
+}
+
+/// `build -o` of a standard tree with the level builder: the tree goes
+/// into the file as it is assembled ([`level::build_into`] into
+/// [`format::write_file_streamed`]), its figures taken on the way
+/// ([`StatsSink`]), so the whole tree is never in memory; the file's bytes
+/// are those of the path through a `TreeIr`. The slim pass works on the
+/// whole tree, so slim presets take that path.
+fn build_streamed(
+    loaded: &Loaded,
+    args: &BuildArgs,
+    out: &Path,
+    reorder: bool,
+    ui: Out,
+    watch: &PeakRss,
+) -> Res<()> {
+    let config = build_config(args);
+    let progress = Progress::default();
+    let status = Arc::new(level::LevelStatus::default());
+    let options = level::LevelOptions {
+        status: Some(status.clone()),
+        ..level_options(args)
+    };
+    let write_options = write_options(loaded, &config, Preset::Std, None, reorder);
+    let start = Instant::now();
+    let mut stats = StatsSink::new(&config.sah);
+    let mut built_s = 0.0;
+    let report = with_bar(
+        ui.bars_off(),
+        "building",
+        &progress,
+        &|| level_message(&status),
+        || {
+            format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> Res<_> {
+                let r = level::build_into(
+                    &loaded.scene,
+                    &config,
+                    Some(&progress),
+                    &options,
+                    &mut (w, &mut stats),
+                )?;
+                built_s = start.elapsed().as_secs_f64();
+                Ok(r)
+            })
+        },
+    )?
+    .ok_or("the tree did not reach the file")?;
+    let seconds = start.elapsed().as_secs_f64();
+    let file = open_kd(out, slimkd::format::Check::Full)?;
+    let built = Built {
+        tree: TreeIr::default(),
+        config,
+        seconds: built_s,
+        std_seconds: built_s,
+        slim: None,
+        preset: Preset::Std,
+        level: Some(report),
+        builder: "level",
+    };
+    let written = Some((out.to_path_buf(), file.figures(), seconds - built_s));
+    print_built(
+        "build",
+        loaded,
+        &built,
+        &stats.finish(),
+        written,
+        reorder,
+        ui,
+        watch,
+        None,
+    )
+}
+
+/// How `build -o` writes a tree of `loaded`'s scene.
+fn write_options(
+    loaded: &Loaded,
+    config: &BuildConfig,
+    preset: Preset,
+    slim: Option<&SlimParams>,
+    reorder: bool,
+) -> WriteOptions {
+    WriteOptions {
+        reorder,
+        config: FileConfig {
+            scene: SceneTag::new(&loaded.name(), &loaded.scene),
+            ..pipeline::file_config(config, loaded.scene.len(), preset, slim)
+        },
+    }
 }
 
 /// The end of `build` (and of `build --cells`, `stitch`): the tree
@@ -395,18 +489,13 @@ pub(crate) fn write_and_print(
     let mut written = None;
     if let Some(out) = output {
         let start = Instant::now();
-        let options = WriteOptions {
+        let options = write_options(
+            loaded,
+            &built.config,
+            built.preset,
+            built.slim.as_ref().map(|(p, _, _)| p),
             reorder,
-            config: FileConfig {
-                scene: SceneTag::new(&loaded.name(), &loaded.scene),
-                ..pipeline::file_config(
-                    &built.config,
-                    loaded.scene.len(),
-                    built.preset,
-                    built.slim.as_ref().map(|(p, _, _)| p),
-                )
-            },
-        };
+        );
         format::write_file(out, &built.tree, &loaded.scene, &options)?;
         let secs = start.elapsed().as_secs_f64();
         // Only figures are left to print: free the tree before the file
@@ -416,6 +505,26 @@ pub(crate) fn write_and_print(
         let file = open_kd(out, slimkd::format::Check::Full)?;
         written = Some((out.to_path_buf(), file.figures(), secs));
     }
+    print_built(
+        command, loaded, &built, &stats, written, reorder, ui, watch, cells,
+    )
+}
+
+/// The summary or JSON of a build (under `command`), with the file
+/// written, if any (its path, figures and seconds of writing), and the
+/// peak memory of the whole command.
+#[allow(clippy::too_many_arguments)]
+fn print_built(
+    command: &'static str,
+    loaded: &Loaded,
+    built: &Built,
+    stats: &TreeStats,
+    written: Option<(PathBuf, format::TreeFigures, f64)>,
+    reorder: bool,
+    ui: Out,
+    watch: &PeakRss,
+    cells: Option<CellsJson>,
+) -> Res<()> {
     // The whole command: loading, building, writing.
     let (peak_anon, peak_file) = watch.peaks();
     let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));
@@ -424,8 +533,8 @@ pub(crate) fn write_and_print(
             command,
             BuildCmdJson {
                 scene: SceneJson::of(loaded),
-                tree: TreeJson::of(&stats),
-                build: BuildJson::of(&built),
+                tree: TreeJson::of(stats),
+                build: BuildJson::of(built),
                 threads: rayon::current_num_threads(),
                 written: written.as_ref().map(|(out, fig, secs)| WrittenJson {
                     output: out.display().to_string(),
@@ -441,7 +550,7 @@ pub(crate) fn write_and_print(
             },
         )?;
     } else if !ui.quiet {
-        print_summary(loaded, &built, &stats, ui.verbose);
+        print_summary(loaded, built, stats, ui.verbose);
         if let Some((out, fig, secs)) = &written {
             println!(
                 "wrote      {} in {:.3} s: tree {:.2} MiB ({} idx32, {} idx16), geometry {:.2} MiB",

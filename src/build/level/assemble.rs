@@ -11,17 +11,23 @@
 //! **Memory.** The depth-first subtrees are most of the tree, so they are
 //! never held twice. They are stored packed (12 bytes a node instead of a
 //! [`Node`]'s 20), one stream per level in the level's node order, in
-//! chunks that are anonymous mappings of their own. A level's nodes are in
+//! chunks that are mappings of their own (anonymous, or under a budget
+//! unlinked scratch files). A level's nodes are in
 //! left-to-right order of the tree, so pre-order reads each level's stream
 //! front to back: the assembly copies every subtree once, and each chunk is
 //! unmapped (its pages returned to the system, whatever the allocator
 //! does) as soon as it has been read. The tree and the subtrees left to
-//! copy together stay within about one chunk per level of the tree alone.
+//! copy together stay within about one chunk per level of the tree alone;
+//! [`assemble_into`] hands the nodes to a sink instead, so with the
+//! streamed writer only the subtrees left to read are held.
 
 use crate::columns::ColumnsError;
-use crate::tree::{Node, NodeId, TreeIr, TriId};
+use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TreeIrSink, TriId};
 use memmap2::MmapMut;
 use std::collections::VecDeque;
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What became of one node of a level.
 #[derive(Clone, Copy, Debug)]
@@ -64,14 +70,32 @@ struct Chunk {
     read: usize,
 }
 
+/// Distinguishes the chunk files of one process.
+static CHUNK_FILES: AtomicU64 = AtomicU64::new(0);
+
 impl Chunk {
-    fn new(words: usize) -> Result<Chunk, ColumnsError> {
+    /// An anonymous mapping, or with `dir` a mapping of an unlinked
+    /// scratch file there (its pages are the page cache's, which the
+    /// kernel writes back and reclaims under pressure, not the process's
+    /// anonymous memory).
+    fn new(words: usize, dir: Option<&Path>) -> Result<Chunk, ColumnsError> {
         let bytes = words * 4;
-        Ok(Chunk {
-            map: MmapMut::map_anon(bytes).map_err(|source| ColumnsError::Memory {
+        let map = match dir {
+            Some(dir) => {
+                let path = dir.join(format!(
+                    ".slimkd-subtrees.{}.{}",
+                    std::process::id(),
+                    CHUNK_FILES.fetch_add(1, Ordering::Relaxed)
+                ));
+                crate::columns::map_file(&path, bytes as u64)?.expect("a chunk is never empty")
+            }
+            None => MmapMut::map_anon(bytes).map_err(|source| ColumnsError::Memory {
                 bytes: bytes as u64,
                 source,
             })?,
+        };
+        Ok(Chunk {
+            map,
             len: 0,
             read: 0,
         })
@@ -97,16 +121,19 @@ pub struct SubStream {
     /// The size of a new chunk (a subtree larger than it gets a chunk of
     /// its own size).
     chunk_words: usize,
+    /// Where chunks are scratch files (under a memory budget).
+    dir: Option<Arc<Path>>,
     subs: usize,
     nodes: usize,
     tris: usize,
 }
 
 impl SubStream {
-    pub fn new(chunk_words: usize) -> SubStream {
+    pub fn new(chunk_words: usize, dir: Option<Arc<Path>>) -> SubStream {
         SubStream {
             chunks: VecDeque::new(),
             chunk_words: chunk_words.max(MIN_CHUNK_WORDS),
+            dir,
             subs: 0,
             nodes: 0,
             tris: 0,
@@ -128,7 +155,7 @@ impl SubStream {
             .is_none_or(|c| c.capacity() - c.len < need)
         {
             self.chunks
-                .push_back(Chunk::new(need.max(self.chunk_words))?);
+                .push_back(Chunk::new(need.max(self.chunk_words), self.dir.as_deref())?);
         }
         let c = self.chunks.back_mut().expect("a chunk was just made");
         let at = c.len;
@@ -187,15 +214,28 @@ impl SubStream {
 }
 
 /// The depth-first subtrees of the whole build: one stream per depth.
-#[derive(Default)]
 pub struct SubStore {
     levels: Vec<SubStream>,
+    /// Where the streams' chunks are scratch files, if anywhere.
+    pub dir: Option<Arc<Path>>,
     words: usize,
     nodes: usize,
     tris: usize,
 }
 
 impl SubStore {
+    /// An empty store whose chunks are anonymous mappings, or with `dir`
+    /// scratch files there.
+    pub fn new(dir: Option<Arc<Path>>) -> SubStore {
+        SubStore {
+            levels: Vec::new(),
+            dir,
+            words: 0,
+            nodes: 0,
+            tris: 0,
+        }
+    }
+
     /// The chunk size for new streams: at least 1 MiB, and large enough
     /// that the store never needs more than a few thousand mappings.
     pub fn chunk_words(&self) -> usize {
@@ -206,7 +246,9 @@ impl SubStore {
     pub fn add(&mut self, depth: u32, s: SubStream) {
         let d = depth as usize;
         if self.levels.len() <= d {
-            self.levels.resize_with(d + 1, || SubStream::new(0));
+            let dir = &self.dir;
+            self.levels
+                .resize_with(d + 1, || SubStream::new(0, dir.clone()));
         }
         self.words += HEADER_WORDS * s.subs + NODE_WORDS * s.nodes + s.tris;
         self.nodes += s.nodes;
@@ -224,7 +266,7 @@ pub fn assemble(
     bounds: crate::geom::Aabb,
     recs: &[Rec],
     tris: &[TriId],
-    mut subs: SubStore,
+    subs: SubStore,
 ) -> Result<(TreeIr, Vec<(NodeId, u32)>), ColumnsError> {
     let n_nodes = recs.iter().filter(|r| !matches!(r, Rec::Sub(_))).count() + subs.nodes;
     let n_tris = tris.len() + subs.tris;
@@ -234,16 +276,34 @@ pub fn assemble(
         .map_err(ColumnsError::OutOfMemory)?;
     crate::sys::try_reserve(&mut leaf_tris, n_tris, "the tree's leaf triangle lists")
         .map_err(ColumnsError::OutOfMemory)?;
+    let mut sink = TreeIrSink::with_capacity(nodes, leaf_tris);
+    let cells = assemble_into(bounds, recs, tris, subs, &mut sink)
+        .expect("a TreeIrSink takes any one tree");
+    let tree = sink.finish().expect("the records form one tree");
+    debug_assert_eq!(tree.nodes.len(), n_nodes);
+    debug_assert_eq!(tree.leaf_tris.len(), n_tris);
+    Ok((tree, cells))
+}
+
+/// Hands the tree to `sink` in pre-order from record 0, consuming the
+/// subtrees as it goes (each chunk unmapped once read, so the build's
+/// memory shrinks while the sink takes the tree); returns the pre-order
+/// positions of the leaves that stand for cells (`Rec::Cell`, given to the
+/// sink as empty leaves) with their cell numbers.
+pub fn assemble_into(
+    bounds: crate::geom::Aabb,
+    recs: &[Rec],
+    tris: &[TriId],
+    mut subs: SubStore,
+    sink: &mut impl PreOrderSink,
+) -> Result<Vec<(NodeId, u32)>, SinkStop> {
+    sink.bounds(bounds)?;
     let mut cells = Vec::new();
-    // (record, inner node whose right child it is)
-    let mut stack = vec![(0u32, None::<usize>)];
-    while let Some((r, parent)) = stack.pop() {
-        if let Some(p) = parent {
-            let next = NodeId(nodes.len() as u32);
-            if let Node::Inner { right, .. } = &mut nodes[p] {
-                *right = next;
-            }
-        }
+    // Nodes handed out so far: the next node's pre-order position.
+    let mut count = 0usize;
+    let mut list = Vec::new();
+    let mut stack = vec![0u32];
+    while let Some(r) = stack.pop() {
         match recs[r as usize] {
             Rec::Open => unreachable!("every record is decided before assembly"),
             Rec::Inner {
@@ -252,61 +312,42 @@ pub fn assemble(
                 left,
                 right,
             } => {
-                nodes.push(Node::Inner {
-                    axis,
-                    pos,
-                    right: NodeId(u32::MAX),
-                    t_ref: None,
-                });
-                stack.push((right, Some(nodes.len() - 1)));
-                stack.push((left, None));
+                sink.inner(axis, pos, None)?;
+                count += 1;
+                stack.push(right);
+                stack.push(left);
             }
-            Rec::Leaf { start, count } => {
-                let at = leaf_tris.len() as u32;
-                leaf_tris.extend_from_slice(&tris[start..start + count as usize]);
-                nodes.push(Node::Leaf { start: at, count });
+            Rec::Leaf { start, count: n } => {
+                sink.leaf(&tris[start..start + n as usize])?;
+                count += 1;
             }
             Rec::Cell(k) => {
-                cells.push((NodeId(nodes.len() as u32), k));
-                nodes.push(Node::Leaf {
-                    start: leaf_tris.len() as u32,
-                    count: 0,
-                });
+                cells.push((NodeId(count as u32), k));
+                sink.leaf(&[])?;
+                count += 1;
             }
             Rec::Sub(depth) => {
                 let (rec, packed, sub_tris) = subs.levels[depth as usize]
                     .pop()
                     .expect("each small node has its subtree");
                 assert_eq!(rec, r, "a level's subtrees are read in its node order");
-                let base = nodes.len() as u32;
-                let tbase = leaf_tris.len() as u32;
-                nodes.extend(packed.chunks_exact(NODE_WORDS).map(|w| {
+                // The packed nodes are in pre-order already.
+                for w in packed.chunks_exact(NODE_WORDS) {
                     if w[0] == LEAF {
-                        Node::Leaf {
-                            start: w[1] + tbase,
-                            count: w[2],
-                        }
+                        list.clear();
+                        list.extend(
+                            sub_tris[w[1] as usize..(w[1] + w[2]) as usize]
+                                .iter()
+                                .map(|&t| TriId(t)),
+                        );
+                        sink.leaf(&list)?;
                     } else {
-                        Node::Inner {
-                            axis: w[0] as u8,
-                            pos: f32::from_bits(w[1]),
-                            right: NodeId(w[2] + base),
-                            t_ref: None,
-                        }
+                        sink.inner(w[0] as u8, f32::from_bits(w[1]), None)?;
                     }
-                }));
-                leaf_tris.extend(sub_tris.iter().map(|&t| TriId(t)));
+                    count += 1;
+                }
             }
         }
     }
-    debug_assert_eq!(nodes.len(), n_nodes);
-    debug_assert_eq!(leaf_tris.len(), n_tris);
-    Ok((
-        TreeIr {
-            bounds,
-            nodes,
-            leaf_tris,
-        },
-        cells,
-    ))
+    Ok(cells)
 }

@@ -73,12 +73,15 @@
 //! in `docs/perf-notes.md`.
 //!
 //! **Memory.** The level columns obey `mem_budget`. The breadth-first
-//! records and leaf lists stay in RAM until the tree is assembled, and so
-//! do the depth-first subtrees, packed (12 bytes a node) in one stream per
-//! level that the assembly reads front to back, unmapping each chunk once
-//! read (`assemble`): the subtrees are never held twice, and never as
-//! many small allocations that the allocator would keep after they are
-//! freed.
+//! records and leaf lists stay in RAM until the tree is assembled; the
+//! depth-first subtrees, packed (12 bytes a node) in one stream per level
+//! that the assembly reads front to back, unmapping each chunk once read
+//! (`assemble`), are anonymous mappings, or under a budget unlinked
+//! scratch files (on 4.3 M triangles they are 400 MiB, more than the top
+//! levels' columns under a 256 MiB budget): the subtrees are never held
+//! twice, and never as many small allocations that the allocator would
+//! keep after they are freed. [`build_into`] hands the assembly to a
+//! sink (the streamed file writer), so the tree need not exist whole.
 
 mod assemble;
 mod classify;
@@ -97,7 +100,7 @@ pub use self::report::{LevelReport, Phases};
 pub use crate::columns::ScratchStats;
 pub use crate::sys::{cpu_seconds, rss};
 
-use self::assemble::{Rec, SubStore, SubStream, assemble};
+use self::assemble::{Rec, SubStore, SubStream, assemble, assemble_into};
 use self::classify::{Classified, SideCounts, classify_pass, piece_carries, write_children};
 use self::dfs::Finisher;
 use self::events::{
@@ -112,8 +115,9 @@ use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::sys::lap;
-use crate::tree::{Node, NodeId, TreeIr, TriId};
+use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
 use rayon::prelude::*;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::Instant;
 
@@ -124,8 +128,37 @@ pub fn build(
     progress: Option<&Progress>,
     options: &LevelOptions,
 ) -> Result<(TreeIr, LevelReport), ColumnsError> {
-    let (tree, _, report) = run(scene, config, progress, options, None, None)?;
+    let (tree, _, report) = run(scene, config, progress, options, None, None, assemble)?;
     Ok((tree, report))
+}
+
+/// Builds the standard tree as [`build`] does, but hands it to `sink` in
+/// pre-order instead of assembling a [`TreeIr`]: the depth-first subtrees
+/// go to the sink straight from their packed streams, each chunk unmapped
+/// once read, so the whole tree is never in memory as nodes. `Ok(None)`
+/// when the sink stopped (it holds the reason).
+pub fn build_into(
+    scene: &TriangleColumns,
+    config: &BuildConfig,
+    progress: Option<&Progress>,
+    options: &LevelOptions,
+    sink: &mut impl PreOrderSink,
+) -> Result<Option<LevelReport>, ColumnsError> {
+    let (fed, _, report) = run(
+        scene,
+        config,
+        progress,
+        options,
+        None,
+        None,
+        |bounds, recs, tris, subs| {
+            Ok(match assemble_into(bounds, recs, tris, subs, sink) {
+                Ok(cells) => (true, cells),
+                Err(SinkStop) => (false, Vec::new()),
+            })
+        },
+    )?;
+    Ok(fed.then_some(report))
 }
 
 /// How [`build_top`] cuts the top of the tree into cells.
@@ -183,7 +216,7 @@ pub fn build_top(
     cut: Cut,
 ) -> Result<(TopTree, LevelReport), ColumnsError> {
     assert!(cut.max_cells >= 1, "at least one cell");
-    let (tree, cells, report) = run(scene, config, progress, options, None, Some(cut))?;
+    let (tree, cells, report) = run(scene, config, progress, options, None, Some(cut), assemble)?;
     Ok((TopTree { tree, cells }, report))
 }
 
@@ -201,21 +234,24 @@ pub fn build_node(
     options: &LevelOptions,
     node: &CutCell,
 ) -> Result<(TreeIr, LevelReport), ColumnsError> {
-    let (tree, _, report) = run(scene, config, progress, options, Some(node), None)?;
+    let (tree, _, report) = run(scene, config, progress, options, Some(node), None, assemble)?;
     Ok((tree, report))
 }
 
 /// The build from the scene's root, or from `start`; cut into cells by
-/// `cut` if given.
+/// `cut` if given; the result made by `out` (from the bounds, records,
+/// breadth-first leaf lists and subtrees: [`assemble`] or a sink) with the
+/// pre-order positions of the cells' leaves.
 #[allow(clippy::type_complexity)]
-fn run(
+fn run<T>(
     scene: &TriangleColumns,
     config: &BuildConfig,
     progress: Option<&Progress>,
     options: &LevelOptions,
     start: Option<&CutCell>,
     cut: Option<Cut>,
-) -> Result<(TreeIr, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
+    out: impl FnOnce(Aabb, &[Rec], &[TriId], SubStore) -> Result<(T, Vec<(NodeId, u32)>), ColumnsError>,
+) -> Result<(T, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let scratch = Scratch::new(ScratchConfig {
         mem_budget: options.mem_budget,
         dir: options.scratch_dir.clone(),
@@ -234,7 +270,11 @@ fn run(
         cut: cut.map(|rule| (rule, Vec::new())),
         recs: vec![Rec::Open],
         leaf_tris: Vec::new(),
-        subs: SubStore::default(),
+        // Under a budget the subtrees, most of the tree, are scratch files
+        // too: held in anonymous memory they would grow past any budget.
+        subs: SubStore::new(
+            (options.mem_budget != u64::MAX).then(|| Arc::from(options.scratch_dir.as_path())),
+        ),
         report: LevelReport {
             start_rss_anon_bytes: start_rss.0,
             peak_rss_anon_bytes: start_rss.0,
@@ -258,7 +298,12 @@ fn run(
     // The levels' memory kept for reuse is not needed from here.
     scratch.release_pool();
     clock = Instant::now();
-    let (tree, slots) = assemble(bounds, &b.recs, &b.leaf_tris, std::mem::take(&mut b.subs))?;
+    let (tree, slots) = out(
+        bounds,
+        &b.recs,
+        &b.leaf_tris,
+        std::mem::replace(&mut b.subs, SubStore::new(None)),
+    )?;
     let mut cut_cells: Vec<Option<CutCell>> = b
         .cut
         .take()
@@ -341,6 +386,7 @@ struct Finish<'a> {
     depth_limit: u32,
     progress: Option<&'a Progress>,
     chunk_words: usize,
+    chunk_dir: Option<Arc<std::path::Path>>,
     mode: NewEvents,
     tiny: usize,
 }
@@ -366,7 +412,7 @@ impl Finish<'_> {
                         Finisher::new(self.scene, &self.params, self.depth_limit, self.progress)
                             .with_new_events(self.mode)
                             .with_tiny(self.tiny),
-                        Ok(SubStream::new(self.chunk_words)),
+                        Ok(SubStream::new(self.chunk_words, self.chunk_dir.clone())),
                     )
                 },
                 |(first, mut fin, out), (k, &j)| {
@@ -627,6 +673,7 @@ impl<'a> Builder<'a> {
             depth_limit: self.depth_limit,
             progress: self.progress,
             chunk_words: self.subs.chunk_words(),
+            chunk_dir: self.subs.dir.clone(),
             mode: self.options.new_events,
             tiny: self.options.tiny_threshold,
         };

@@ -1,0 +1,568 @@
+//! Writing a `.kd` file from a tree handed over in pre-order
+//! ([`PreOrderSink`]), so that the whole tree is never in memory: the node
+//! words go out to the file in windows as they are made (as
+//! [`super::write_file`]'s do), the leaf index arrays go through bounded
+//! buffers into unlinked temporary files beside the output and are copied
+//! into place after the node section, and the header goes last. What is
+//! held is the layout's stack (one entry per pending right child, at most
+//! [`MAX_DEPTH`]), the words set late, two 1 MiB buffers and, with
+//! `reorder`, the Morton order and its inverse (8 bytes a triangle). The
+//! bytes are those of [`super::write_to_vec`] for the same tree.
+
+use super::node::{self, MAX_LEAF32, MAX_NODES};
+use super::write::{
+    Counts, Entries, SectionSink, WINDOW, Words, WriteOptions, check_scene, finish_kd, leaf_word,
+};
+use super::{FormatError, HEADER_SIZE, Section};
+use crate::geom::Aabb;
+use crate::scene::TriangleColumns;
+use crate::tree::{MAX_DEPTH, PreOrderSink, SinkStop, TriId};
+use std::fs::File;
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Bytes an index array holds in memory before they go to its file.
+const SPILL_BUF: usize = 1 << 20;
+
+/// Distinguishes the index files of concurrent writes in one process.
+static SPILL_COUNTER: AtomicU64 = AtomicU64::new(0);
+
+/// A leaf index array of `width`-byte entries: a bounded buffer, emptied
+/// into an unlinked temporary file (made on the first overflow) whenever
+/// it fills.
+struct Spill {
+    width: usize,
+    /// Bytes held before they go to the file ([`SPILL_BUF`] but in tests).
+    cap: usize,
+    buf: Vec<u8>,
+    file: Option<File>,
+    /// The directory of the temporary file, and the name it had.
+    dir: PathBuf,
+    name: PathBuf,
+    entries: u64,
+}
+
+impl Spill {
+    fn new(width: usize, dir: &Path, cap: usize) -> Spill {
+        Spill {
+            width,
+            cap,
+            buf: Vec::with_capacity(cap + 64),
+            file: None,
+            dir: dir.to_path_buf(),
+            name: PathBuf::new(),
+            entries: 0,
+        }
+    }
+
+    fn io(&self, source: std::io::Error) -> FormatError {
+        FormatError::Io {
+            path: self.name.clone(),
+            source,
+        }
+    }
+
+    fn spill(&mut self) -> Result<(), FormatError> {
+        if self.file.is_none() {
+            self.name = self.dir.join(format!(
+                ".slimkd-idx{}.{}.{}.tmp",
+                8 * self.width,
+                std::process::id(),
+                SPILL_COUNTER.fetch_add(1, Ordering::Relaxed)
+            ));
+            let f = std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create_new(true)
+                .open(&self.name)
+                .map_err(|e| self.io(e))?;
+            // Unlinked at once: nothing is left behind, whatever happens.
+            std::fs::remove_file(&self.name).map_err(|e| self.io(e))?;
+            self.file = Some(f);
+        }
+        let f = self.file.as_mut().expect("made above");
+        let r = f.write_all(&self.buf);
+        r.map_err(|e| self.io(e))?;
+        self.buf.clear();
+        Ok(())
+    }
+
+    /// Hands the whole array, in order, to `put`.
+    fn copy_out(
+        &mut self,
+        put: &mut dyn FnMut(&[u8]) -> std::io::Result<()>,
+    ) -> std::io::Result<()> {
+        if let Some(f) = &mut self.file {
+            let len = f.stream_position()?;
+            f.seek(SeekFrom::Start(0))?;
+            let mut block = vec![0u8; SPILL_BUF];
+            let mut left = len;
+            while left > 0 {
+                let n = left.min(block.len() as u64) as usize;
+                f.read_exact(&mut block[..n])?;
+                put(&block[..n])?;
+                left -= n as u64;
+            }
+        }
+        put(&self.buf)
+    }
+}
+
+impl Entries for Spill {
+    fn count(&self) -> u64 {
+        self.entries
+    }
+
+    fn put(&mut self, ids: &[u32]) -> Result<(), FormatError> {
+        for &t in ids {
+            self.buf.extend_from_slice(&t.to_le_bytes()[..self.width]);
+        }
+        self.entries += ids.len() as u64;
+        if self.buf.len() >= self.cap {
+            self.spill()?;
+        }
+        Ok(())
+    }
+}
+
+/// A node still to come: its cell and depth, and for a right child its
+/// parent's slot and word without the slot field (which the right child
+/// fills in: its own slot, or 0 when it has no word).
+#[derive(Clone, Copy)]
+struct Pending {
+    cell: Aabb,
+    depth: u32,
+    parent: Option<(usize, u64)>,
+}
+
+/// The [`PreOrderSink`] of [`write_file_streamed`]: lays out each node as
+/// it comes (format version 2, see [`node`]) and refuses what
+/// [`super::write_file`] refuses (a tree too large for the format, an axis
+/// over 2, a split that is not finite or outside its cell, a triangle id
+/// out of range), and a stream that is not one whole tree. The first error
+/// is kept and stops the producer.
+pub struct StreamWriter<'f> {
+    scene: &'f TriangleColumns,
+    /// Old triangle id to new, with `reorder`.
+    inverse: Option<Vec<u32>>,
+    words: Words<'f>,
+    idx32: Spill,
+    idx16: Spill,
+    bounds: Option<Aabb>,
+    stack: Vec<Pending>,
+    /// Nodes seen.
+    count: usize,
+    /// A left child that is an empty leaf came and awaits its sibling: it
+    /// has a word only if the sibling is an empty leaf too (then the
+    /// sibling has none).
+    deferred: bool,
+    counts: Counts,
+    ids: Vec<u32>,
+    error: Option<FormatError>,
+}
+
+impl StreamWriter<'_> {
+    fn stop(&mut self, r: Result<(), FormatError>) -> Result<(), SinkStop> {
+        r.map_err(|e| {
+            self.error.get_or_insert(e);
+            SinkStop
+        })
+    }
+
+    fn bad_node(i: usize, message: String) -> FormatError {
+        FormatError::Node {
+            index: i as u64,
+            message,
+        }
+    }
+
+    fn bad_tri(&self, i: usize, t: TriId) -> FormatError {
+        FormatError::Index {
+            section: "tree",
+            position: i as u64,
+            message: format!("node {i} lists triangle {} of {}", t.0, self.scene.len()),
+        }
+    }
+
+    fn new_id(&self, t: TriId) -> u32 {
+        self.inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize])
+    }
+
+    fn push_word(&mut self, word: u64) -> Result<(), FormatError> {
+        if self.words.len() as u64 >= MAX_NODES {
+            return Err(FormatError::TooLarge(
+                "more than 2^29 node words (the 29-bit slot field)".into(),
+            ));
+        }
+        self.words.push(word)
+    }
+
+    /// Places the next node; `None` when it has no word (an empty leaf
+    /// whose word, if any, is decided by its sibling or by the parent's
+    /// slot field), else its pending entry.
+    fn place(&mut self, i: usize, empty: bool) -> Result<Option<Pending>, FormatError> {
+        let p = if i == 0 {
+            let cell = self
+                .bounds
+                .ok_or_else(|| FormatError::Header("a node before the tree's bounds".into()))?;
+            Pending {
+                cell,
+                depth: 0,
+                parent: None,
+            }
+        } else {
+            self.stack
+                .pop()
+                .ok_or_else(|| Self::bad_node(i, "a node after the whole tree".into()))?
+        };
+        if p.depth > MAX_DEPTH {
+            return Err(FormatError::TooLarge(format!(
+                "a node deeper than {MAX_DEPTH}"
+            )));
+        }
+        self.counts.max_depth = self.counts.max_depth.max(p.depth);
+        match p.parent {
+            // A left child: if empty, its word waits for its sibling.
+            None if i > 0 && empty => {
+                self.counts.n_leaves += 1;
+                self.deferred = true;
+                return Ok(None);
+            }
+            None => {}
+            Some((parent, word)) => {
+                if std::mem::take(&mut self.deferred) {
+                    if empty {
+                        // Both children empty: the left one keeps a word.
+                        self.push_word(node::encode_leaf32(0, 0))?;
+                    } else {
+                        self.counts.n_implicit_empty += 1;
+                    }
+                }
+                let field = if empty { 0 } else { self.words.len() as u64 };
+                self.words.set(parent, word | field << 3);
+                if empty {
+                    self.counts.n_leaves += 1;
+                    self.counts.n_implicit_empty += 1;
+                    return Ok(None);
+                }
+            }
+        }
+        Ok(Some(p))
+    }
+
+    fn try_inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), FormatError> {
+        let i = self.count;
+        self.count += 1;
+        let p = self.place(i, false)?.expect("an inner node has a word");
+        if axis > 2 {
+            return Err(Self::bad_node(i, format!("axis {axis}")));
+        }
+        if !pos.is_finite() {
+            return Err(Self::bad_node(i, "split position is not finite".into()));
+        }
+        let k = usize::from(axis);
+        if !(pos >= p.cell.min[k] && pos <= p.cell.max[k]) {
+            return Err(Self::bad_node(
+                i,
+                format!("split {pos:?} on axis {k} outside the node's cell"),
+            ));
+        }
+        let slot = self.words.len();
+        // The slot field is filled in by the right child.
+        let word = node::encode_inner(axis, t_ref.is_some(), 0, pos);
+        self.push_word(word)?;
+        match t_ref {
+            Some(t) => {
+                if t.0 as usize >= self.scene.len() {
+                    return Err(self.bad_tri(i, t));
+                }
+                self.counts.n_t_inner += 1;
+                self.push_word(node::encode_tref(self.new_id(t)))?;
+            }
+            None => self.counts.n_inner += 1,
+        }
+        let (left, right) = p.cell.split(k, pos);
+        self.stack.push(Pending {
+            cell: right,
+            depth: p.depth + 1,
+            parent: Some((slot, word)),
+        });
+        self.stack.push(Pending {
+            cell: left,
+            depth: p.depth + 1,
+            parent: None,
+        });
+        Ok(())
+    }
+
+    fn try_leaf(&mut self, tris: &[TriId]) -> Result<(), FormatError> {
+        let i = self.count;
+        self.count += 1;
+        // Checked before the list is read: a leaf this large is always in
+        // 4-byte mode, whose count field has 27 bits.
+        if tris.len() > MAX_LEAF32 as usize {
+            return Err(FormatError::TooLarge(format!(
+                "a leaf with {} triangles (at most 2^27 - 1)",
+                tris.len()
+            )));
+        }
+        if let Some(&t) = tris.iter().find(|t| t.0 as usize >= self.scene.len()) {
+            return Err(self.bad_tri(i, t));
+        }
+        if self.place(i, tris.is_empty())?.is_none() {
+            return Ok(());
+        }
+        self.counts.n_leaves += 1;
+        let mut ids = std::mem::take(&mut self.ids);
+        ids.clear();
+        ids.extend(tris.iter().map(|&t| self.new_id(t)));
+        ids.sort_unstable();
+        let word = leaf_word(
+            &ids,
+            &mut self.idx32,
+            &mut self.idx16,
+            &mut self.counts.n_one_leaves,
+        );
+        self.ids = ids;
+        self.push_word(word?)
+    }
+}
+
+impl PreOrderSink for StreamWriter<'_> {
+    fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop> {
+        let r = if self.bounds.is_some() {
+            Err(FormatError::Header("the tree's bounds given twice".into()))
+        } else {
+            self.bounds = Some(bounds);
+            check_scene(bounds, self.scene)
+        };
+        self.stop(r)
+    }
+
+    fn inner(&mut self, axis: u8, pos: f32, t_ref: Option<TriId>) -> Result<(), SinkStop> {
+        if self.error.is_some() {
+            return Err(SinkStop);
+        }
+        let r = self.try_inner(axis, pos, t_ref);
+        self.stop(r)
+    }
+
+    fn leaf(&mut self, tris: &[TriId]) -> Result<(), SinkStop> {
+        if self.error.is_some() {
+            return Err(SinkStop);
+        }
+        let r = self.try_leaf(tris);
+        self.stop(r)
+    }
+}
+
+/// Writes the `.kd` file of the tree that `produce` hands to its
+/// [`StreamWriter`] in pre-order, atomically (as
+/// [`super::write_file`]: a temporary file beside `path`, synced, renamed;
+/// an error or a kill leaves no file at `path` and no temporary file).
+/// The bytes are [`super::write_to_vec`]'s for the same tree. An error of
+/// `produce` is returned as it is; otherwise the writer's first error, or
+/// an error if the nodes given were not one whole tree.
+pub fn write_file_streamed<T, E: From<FormatError>>(
+    path: &Path,
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+    produce: impl FnOnce(&mut StreamWriter<'_>) -> Result<T, E>,
+) -> Result<T, E> {
+    let io = |source| FormatError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let mut result = None;
+    crate::fsio::write_atomically(
+        path,
+        |e| E::from(io(e)),
+        |f| {
+            result = Some(write_streamed(
+                f, &dir, scene, options, &io, WINDOW, SPILL_BUF, produce,
+            )?);
+            Ok(())
+        },
+    )?;
+    Ok(result.expect("set when the write succeeds"))
+}
+
+/// [`write_file_streamed`]'s writing into `f` (at its start), with index
+/// files in `dir`, node windows of `window` words and index buffers of
+/// `spill_cap` bytes.
+#[allow(clippy::too_many_arguments)]
+fn write_streamed<T, E: From<FormatError>>(
+    f: &mut File,
+    dir: &Path,
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+    io: &dyn Fn(std::io::Error) -> FormatError,
+    window: usize,
+    spill_cap: usize,
+    produce: impl FnOnce(&mut StreamWriter<'_>) -> Result<T, E>,
+) -> Result<T, E> {
+    let perm: Option<Vec<u32>> = options.reorder.then(|| scene.morton_order());
+    let inverse = perm.as_ref().map(|p| {
+        let mut inv = vec![0u32; p.len()];
+        for (new, &old) in p.iter().enumerate() {
+            inv[old as usize] = new as u32;
+        }
+        inv
+    });
+    f.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
+    let mut bytes = Vec::with_capacity(8 * window);
+    let mut flush = |ws: &[u64]| {
+        bytes.clear();
+        bytes.extend(ws.iter().flat_map(|w| w.to_le_bytes()));
+        f.write_all(&bytes).map_err(io)
+    };
+    let mut w = StreamWriter {
+        scene,
+        inverse,
+        words: Words {
+            window,
+            base: 0,
+            buf: Vec::with_capacity(window),
+            late: Vec::new(),
+            flush: &mut flush,
+        },
+        idx32: Spill::new(4, dir, spill_cap),
+        idx16: Spill::new(2, dir, spill_cap),
+        bounds: None,
+        stack: Vec::new(),
+        count: 0,
+        deferred: false,
+        counts: Counts {
+            n_words: 0,
+            n_inner: 0,
+            n_t_inner: 0,
+            n_leaves: 0,
+            n_implicit_empty: 0,
+            n_one_leaves: 0,
+            max_depth: 0,
+            n_idx32: 0,
+            n_idx16: 0,
+        },
+        ids: Vec::new(),
+        error: None,
+    };
+    let t = produce(&mut w)?;
+    if let Some(e) = w.error.take() {
+        return Err(e.into());
+    }
+    if w.count == 0 || !w.stack.is_empty() {
+        return Err(FormatError::Node {
+            index: w.count as u64,
+            message: "the tree ended before it was complete".into(),
+        }
+        .into());
+    }
+    let StreamWriter {
+        words,
+        mut idx32,
+        mut idx16,
+        mut counts,
+        bounds,
+        inverse,
+        ..
+    } = w;
+    drop(inverse);
+    counts.n_words = words.len() as u64;
+    counts.n_idx32 = idx32.entries;
+    counts.n_idx16 = idx16.entries;
+    let late = words.finish()?;
+    let bounds = bounds.expect("a whole tree came after its bounds");
+    let mut put_idx = |section: Section, sink: &mut SectionSink<'_, File>| {
+        let spill = if section == Section::Idx32 {
+            &mut idx32
+        } else {
+            &mut idx16
+        };
+        spill.copy_out(&mut |b| sink.put(b))
+    };
+    finish_kd(
+        f,
+        late,
+        &counts,
+        &mut put_idx,
+        scene,
+        perm.as_deref(),
+        options,
+        bounds,
+        io,
+    )?;
+    Ok(t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::{self, BuildConfig, Builder};
+    use crate::format::write_to_vec;
+    use glam::Vec3;
+
+    /// Node windows of a few words and index buffers of a few bytes (so
+    /// both index arrays go through their files) give the bytes of
+    /// `write_to_vec`, and no index file is left in the directory.
+    #[test]
+    fn small_windows_and_spilled_index_arrays_give_the_same_bytes() {
+        let tris: Vec<[Vec3; 3]> = (0..600)
+            .map(|i| {
+                let p = Vec3::new((i % 20) as f32, (i / 30) as f32, (i % 7) as f32);
+                [p, p + Vec3::X * 1.5, p + Vec3::Y * 2.5]
+            })
+            .collect();
+        let scene = TriangleColumns::from_triangles(&tris).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let dir = std::env::temp_dir().join(format!("slimkd-stream-unit-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        for reorder in [false, true] {
+            let options = WriteOptions {
+                reorder,
+                ..WriteOptions::default()
+            };
+            let whole = write_to_vec(&tree, &scene, &options).unwrap();
+            for (window, cap) in [(1, 1), (3, 6), (64, 64), (WINDOW, SPILL_BUF)] {
+                let path = dir.join("out.kd");
+                let mut f = std::fs::OpenOptions::new()
+                    .read(true)
+                    .write(true)
+                    .create(true)
+                    .truncate(true)
+                    .open(&path)
+                    .unwrap();
+                let io = |e| panic!("{e}");
+                write_streamed::<_, FormatError>(
+                    &mut f,
+                    &dir,
+                    &scene,
+                    &options,
+                    &io,
+                    window,
+                    cap,
+                    |w| Ok(tree.feed(w)),
+                )
+                .unwrap()
+                .unwrap();
+                drop(f);
+                let bytes = std::fs::read(&path).unwrap();
+                assert!(
+                    bytes == whole,
+                    "window {window}, buffer {cap}, reorder {reorder}"
+                );
+                std::fs::remove_file(&path).unwrap();
+                assert_eq!(
+                    crate::fsio::entry_names(&dir).unwrap(),
+                    Vec::<String>::new()
+                );
+            }
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
