@@ -104,13 +104,7 @@ pub(crate) fn build_tree(
     quiet: bool,
     reordered: bool,
 ) -> Res<Built> {
-    let config = build_config(args);
-    let progress = Progress::default();
-    let status = Arc::new(level::LevelStatus::default());
-    let options = level::LevelOptions {
-        status: Some(status.clone()),
-        ..level_options(args)
-    };
+    let (config, progress, status, options) = level_setup(args);
     let start = Instant::now();
     let level_message = || match args.builder {
         BuilderArg::Level => level_message(&status),
@@ -183,6 +177,24 @@ pub(crate) fn build_config(args: &BuildArgs) -> BuildConfig {
 }
 
 /// The level builder's options of the build flags (no status).
+/// The level build of `args`: its configuration, a progress counter,
+/// and the options with a status the progress bar reads.
+fn level_setup(
+    args: &BuildArgs,
+) -> (
+    BuildConfig,
+    Progress,
+    Arc<level::LevelStatus>,
+    level::LevelOptions,
+) {
+    let status = Arc::new(level::LevelStatus::default());
+    let options = level::LevelOptions {
+        status: Some(status.clone()),
+        ..level_options(args)
+    };
+    (build_config(args), Progress::default(), status, options)
+}
+
 pub(crate) fn level_options(args: &BuildArgs) -> level::LevelOptions {
     let mut options = level::LevelOptions {
         new_events: match args.new_events {
@@ -397,13 +409,7 @@ fn build_streamed(
     ui: Out,
     watch: &PeakRss,
 ) -> Res<()> {
-    let config = build_config(args);
-    let progress = Progress::default();
-    let status = Arc::new(level::LevelStatus::default());
-    let options = level::LevelOptions {
-        status: Some(status.clone()),
-        ..level_options(args)
-    };
+    let (config, progress, status, options) = level_setup(args);
     let write_options = write_options(loaded, &config, Preset::Std, None, reorder);
     let start = Instant::now();
     let mut stats = StatsSink::new(&config.sah);
