@@ -35,7 +35,12 @@ fn via_files(scene: &TriangleColumns, k: usize, dir: &Path) -> (TreeIr, usize) {
         let tree = cells::build_cell(&input, &options).unwrap();
         cells::write_part(&cells::part_path(dir, i), plan.cells[i].id, &tree).unwrap();
     }
-    (cells::stitch_dir(dir, &plan).unwrap(), plan.cells.len())
+    let tree = cells::stitch_dir(dir, &plan).unwrap();
+    // Handed over node by node (as to the streamed writer), the same tree.
+    let mut sink = slimkd::tree::TreeIrSink::default();
+    assert!(cells::stitch_dir_into(dir, &plan, &mut sink).unwrap());
+    assert!(sink.finish().unwrap() == tree, "stitch_dir_into differs");
+    (tree, plan.cells.len())
 }
 
 fn scenes() -> Vec<(String, TriangleColumns)> {

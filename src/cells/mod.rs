@@ -50,7 +50,7 @@ pub use files::{
 use crate::build::level::{self, CutCell, LevelOptions, TopTree};
 use crate::build::{BuildConfig, BuildError, SahParams};
 use crate::scene::TriangleColumns;
-use crate::tree::{Node, NodeId, TreeIr, TriId};
+use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
@@ -284,6 +284,57 @@ pub fn stitch<E>(
     })
 }
 
+/// [`stitch`] handed to `sink` node by node in canonical pre-order, one
+/// part in memory at a time, so that the stitched tree never is (the
+/// streamed writer takes it into the file). `Ok(false)` where the sink
+/// stopped (it holds the reason) or where `slots` are not leaves of `top`
+/// in pre-order (then nothing is fed, and a writer refuses the stream).
+pub fn stitch_into<E>(
+    top: &TreeIr,
+    slots: &[NodeId],
+    mut part: impl FnMut(usize) -> Result<TreeIr, E>,
+    sink: &mut impl PreOrderSink,
+) -> Result<bool, E> {
+    let in_order = slots.windows(2).all(|w| w[0].0 < w[1].0)
+        && slots
+            .iter()
+            .all(|s| matches!(top.nodes.get(s.0 as usize), Some(Node::Leaf { .. })));
+    if !in_order || sink.bounds(top.bounds).is_err() {
+        return Ok(false);
+    }
+    let mut next_slot = 0;
+    // A canonical tree's node order is its pre-order.
+    for (i, node) in top.nodes.iter().enumerate() {
+        let fed = if slots.get(next_slot).is_some_and(|s| s.0 as usize == i) {
+            let sub = part(next_slot)?;
+            next_slot += 1;
+            feed_nodes(&sub, sink)
+        } else {
+            feed_node(top, node, sink)
+        };
+        if fed.is_err() {
+            return Ok(false);
+        }
+    }
+    Ok(true)
+}
+
+/// Hands `tree`'s nodes (not its bounds) to `sink` in pre-order.
+fn feed_nodes(tree: &TreeIr, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
+    tree.nodes
+        .iter()
+        .try_for_each(|node| feed_node(tree, node, sink))
+}
+
+fn feed_node(tree: &TreeIr, node: &Node, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
+    match *node {
+        Node::Inner {
+            axis, pos, t_ref, ..
+        } => sink.inner(axis, pos, t_ref),
+        Node::Leaf { start, count } => sink.leaf(tree.leaf(start, count)),
+    }
+}
+
 /// The state of a work directory before the cells are built: the plan
 /// and, per cell, whether its part is built already.
 pub struct Prepared {
@@ -376,22 +427,36 @@ pub fn read_planned_cell(dir: &Path, plan: &Plan, i: usize) -> Result<CellInput,
 /// back whole and name its cell's identity.
 pub fn stitch_dir(dir: &Path, plan: &Plan) -> Result<TreeIr, CellsError> {
     let slots: Vec<NodeId> = plan.cells.iter().map(|c| c.node).collect();
-    stitch(&plan.top, &slots, |i| {
-        let path = part_path(dir, i);
-        let tree = read_part(&path, plan.cells[i].id)?;
-        if let Some(&t) = tree
-            .leaf_tris
-            .iter()
-            .find(|t| u64::from(t.0) >= plan.n_tris)
-        {
-            return Err(CellsError::Corrupt {
-                path,
-                what: format!(
-                    "triangle {} out of range (the scene has {})",
-                    t.0, plan.n_tris
-                ),
-            });
-        }
-        Ok(tree)
-    })
+    stitch(&plan.top, &slots, |i| read_checked_part(dir, plan, i))
+}
+
+/// [`stitch_dir`] handed to `sink` ([`stitch_into`]): `Ok(false)` where
+/// the sink stopped.
+pub fn stitch_dir_into(
+    dir: &Path,
+    plan: &Plan,
+    sink: &mut impl PreOrderSink,
+) -> Result<bool, CellsError> {
+    let slots: Vec<NodeId> = plan.cells.iter().map(|c| c.node).collect();
+    stitch_into(&plan.top, &slots, |i| read_checked_part(dir, plan, i), sink)
+}
+
+/// Cell `i`'s part, read back and its triangles checked against the scene.
+fn read_checked_part(dir: &Path, plan: &Plan, i: usize) -> Result<TreeIr, CellsError> {
+    let path = part_path(dir, i);
+    let tree = read_part(&path, plan.cells[i].id)?;
+    if let Some(&t) = tree
+        .leaf_tris
+        .iter()
+        .find(|t| u64::from(t.0) >= plan.n_tris)
+    {
+        return Err(CellsError::Corrupt {
+            path,
+            what: format!(
+                "triangle {} out of range (the scene has {})",
+                t.0, plan.n_tris
+            ),
+        });
+    }
+    Ok(tree)
 }

@@ -460,6 +460,71 @@ fn build_streamed(
     )
 }
 
+/// The end of `build --cells` and `stitch`: the parts of `plan` in `dir`
+/// stitched straight into `out` ([`cells::stitch_dir_into`] into
+/// [`format::write_file_streamed`], the figures taken on the way), so the
+/// stitched tree is never in memory, one part at a time is; then printed
+/// as `build -o` prints (`seconds`: the build's time before the stitch).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn stitch_streamed(
+    command: &'static str,
+    loaded: &Loaded,
+    dir: &Path,
+    plan: &slimkd::cells::Plan,
+    config: BuildConfig,
+    out: &Path,
+    reorder: bool,
+    ui: Out,
+    watch: &PeakRss,
+    cells: CellsJson,
+    seconds: f64,
+) -> Res<()> {
+    let write_options = write_options(loaded, &config, Preset::Std, None, reorder);
+    let start = Instant::now();
+    let mut stats = StatsSink::new(&config.sah);
+    let fed = format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> Res<_> {
+        Ok(slimkd::cells::stitch_dir_into(
+            dir,
+            plan,
+            &mut (w, &mut stats),
+        )?)
+    })?;
+    if !fed {
+        return Err(format!(
+            "{}: the plan's cells are not leaves of its top tree in pre-order",
+            slimkd::cells::plan_path(dir).display()
+        )
+        .into());
+    }
+    let secs = start.elapsed().as_secs_f64();
+    if ui.verbose && !ui.json {
+        eprintln!("cells      stitched and written in {secs:.3} s");
+    }
+    let file = open_kd(out, slimkd::format::Check::Full)?;
+    let built = Built {
+        tree: TreeIr::default(),
+        config,
+        seconds: seconds + secs,
+        std_seconds: seconds + secs,
+        slim: None,
+        preset: Preset::Std,
+        level: None,
+        builder: "level (cells)",
+    };
+    let written = Some((out.to_path_buf(), file.figures(), secs));
+    print_built(
+        command,
+        loaded,
+        &built,
+        &stats.finish(),
+        written,
+        reorder,
+        ui,
+        watch,
+        Some(cells),
+    )
+}
+
 /// How `build -o` writes a tree of `loaded`'s scene.
 fn write_options(
     loaded: &Loaded,

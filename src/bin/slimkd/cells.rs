@@ -4,7 +4,7 @@
 use crate::*;
 use slimkd::build::{BuildConfig, SahParams, level};
 use slimkd::cells::{self, CellsError, Plan};
-use slimkd::format::{Preset, SceneTag};
+use slimkd::format::SceneTag;
 use slimkd::progress::Progress;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -97,25 +97,13 @@ pub(crate) fn cmd_build_cells(
             }
             return Ok(());
         }
-        let stitch_start = Instant::now();
-        let tree = cells::stitch_dir(&dir, plan)?;
-        let built = Built {
-            tree,
-            config,
-            seconds: start.elapsed().as_secs_f64(),
-            std_seconds: start.elapsed().as_secs_f64(),
-            slim: None,
-            preset: Preset::Std,
-            level: None,
-            builder: "level (cells)",
+        let Some(out) = output else {
+            return Err(Usage("--cells needs -o (or --plan-only)".into()).into());
         };
-        if ui.verbose && !ui.json {
-            eprintln!(
-                "cells      stitched in {:.3} s",
-                stitch_start.elapsed().as_secs_f64()
-            );
-        }
-        write_and_print("build", &loaded, built, output, reorder, ui, &watch, Some(json))
+        let seconds = start.elapsed().as_secs_f64();
+        stitch_streamed(
+            "build", &loaded, &dir, plan, config, out, reorder, ui, &watch, json, seconds,
+        )
     })
 }
 
@@ -281,23 +269,12 @@ pub(crate) fn cmd_stitch(
             )
             .into());
         }
-        let tree = cells::stitch_dir(dir, &plan)?;
         let secs = start.elapsed().as_secs_f64();
         let config = BuildConfig {
             sah: SahParams {
                 max_depth: Some(plan.depth_limit),
                 ..plan.sah
             },
-        };
-        let built = Built {
-            tree,
-            config,
-            seconds: secs,
-            std_seconds: secs,
-            slim: None,
-            preset: Preset::Std,
-            level: None,
-            builder: "level (cells)",
         };
         let json = cells_json(
             dir,
@@ -307,15 +284,8 @@ pub(crate) fn cmd_stitch(
             &vec![true; plan.cells.len()],
             &vec![None; plan.cells.len()],
         );
-        write_and_print(
-            "stitch",
-            &loaded,
-            built,
-            Some(output),
-            reorder,
-            ui,
-            &watch,
-            Some(json),
+        stitch_streamed(
+            "stitch", &loaded, dir, &plan, config, output, reorder, ui, &watch, json, secs,
         )
     })
 }
