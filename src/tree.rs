@@ -569,6 +569,12 @@ impl TreeIr {
     /// and leaf lists are in range and form a tree).
     pub fn feed(&self, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
         sink.bounds(self.bounds)?;
+        self.feed_nodes(sink)
+    }
+
+    /// [`TreeIr::feed`] without the bounds: the nodes alone, as a subtree
+    /// of a larger stream (a cell's part in a stitch).
+    pub fn feed_nodes(&self, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
         let mut stack = vec![NodeId::ROOT];
         while let Some(id) = stack.pop() {
             match self.nodes[id.0 as usize] {

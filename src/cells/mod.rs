@@ -50,7 +50,7 @@ pub use files::{
 use crate::build::level::{self, CutCell, LevelOptions, TopTree};
 use crate::build::{BuildConfig, BuildError, SahParams};
 use crate::scene::TriangleColumns;
-use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
+use crate::tree::{Node, NodeId, PreOrderSink, TreeIr, TriId};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
@@ -308,31 +308,20 @@ pub fn stitch_into<E>(
         let fed = if slots.get(next_slot).is_some_and(|s| s.0 as usize == i) {
             let sub = part(next_slot)?;
             next_slot += 1;
-            feed_nodes(&sub, sink)
+            sub.feed_nodes(sink)
         } else {
-            feed_node(top, node, sink)
+            match *node {
+                Node::Inner {
+                    axis, pos, t_ref, ..
+                } => sink.inner(axis, pos, t_ref),
+                Node::Leaf { start, count } => sink.leaf(top.leaf(start, count)),
+            }
         };
         if fed.is_err() {
             return Ok(false);
         }
     }
     Ok(true)
-}
-
-/// Hands `tree`'s nodes (not its bounds) to `sink` in pre-order.
-fn feed_nodes(tree: &TreeIr, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
-    tree.nodes
-        .iter()
-        .try_for_each(|node| feed_node(tree, node, sink))
-}
-
-fn feed_node(tree: &TreeIr, node: &Node, sink: &mut impl PreOrderSink) -> Result<(), SinkStop> {
-    match *node {
-        Node::Inner {
-            axis, pos, t_ref, ..
-        } => sink.inner(axis, pos, t_ref),
-        Node::Leaf { start, count } => sink.leaf(tree.leaf(start, count)),
-    }
 }
 
 /// The state of a work directory before the cells are built: the plan
