@@ -435,28 +435,49 @@ fn build_streamed(
     )?
     .ok_or("the tree did not reach the file")?;
     let seconds = start.elapsed().as_secs_f64();
-    let file = open_kd(out, slimkd::format::Check::Full)?;
-    let built = Built {
+    let built = streamed_built(config, built_s, Some(report), "level");
+    let streamed = (out, seconds - built_s, stats.finish());
+    print_streamed("build", loaded, &built, streamed, reorder, ui, watch, None)
+}
+
+/// A std tree that went straight into its file: its figures without the
+/// tree (`seconds` of building).
+fn streamed_built(
+    config: BuildConfig,
+    seconds: f64,
+    level: Option<level::LevelReport>,
+    builder: &'static str,
+) -> Built {
+    Built {
         tree: TreeIr::default(),
         config,
-        seconds: built_s,
-        std_seconds: built_s,
+        seconds,
+        std_seconds: seconds,
         slim: None,
         preset: Preset::Std,
-        level: Some(report),
-        builder: "level",
-    };
-    let written = Some((out.to_path_buf(), file.figures(), seconds - built_s));
+        level,
+        builder,
+    }
+}
+
+/// [`print_built`] of a tree streamed into `out` (seconds of writing
+/// after the tree was complete, and the figures taken on the way): the
+/// file is opened and checked for its figures first.
+#[allow(clippy::too_many_arguments)]
+fn print_streamed(
+    command: &'static str,
+    loaded: &Loaded,
+    built: &Built,
+    (out, write_s, stats): (&Path, f64, TreeStats),
+    reorder: bool,
+    ui: Out,
+    watch: &PeakRss,
+    cells: Option<CellsJson>,
+) -> Res<()> {
+    let file = open_kd(out, slimkd::format::Check::Full)?;
+    let written = Some((out.to_path_buf(), file.figures(), write_s));
     print_built(
-        "build",
-        loaded,
-        &built,
-        &stats.finish(),
-        written,
-        reorder,
-        ui,
-        watch,
-        None,
+        command, loaded, built, &stats, written, reorder, ui, watch, cells,
     )
 }
 
@@ -500,24 +521,13 @@ pub(crate) fn stitch_streamed(
     if ui.verbose && !ui.json {
         eprintln!("cells      stitched and written in {secs:.3} s");
     }
-    let file = open_kd(out, slimkd::format::Check::Full)?;
-    let built = Built {
-        tree: TreeIr::default(),
-        config,
-        seconds: seconds + secs,
-        std_seconds: seconds + secs,
-        slim: None,
-        preset: Preset::Std,
-        level: None,
-        builder: "level (cells)",
-    };
-    let written = Some((out.to_path_buf(), file.figures(), secs));
-    print_built(
+    let built = streamed_built(config, seconds + secs, None, "level (cells)");
+    let streamed = (out, secs, stats.finish());
+    print_streamed(
         command,
         loaded,
         &built,
-        &stats.finish(),
-        written,
+        streamed,
         reorder,
         ui,
         watch,
