@@ -375,14 +375,9 @@ fn corrupt_plan_cell_and_part_files_name_the_file() {
     part[40] ^= 1;
     std::fs::write(cells::part_path(&dir, 1), &part).unwrap();
     let o = dir.join("out.kd").display().to_string();
-    let st = slimkd(&[
-        "stitch",
-        &obj.display().to_string(),
-        "--cells-dir",
-        &d,
-        "-o",
-        &o,
-    ]);
+    let obj = obj.display().to_string();
+    let stitch = || slimkd(&["stitch", &obj, "--cells-dir", &d, "-o", &o]);
+    let st = stitch();
     assert_eq!(st.status.code(), Some(1));
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(
@@ -404,14 +399,7 @@ fn corrupt_plan_cell_and_part_files_name_the_file() {
         "{err}"
     );
     std::fs::write(cells::plan_path(&dir), b"SLIMKPL\0").unwrap();
-    let st = slimkd(&[
-        "stitch",
-        &obj.display().to_string(),
-        "--cells-dir",
-        &d,
-        "-o",
-        &o,
-    ]);
+    let st = stitch();
     assert_eq!(st.status.code(), Some(1));
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("plan.kdplan: truncated plan file"), "{err}");
