@@ -451,6 +451,20 @@ pub fn traverse_counted<S: KdSource>(src: &S, ray: &Ray, any: bool, stats: &mut 
     }
 }
 
+/// `a.max(b)` for a `b` that is never NaN, as one `maxss` (`f32::max`'s
+/// NaN rule costs three instructions more a push in the walk); for a NaN
+/// `a` it is `b`, as `f32::max` gives.
+#[inline(always)]
+fn max_num(a: f32, b: f32) -> f32 {
+    if a > b { a } else { b }
+}
+
+/// `a.min(b)` for a `b` that is never NaN, as one `minss` (see [`max_num`]).
+#[inline(always)]
+fn min_num(a: f32, b: f32) -> f32 {
+    if a < b { a } else { b }
+}
+
 /// Tests triangle `t_src` against `ray`, keeping the better hit in
 /// `best`; under `ANY`, says whether the ray is done. A function rather
 /// than a closure of the walk: a closure's body is compiled on its own,
@@ -623,7 +637,7 @@ pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                                     continue;
                                 }
                             } else if $near == NO_WORD {
-                                let lo = ts.max(tmin);
+                                let lo = max_num(ts, tmin);
                                 if $far != NO_WORD && lo - lo * MARGIN <= best.t {
                                     node = $far;
                                     tmin = lo;
@@ -631,11 +645,11 @@ pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                                 }
                             } else {
                                 if $far != NO_WORD && sp < MAX_STACK {
-                                    stack[sp].write(($far, ts.max(tmin), tmax));
+                                    stack[sp].write(($far, max_num(ts, tmin), tmax));
                                     sp += 1;
                                 }
                                 node = $near;
-                                tmax = ts.min(tmax);
+                                tmax = min_num(ts, tmax);
                                 continue;
                             }
                         }};
