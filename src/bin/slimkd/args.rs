@@ -316,9 +316,12 @@ pub(crate) struct BuildArgs {
     /// Which builder to run (all produce the same tree).
     #[arg(long, value_enum, default_value_t = BuilderArg::Level)]
     pub(crate) builder: BuilderArg,
-    /// Level builder: bytes of per-level columns kept in RAM (e.g. 1G,
-    /// 512M); above it they go to mapped scratch files, and the finished
-    /// depth-first subtrees go to scratch files too. Default: no limit.
+    /// Level builder: bytes of anonymous memory for the build (e.g. 1G,
+    /// 512M): the depth-first finishers' working memory, then the
+    /// per-level columns kept in RAM; above it the columns go to mapped
+    /// scratch files, and the finished depth-first subtrees go to scratch
+    /// files too. The finishers take nodes of up to 65536 references
+    /// under a budget (fewer levels through scratch). Default: no limit.
     #[arg(long, value_parser = parse_bytes)]
     pub(crate) mem_budget: Option<u64>,
     /// Level builder: directory for scratch files (default: the system
@@ -335,6 +338,12 @@ pub(crate) struct BuildArgs {
     #[arg(help_heading = "Measurement knobs (the same tree either way)", long, default_value_t = level::DEFAULT_TINY_THRESHOLD as u8,
           value_parser = clap::value_parser!(u8).range(0..=64))]
     pub(crate) tiny: u8,
+    /// Level builder: nodes of fewer references than this are finished
+    /// depth-first (default: chosen from `--mem-budget`, see
+    /// `LevelOptions::small_threshold`; the same tree either way; for
+    /// measurements).
+    #[arg(help_heading = "Measurement knobs (the same tree either way)", long)]
+    pub(crate) small: Option<usize>,
     /// The build flags given on the command line (their long names, e.g.
     /// `--preset`), filled in after parsing; `--threads` is not one.
     #[arg(skip)]

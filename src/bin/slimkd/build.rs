@@ -210,6 +210,14 @@ pub(crate) fn level_options(args: &BuildArgs) -> level::LevelOptions {
     if let Some(d) = &args.scratch {
         options.scratch_dir = d.clone();
     }
+    // Under a budget the finishers take larger nodes, which saves levels
+    // of scratch traffic; `--small` overrides it.
+    options.small_threshold = args.small.unwrap_or_else(|| {
+        level::LevelOptions::small_threshold_for_budget(
+            options.mem_budget,
+            rayon::current_num_threads(),
+        )
+    });
     options
 }
 

@@ -67,12 +67,19 @@ pub(crate) fn cmd_build_cells(
         let loaded = load(path, ui.bars_off())?;
         let config = build_config(args);
         let options = level_options(args);
+        // The plan's cut depends on the small-node threshold, so the plan
+        // takes the default one (or `--small`), not the budget's: a plan
+        // then resumes under any budget. The cells build with `options`.
+        let plan_options = level::LevelOptions {
+            small_threshold: args.small.unwrap_or(level::DEFAULT_SMALL_THRESHOLD),
+            ..options.clone()
+        };
         let scene = &loaded.scene;
         let start = Instant::now();
         let progress = Progress::default();
         let prepared = with_bar(ui.bars_off(), "planning", &progress, &String::new, || {
             let hash = SceneTag::geometry_hash_of(scene);
-            Ok(cells::prepare(&dir, scene, &config, &options, k, hash, Some(&progress))?)
+            Ok(cells::prepare(&dir, scene, &config, &plan_options, k, hash, Some(&progress))?)
         })?;
         let plan_s = start.elapsed().as_secs_f64();
         let plan = &prepared.plan;

@@ -164,6 +164,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         scratch: None,
         new_events: NewEventsArg::Merge,
         tiny: slimkd::build::level::DEFAULT_TINY_THRESHOLD as u8,
+        small: None,
         threads: None,
         max_depth: None,
         kt: slimkd::build::sah::SahParams::default().k_t,

@@ -268,27 +268,87 @@ pub(super) fn merge_new_events(
 /// are already in order), three passes of 11, 11 and 12 bits, from `a`
 /// through `b` (of the same length). Returns whether the result is in `b`.
 /// About four times faster than a comparison sort of the root's events.
+///
+/// A pass over more than [`RADIX_CHUNK`] events runs in parallel: each
+/// chunk counts its digits, the counts are laid out digit by digit and
+/// chunk by chunk within a digit, and each chunk scatters its events to
+/// its own slots. That is the order of the serial pass, so the result is
+/// the same; the root's sort was a serial stretch of the build (three
+/// axes on two cores: 13.9 s of setup on 49.7 M triangles, one core busy).
 pub(super) fn radix_sort_by_position_and_kind(a: &mut [u64], b: &mut [u64]) -> bool {
     let (mut src, mut dst) = (a, b);
     let mut in_b = false;
     for (shift, bits) in [(30u32, 11u32), (41, 11), (52, 12)] {
-        let mask = (1u64 << bits) - 1;
-        let mut count = vec![0usize; (1 << bits) + 1];
-        for &e in src.iter() {
-            count[((e >> shift) & mask) as usize + 1] += 1;
-        }
-        for d in 1..count.len() {
-            count[d] += count[d - 1];
-        }
-        for &e in src.iter() {
-            let d = ((e >> shift) & mask) as usize;
-            dst[count[d]] = e;
-            count[d] += 1;
+        if src.len() > RADIX_CHUNK {
+            radix_pass_parallel(src, dst, shift, bits);
+        } else {
+            radix_pass(src, dst, shift, bits);
         }
         std::mem::swap(&mut src, &mut dst);
         in_b = !in_b;
     }
     in_b
+}
+
+/// Events a chunk of a parallel radix pass; fixed, so that the work of a
+/// pass is cut the same way on any number of threads.
+const RADIX_CHUNK: usize = 1 << 18;
+
+/// One stable counting pass on the digit `(e >> shift) & (2^bits − 1)`.
+fn radix_pass(src: &[u64], dst: &mut [u64], shift: u32, bits: u32) {
+    let mask = (1u64 << bits) - 1;
+    let mut count = vec![0usize; (1 << bits) + 1];
+    for &e in src {
+        count[((e >> shift) & mask) as usize + 1] += 1;
+    }
+    for d in 1..count.len() {
+        count[d] += count[d - 1];
+    }
+    for &e in src {
+        let d = ((e >> shift) & mask) as usize;
+        dst[count[d]] = e;
+        count[d] += 1;
+    }
+}
+
+/// [`radix_pass`] over chunks of [`RADIX_CHUNK`] events in parallel.
+fn radix_pass_parallel(src: &[u64], dst: &mut [u64], shift: u32, bits: u32) {
+    let mask = (1u64 << bits) - 1;
+    let digits = 1usize << bits;
+    let mut counts: Vec<Vec<usize>> = src
+        .par_chunks(RADIX_CHUNK)
+        .map(|chunk| {
+            let mut c = vec![0usize; digits];
+            for &e in chunk {
+                c[((e >> shift) & mask) as usize] += 1;
+            }
+            c
+        })
+        .collect();
+    // Each chunk's first slot for each digit: all events of smaller
+    // digits, then this digit's events of earlier chunks.
+    let mut at = 0usize;
+    for d in 0..digits {
+        for c in counts.iter_mut() {
+            let k = c[d];
+            c[d] = at;
+            at += k;
+        }
+    }
+    debug_assert_eq!(at, src.len());
+    let out = ScatterSlice::new(dst);
+    src.par_chunks(RADIX_CHUNK)
+        .zip(counts.par_iter_mut())
+        .for_each(|(chunk, slot)| {
+            for &e in chunk {
+                let d = ((e >> shift) & mask) as usize;
+                // SAFETY: the slots of a (chunk, digit) pair are a range of
+                // their own (laid out above), one slot per event of the
+                // chunk with that digit, so no two writes share a slot.
+                unsafe { out.write(slot[d], e) };
+                slot[d] += 1;
+            }
+        });
 }
 
 /// `seg` holds sorted events followed by `new.len()` free slots; merges the
@@ -420,6 +480,33 @@ mod tests {
         let mut b = vec![0; v.len()];
         let in_b = radix_sort_by_position_and_kind(&mut v, &mut b);
         assert_eq!(if in_b { b } else { v }, want);
+    }
+
+    #[test]
+    fn parallel_radix_pass_equals_the_serial_one() {
+        let mut x = 0x2545_F491_4F6C_DD1Du64;
+        let n = 3 * RADIX_CHUNK + 12_345;
+        let v: Vec<u64> = (0..n as u64)
+            .map(|r| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                // Few distinct digits in the top bits, so that stability
+                // decides the order of most events.
+                (x % 5000) << 35 | ((x >> 20) % 3) << 30 | r
+            })
+            .collect();
+        for (shift, bits) in [(30u32, 11u32), (41, 11), (52, 12)] {
+            let (mut want, mut got) = (vec![0; n], vec![0; n]);
+            radix_pass(&v, &mut want, shift, bits);
+            radix_pass_parallel(&v, &mut got, shift, bits);
+            assert_eq!(got, want, "pass at bit {shift}");
+        }
+        let (mut a, mut b) = (v.clone(), vec![0; n]);
+        let in_b = radix_sort_by_position_and_kind(&mut a, &mut b);
+        let mut want = v;
+        want.sort_unstable();
+        assert_eq!(if in_b { b } else { a }, want);
     }
 
     #[test]
