@@ -89,6 +89,18 @@
 //!   contiguous pre-order range of nodes (and of leaf triangles) of the
 //!   work tree, because rebuilt subtrees are appended whole and only the
 //!   children of hoisting nodes are redirected.
+//!
+//! **Memory: not bounded by a budget.** The pass holds the whole std
+//! `TreeIr` (20 bytes a node and 4 a reference), its work tree and the
+//! slimmed tree, so `build --preset fast|small` holds several trees
+//! whatever `--mem-budget` says (a std `build -o` streams the tree into
+//! the file instead). Why: Algorithm 1 runs top down, and a hoist high in
+//! the tree rebuilds everything below it, while the picks themselves are
+//! decided from bottom-up analyses of whole subtrees; so no finished part
+//! of the tree is final before the levels above it are decided. Bounding
+//! it would take two streamed passes: the subtrees' analyses (a few
+//! candidates a subtree root) to decide the top, then each depth-first
+//! subtree slimmed on its own under the decided top.
 
 mod bytes;
 mod oracle;
