@@ -262,8 +262,11 @@ fn run<T>(
 ) -> Result<(T, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let small_threshold = cut.map_or(options.small_threshold, |c| c.min_refs);
     // The finishers' working memory comes out of the budget first.
-    let reserve =
-        LevelOptions::finisher_reserve(small_threshold, scene.len(), rayon::current_num_threads());
+    let reserve = if options.mem_budget == u64::MAX {
+        0
+    } else {
+        LevelOptions::finisher_reserve(small_threshold, scene.len(), rayon::current_num_threads())
+    };
     let scratch = Scratch::new(ScratchConfig {
         mem_budget: options.mem_budget.saturating_sub(reserve),
         dir: options.scratch_dir.clone(),
@@ -288,6 +291,8 @@ fn run<T>(
             (options.mem_budget != u64::MAX).then(|| Arc::from(options.scratch_dir.as_path())),
         ),
         report: LevelReport {
+            small_threshold: small_threshold as u64,
+            finisher_reserve_bytes: reserve,
             start_rss_anon_bytes: start_rss.0,
             peak_rss_anon_bytes: start_rss.0,
             peak_rss_file_bytes: start_rss.1,

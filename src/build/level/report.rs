@@ -46,6 +46,12 @@ pub struct LevelReport {
     pub bfs_nodes: u64,
     /// Subtrees finished depth-first.
     pub small_nodes: u64,
+    /// Nodes of fewer references than this were finished depth-first
+    /// (the options' threshold, or a cut's).
+    pub small_threshold: u64,
+    /// Bytes of the budget kept for the finishers
+    /// ([`super::FINISHER_BYTES_PER_REF`] a reference a thread).
+    pub finisher_reserve_bytes: u64,
     /// The most references of one level.
     pub max_level_refs: u64,
     /// The most nodes processed breadth-first in one level.
