@@ -339,9 +339,9 @@ pub(crate) struct BuildArgs {
           value_parser = clap::value_parser!(u8).range(0..=64))]
     pub(crate) tiny: u8,
     /// Level builder: nodes of fewer references than this are finished
-    /// depth-first (default: chosen from `--mem-budget`, see
-    /// `LevelOptions::small_threshold`; the same tree either way; for
-    /// measurements).
+    /// depth-first (default: 2048, or under `--mem-budget` up to 65536
+    /// from the budget, see `LevelOptions::small_threshold_for_budget`;
+    /// the same tree either way; for measurements).
     #[arg(help_heading = "Measurement knobs (the same tree either way)", long)]
     pub(crate) small: Option<usize>,
     /// The build flags given on the command line (their long names, e.g.

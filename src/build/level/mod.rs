@@ -262,11 +262,8 @@ fn run<T>(
 ) -> Result<(T, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let small_threshold = cut.map_or(options.small_threshold, |c| c.min_refs);
     // The finishers' working memory comes out of the budget first.
-    let reserve = if options.mem_budget == u64::MAX {
-        0
-    } else {
-        LevelOptions::finisher_reserve(small_threshold, scene.len(), rayon::current_num_threads())
-    };
+    let reserve =
+        options.finisher_reserve(small_threshold, scene.len(), rayon::current_num_threads());
     let scratch = Scratch::new(ScratchConfig {
         mem_budget: options.mem_budget.saturating_sub(reserve),
         dir: options.scratch_dir.clone(),

@@ -88,10 +88,13 @@ impl LevelOptions {
         fit.clamp(DEFAULT_SMALL_THRESHOLD, MAX_BUDGET_SMALL_THRESHOLD)
     }
 
-    /// The part of a budget the finishers of `threads` threads keep
+    /// The part of `mem_budget` the finishers of `threads` threads keep
     /// for nodes of up to `small` (and at most `n`) references; the level
-    /// columns get the rest.
-    pub(crate) fn finisher_reserve(small: usize, n: usize, threads: usize) -> u64 {
+    /// columns get the rest. Nothing without a budget.
+    pub(crate) fn finisher_reserve(&self, small: usize, n: usize, threads: usize) -> u64 {
+        if self.mem_budget == u64::MAX {
+            return 0;
+        }
         let refs = small.min(n) as u64;
         refs.saturating_mul(FINISHER_BYTES_PER_REF)
             .saturating_mul(threads.max(1) as u64)
@@ -145,9 +148,18 @@ mod tests {
 
     #[test]
     fn the_finishers_reserve_covers_every_thread() {
-        let r = LevelOptions::finisher_reserve;
+        let budgeted = LevelOptions {
+            mem_budget: 1 << 30,
+            ..LevelOptions::default()
+        };
+        let r = |small, n, threads| budgeted.finisher_reserve(small, n, threads);
         assert_eq!(r(2048, 1 << 20, 2), 2 * 2048 * FINISHER_BYTES_PER_REF);
         // Never more references than the scene has.
         assert_eq!(r(usize::MAX, 1000, 1), 1000 * FINISHER_BYTES_PER_REF);
+        // Nothing to keep without a budget.
+        assert_eq!(
+            LevelOptions::default().finisher_reserve(2048, 1 << 20, 2),
+            0
+        );
     }
 }
