@@ -119,3 +119,19 @@ pub fn rss() -> (u64, u64) {
     };
     (field("RssAnon:"), field("RssFile:"))
 }
+
+/// Returns the allocator's free memory to the system (glibc's
+/// `malloc_trim`; nothing elsewhere). The level builder calls it between
+/// the levels of a budgeted build: glibc raises its mmap threshold after a
+/// large block is freed, so the next columns of a few MiB come from its
+/// heap, and the pages of the freed ones stay resident (49.7 M triangles
+/// under 2 GiB, groups of a level built apart: 200 MiB over the budget
+/// without it).
+pub fn release_free_heap() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: `malloc_trim` takes no pointer and may be called at any
+    // time; it only hands free pages of the allocator back.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}

@@ -57,6 +57,14 @@ fn check_with(scene: &TriangleColumns, config: &BuildConfig, options: &LevelOpti
     want
 }
 
+/// A budget that leaves `columns` bytes for the level columns once the
+/// finishers' share (`FINISHER_BYTES_PER_REF` a reference of the
+/// threshold, a thread) is set aside.
+fn grouping_budget(threshold: usize, n: usize, columns: u64) -> u64 {
+    let threads = rayon::current_num_threads().max(1) as u64;
+    threshold.min(n) as u64 * level::FINISHER_BYTES_PER_REF * threads + columns
+}
+
 /// Thresholds that cover the breadth-first path to the leaves (0, 1), a
 /// mix (2, 5, 16) and the depth-first path alone.
 const THRESHOLDS: [usize; 6] = [0, 1, 2, 5, 16, usize::MAX];
@@ -72,13 +80,19 @@ proptest! {
     fn level_equals_sweep_and_naive(
         tris in grid_scene(40),
         t in 0..THRESHOLDS.len(),
-        tiny_budget in any::<bool>(),
+        budget in 0..3usize,
         bucket in any::<bool>(),
         tiny in 0..TINY.len(),
     ) {
         let scene = columns(&tris);
         let dir = fresh_temp_dir("prop");
-        let budget = if tiny_budget { 0 } else { u64::MAX };
+        // Every column in scratch; columns of a few hundred bytes in RAM
+        // (levels in scratch cut into groups); everything in RAM.
+        let budget = match budget {
+            0 => 0,
+            1 => grouping_budget(THRESHOLDS[t], scene.len(), 1500),
+            _ => u64::MAX,
+        };
         let new_events = if bucket { NewEvents::Bucket } else { NewEvents::SortMerge };
         let options = LevelOptions {
             new_events,
@@ -249,6 +263,9 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
         assert!(got == want, "threshold {t}, budget {budget}: trees differ");
         if budget != u64::MAX {
             assert!(report.scratch.files > 0);
+            // The top levels (2.6 MB of columns at the root) go through
+            // scratch, the levels below in groups.
+            assert!(report.groups > 1, "{} groups", report.groups);
         }
         assert!(is_empty_dir(&dir));
     }

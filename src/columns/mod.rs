@@ -315,6 +315,11 @@ impl Scratch {
         })
     }
 
+    /// The bytes of columns kept in RAM at once (`u64::MAX`: no budget).
+    pub fn mem_budget(&self) -> u64 {
+        self.config.mem_budget
+    }
+
     /// What the columns made so far used, peaks included.
     pub fn stats(&self) -> ScratchStats {
         ScratchStats {

@@ -79,7 +79,9 @@
 //! the CLI raises the threshold with the budget
 //! ([`LevelOptions::small_threshold_for_budget`]: 49.7 M triangles under
 //! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536,
-//! and built in 231 s against 195 s). The breadth-first
+//! and built in 231 s against 195 s), and a level in scratch is cut into
+//! groups of nodes that fit in RAM, each built to the end on its own
+//! (`Builder::levels`: 14.1 GB, 177–182 s). The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled; the
 //! depth-first subtrees, packed (12 bytes a node) in one stream per level
 //! that the assembly reads front to back, unmapping each chunk once read
@@ -303,12 +305,7 @@ fn run<T>(
     };
     b.report.phases.setup_s = lap(&mut clock);
     b.sample_rss();
-    let mut depth = root_level.depth;
-    let mut level = Some(root_level);
-    while let Some(l) = level {
-        level = b.level(l, depth)?;
-        depth += 1;
-    }
+    b.levels(root_level)?;
     // The levels' memory kept for reuse is not needed from here.
     scratch.release_pool();
     clock = Instant::now();
@@ -653,6 +650,130 @@ impl<'a> Builder<'a> {
             tri,
             bounds: boxes,
             ev,
+        })
+    }
+
+    /// Processes `first` and the levels below it until no node is left
+    /// open. A level that went to scratch files is cut into groups of
+    /// consecutive nodes that fit in RAM ([`Builder::groups`]), and each
+    /// group's levels run to the end, one group after another, left to
+    /// right. So under a budget only the top levels, whose nodes are too
+    /// large, go through scratch (49.7 M triangles under 2 GiB: the level
+    /// columns wrote 44 GB when every level above the small-node threshold
+    /// did). The tree is the same: a node's subtree depends on its own
+    /// references alone, and groups taken left to right file their
+    /// depth-first subtrees in each level's node order, as the assembly
+    /// reads them.
+    fn levels(&mut self, first: Level<'a>) -> Result<(), ColumnsError> {
+        let mut level = Some(first);
+        while let Some(l) = level {
+            if let Some(groups) = self.groups(&l) {
+                self.report.groups += groups.len() as u64;
+                for range in groups {
+                    let sub = self.sub_level(&l, range)?;
+                    self.levels(sub)?;
+                }
+                return Ok(());
+            }
+            let depth = l.depth;
+            level = self.level(l, depth)?;
+            if self.scratch.mem_budget() != u64::MAX {
+                crate::sys::release_free_heap();
+            }
+        }
+        Ok(())
+    }
+
+    /// The groups of a level worth building apart ([`Builder::levels`]):
+    /// `None` unless some of the level's columns are scratch files, it has
+    /// more than one node and more bytes than a group may hold (a third of
+    /// the columns' budget, so that a group and its children fit in RAM
+    /// together), and some group holds more than one node or fits.
+    /// Otherwise consecutive nodes, each group as large as fits; a node
+    /// larger than that is a group of its own (copied once more, into
+    /// scratch: its children are cut into groups in turn). Not under a cut
+    /// into cells, whose rule counts the cells of the whole level.
+    fn groups(&self, l: &Level<'a>) -> Option<Vec<std::ops::Range<usize>>> {
+        let budget = self.scratch.mem_budget();
+        let mapped =
+            l.tri.is_mapped() || l.bounds.is_mapped() || l.ev.iter().any(|c| c.is_mapped());
+        if self.cut.is_some() || budget == u64::MAX || l.nodes.len() < 2 || !mapped {
+            return None;
+        }
+        let max = budget / 3;
+        let bytes = |nd: &LNode| {
+            (nd.n * (size_of::<u32>() + size_of::<Box6>())
+                + nd.nev.iter().sum::<usize>() * size_of::<u64>()) as u64
+        };
+        let mut groups = Vec::new();
+        let (mut start, mut held) = (0, 0u64);
+        for (j, nd) in l.nodes.iter().enumerate() {
+            let b = bytes(nd);
+            if j > start && held + b > max {
+                groups.push((start..j, held));
+                (start, held) = (j, 0);
+            }
+            held += b;
+        }
+        groups.push((start..l.nodes.len(), held));
+        let useful = groups.len() > 1 && groups.iter().any(|(r, b)| r.len() > 1 || *b <= max);
+        useful.then(|| groups.into_iter().map(|(r, _)| r).collect())
+    }
+
+    /// The level of the nodes `range` of `l` alone: their references and
+    /// events copied into columns of their own (in RAM when they fit),
+    /// renumbered from 0. A node's events name its references by their
+    /// index in the level's columns, so each loses the group's first
+    /// reference index, which keeps every node's events in order.
+    fn sub_level(
+        &self,
+        l: &Level<'a>,
+        range: std::ops::Range<usize>,
+    ) -> Result<Level<'a>, ColumnsError> {
+        let nodes = &l.nodes[range];
+        let (first, last) = (nodes[0], nodes[nodes.len() - 1]);
+        let refs = first.refs..last.refs + last.n;
+        let mut tri = self
+            .scratch
+            .column_for_overwrite::<u32>("tri", refs.len())?;
+        let mut bounds = self
+            .scratch
+            .column_for_overwrite::<Box6>("bounds", refs.len())?;
+        tri.par_chunks_mut(PIECE)
+            .zip(l.tri[refs.clone()].par_chunks(PIECE))
+            .for_each(|(d, s)| d.copy_from_slice(s));
+        bounds
+            .par_chunks_mut(PIECE)
+            .zip(l.bounds[refs.clone()].par_chunks(PIECE))
+            .for_each(|(d, s)| d.copy_from_slice(s));
+        let base = refs.start as u64;
+        let mut ev = Vec::with_capacity(3);
+        for k in 0..3 {
+            let evs = first.ev[k]..last.ev[k] + last.nev[k];
+            let mut c = self.scratch.column_for_overwrite::<u64>("ev", evs.len())?;
+            c.par_chunks_mut(PIECE)
+                .zip(l.ev[k][evs].par_chunks(PIECE))
+                .for_each(|(d, s)| {
+                    for (d, &e) in d.iter_mut().zip(s) {
+                        *d = e - base;
+                    }
+                });
+            ev.push(c);
+        }
+        let nodes = nodes
+            .iter()
+            .map(|nd| LNode {
+                refs: nd.refs - refs.start,
+                ev: [0, 1, 2].map(|k| nd.ev[k] - first.ev[k]),
+                ..*nd
+            })
+            .collect();
+        Ok(Level {
+            depth: l.depth,
+            nodes,
+            tri,
+            bounds,
+            ev: ev.try_into().expect("three axes"),
         })
     }
 

@@ -40,8 +40,12 @@ impl Phases {
 pub struct LevelReport {
     /// Where the build's time went.
     pub phases: Phases,
-    /// Levels processed breadth-first.
+    /// Levels processed breadth-first (a level cut into groups counts
+    /// once a group).
     pub levels: u32,
+    /// Groups of a level in scratch files built apart, in RAM where they
+    /// fit (`Builder::levels`).
+    pub groups: u64,
     /// Nodes decided breadth-first (inner nodes and leaves).
     pub bfs_nodes: u64,
     /// Subtrees finished depth-first.
