@@ -686,9 +686,10 @@ impl<'a> Builder<'a> {
 
     /// The groups of a level worth building apart ([`Builder::levels`]):
     /// `None` unless some of the level's columns are scratch files, it has
-    /// more than one node and more bytes than a group may hold (a third of
-    /// the columns' budget, so that a group and its children fit in RAM
-    /// together), and some group holds more than one node or fits.
+    /// more than one node, some node that is not finished depth-first,
+    /// and more bytes than a group may hold (a third of the columns'
+    /// budget, so that a group and its children fit in RAM together), and
+    /// some group holds more than one node or fits.
     /// Otherwise consecutive nodes, each group as large as fits; a node
     /// larger than that is a group of its own (copied once more, into
     /// scratch: its children are cut into groups in turn). Not under a cut
@@ -697,7 +698,10 @@ impl<'a> Builder<'a> {
         let budget = self.scratch.mem_budget();
         let mapped =
             l.tri.is_mapped() || l.bounds.is_mapped() || l.ev.iter().any(|c| c.is_mapped());
-        if self.cut.is_some() || budget == u64::MAX || l.nodes.len() < 2 || !mapped {
+        // A level of small nodes alone is finished from its columns
+        // where they are: copying it would only add a read and a write.
+        let any_big = l.nodes.iter().any(|nd| nd.n >= self.small_threshold);
+        if self.cut.is_some() || budget == u64::MAX || l.nodes.len() < 2 || !mapped || !any_big {
             return None;
         }
         let max = budget / 3;
