@@ -81,7 +81,7 @@
 //! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536,
 //! and built in 231 s against 195 s), and a level in scratch is cut into
 //! groups of nodes that fit in RAM, each built to the end on its own
-//! (`Builder::levels`: 14.1 GB, 177–182 s). The breadth-first
+//! (`Builder::levels`: 12.6 GB with the root's spare column, 177–189 s). The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled; the
 //! depth-first subtrees, packed (12 bytes a node) in one stream per level
 //! that the assembly reads front to back, unmapping each chunk once read
