@@ -74,14 +74,14 @@
 //!
 //! **Memory.** The finishers' working memory (`FINISHER_BYTES_PER_REF` a
 //! reference of `small_threshold`, a thread) is set aside from
-//! `mem_budget`, and the level columns obey the rest. Under a budget every
-//! level above the small-node threshold goes through scratch files, so
-//! the CLI raises the threshold with the budget
+//! `mem_budget`, and the level columns obey the rest. Under a budget the
+//! levels whose nodes are too large for RAM go through scratch files, so
+//! the CLI raises the small-node threshold with the budget
 //! ([`LevelOptions::small_threshold_for_budget`]: 49.7 M triangles under
-//! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536,
-//! and built in 231 s against 195 s), and a level in scratch is cut into
-//! groups of nodes that fit in RAM, each built to the end on its own
-//! (`Builder::levels`: 12.6 GB with the root's spare column, 177–189 s). The breadth-first
+//! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536),
+//! and a level in scratch is cut into groups of nodes that fit in RAM,
+//! each built to the end on its own (`Builder::levels`: 12.6 GB; 231 s at
+//! 2048 references without groups, 177–189 s with). The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled; the
 //! depth-first subtrees, packed (12 bytes a node) in one stream per level
 //! that the assembly reads front to back, unmapping each chunk once read
