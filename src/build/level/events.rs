@@ -138,41 +138,6 @@ pub fn events_of(b: &Box6, axis: usize, r: u32) -> ([u64; 2], usize) {
     }
 }
 
-/// References a chunk of [`write_events`]; fixed, so that the work is cut
-/// the same way on any number of threads.
-const EVENTS_CHUNK: usize = 1 << 16;
-
-/// Writes the events of every reference on `axis`, in reference order,
-/// into `out` (of exactly [`n_events`] summed over `boxes`): chunks of
-/// references count their events, then each writes its own slice, in
-/// parallel.
-pub fn write_events(boxes: &[Box6], axis: usize, out: &mut [u64]) {
-    let counts: Vec<usize> = boxes
-        .par_chunks(EVENTS_CHUNK)
-        .map(|c| c.iter().map(|b| n_events(b, axis)).sum())
-        .collect();
-    let mut slices = Vec::with_capacity(counts.len());
-    let mut rest = out;
-    for &k in &counts {
-        let (head, tail) = rest.split_at_mut(k);
-        slices.push(head);
-        rest = tail;
-    }
-    assert!(rest.is_empty(), "the output holds every event");
-    boxes
-        .par_chunks(EVENTS_CHUNK)
-        .zip(slices)
-        .enumerate()
-        .for_each(|(c, (chunk, dst))| {
-            let mut at = 0;
-            for (i, b) in chunk.iter().enumerate() {
-                let (ev, k) = events_of(b, axis, (c * EVENTS_CHUNK + i) as u32);
-                dst[at..at + k].copy_from_slice(&ev[..k]);
-                at += k;
-            }
-        });
-}
-
 /// The stable partition of the inherited events: each event of a
 /// one-sided reference goes, renumbered, to its child's segment, in the
 /// order it had; the clipped references' events are dropped (they are

@@ -80,8 +80,8 @@
 //! ([`LevelOptions::small_threshold_for_budget`]: 49.7 M triangles under
 //! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536),
 //! and a level in scratch is cut into groups of nodes that fit in RAM,
-//! each built to the end on its own (`Builder::levels`: 12.6 GB; 231 s at
-//! 2048 references without groups, 177–189 s with). The breadth-first
+//! each built to the end on its own (`Builder::levels`: 14.1 GB; 231 s at
+//! 2048 references without groups, 177–182 s with). The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled; the
 //! depth-first subtrees, packed (12 bytes a node) in one stream per level
 //! that the assembly reads front to back, unmapping each chunk once read
@@ -114,8 +114,8 @@ use self::assemble::{Rec, SubStore, SubStream, assemble, assemble_into};
 use self::classify::{Classified, SideCounts, classify_pass, piece_carries, write_children};
 use self::dfs::Finisher;
 use self::events::{
-    Box6, MAX_REFS, merge_new_events, n_events, partition_events, push_events,
-    radix_sort_by_position_and_kind, to_aabb, to_box, write_events,
+    Box6, MAX_REFS, events_of, merge_new_events, n_events, partition_events, push_events,
+    radix_sort_by_position_and_kind, to_aabb, to_box,
 };
 use self::pieces::{PIECE, Piece, pieces};
 use self::sweep::best_splits;
@@ -608,27 +608,32 @@ impl<'a> Builder<'a> {
         let n = tri.len();
         // Each axis's events, generated in reference order and sorted by
         // (position, kind) with a stable radix sort, which leaves them in
-        // (position, kind, reference) order. The axes are sorted one after
-        // another, each on every thread, through one spare column that
-        // the sort ping-pongs with (its three passes end in the axis's
-        // column): four columns of events instead of six, so the root
-        // takes about 92 bytes a reference instead of 124, and under a budget
-        // a third less of it goes to scratch files.
-        let nev: [usize; 3] =
-            [0, 1, 2].map(|axis| boxes.par_iter().map(|b| n_events(b, axis)).sum());
-        let mut spare = self
-            .scratch
-            .column_for_overwrite::<u64>("ev", nev.iter().copied().max().unwrap_or(0))?;
-        let mut ev = Vec::with_capacity(3);
-        for (axis, &len) in nev.iter().enumerate() {
-            let mut col = self.scratch.column_for_overwrite::<u64>("ev", len)?;
-            let gen_into = &mut spare[..len];
-            write_events(&boxes, axis, gen_into);
-            let in_col = radix_sort_by_position_and_kind(gen_into, &mut col);
-            assert!(in_col, "the sort's three passes end in the second column");
-            ev.push(col);
+        // (position, kind, reference) order. The sort ping-pongs between
+        // two columns, so above the budget it runs in scratch files too.
+        // The three axes are sorted in parallel.
+        let mut nev = [0; 3];
+        let mut cols = Vec::with_capacity(3);
+        for (axis, nev) in nev.iter_mut().enumerate() {
+            *nev = boxes.par_iter().map(|b| n_events(b, axis)).sum();
+            let a = self.scratch.column_for_overwrite::<u64>("ev", *nev)?;
+            let b = self.scratch.column_for_overwrite::<u64>("ev", *nev)?;
+            cols.push((a, b));
         }
-        drop(spare);
+        let boxes_ref = &boxes;
+        let ev: Vec<Column<'a, u64>> = cols
+            .into_par_iter()
+            .enumerate()
+            .map(|(axis, (mut a, mut b))| {
+                let mut at = 0;
+                for (i, bx) in boxes_ref.iter().enumerate() {
+                    let (ev, k) = events_of(bx, axis, i as u32);
+                    a[at..at + k].copy_from_slice(&ev[..k]);
+                    at += k;
+                }
+                let in_b = radix_sort_by_position_and_kind(&mut a, &mut b);
+                if in_b { b } else { a }
+            })
+            .collect();
         let ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
         let node = LNode {
             cell,
