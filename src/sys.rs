@@ -124,8 +124,8 @@ pub fn rss() -> (u64, u64) {
 /// `malloc_trim`; nothing elsewhere). The level builder calls it between
 /// the levels of a budgeted build: glibc raises its mmap threshold after a
 /// large block is freed, so the next columns of a few MiB come from its
-/// heap, and the pages of the freed ones stay resident (49.7 M triangles
-/// under 2 GiB, groups of a level built apart: 200 MiB over the budget
+/// heap, and the pages of the freed ones stay resident (12.4 M triangles
+/// under 1 GiB, groups of a level built apart: 196 MiB over the budget
 /// without it).
 pub fn release_free_heap() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
