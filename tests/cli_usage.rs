@@ -108,7 +108,8 @@ fn hoisting_flags_with_std_need_both_thresholds() {
     ]));
     assert_eq!(b["tau_occu"], 0.1);
     assert_eq!(b["tau_freq"], 0.5);
-    assert_eq!(b["coarsen"], 1.0);
+    assert_eq!(b["coarsen"], 1.5);
+    assert_eq!(b["cost_ratio"], 0.01);
     // With the paper's rule a preset is the paper's setting.
     let b = json(&slimkd(&[
         "build",

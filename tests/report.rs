@@ -265,6 +265,7 @@ fn table4_and_figure5_are_consistent() {
             max_t2rn: p.max_t2rn,
             rule: SlimParams::FAST.rule,
             coarsen: 1.0,
+            cost_ratio: f64::INFINITY,
         };
         let (tree, sr) = slim::slim(std_tree(), bunny(), &BuildConfig::default(), &params);
         assert_eq!(p.tree_bytes, written(&tree).0.tree_bytes());

@@ -26,6 +26,7 @@ use glam::Vec3;
 use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
+use slimkd::build::sah::SahParams;
 use slimkd::build::{self, BuildConfig, Builder};
 use slimkd::format::node::fits_leaf16;
 use slimkd::format::{self, KdFile, WriteOptions};
@@ -121,6 +122,32 @@ impl LTree {
                 out.extend(*t_ref);
                 self.triangles(*left, out);
                 self.triangles(*right, out);
+            }
+        }
+    }
+
+    /// The SAH cost of the subtree under `n` (cell `cell`), added to
+    /// `sum` node by node in pre-order, left child first: `(K_T + K_I ·
+    /// [hoisted]) · SA` per inner node, `K_I · |leaf| · SA` per leaf.
+    fn cost(&self, n: usize, cell: Aabb, sah: &SahParams, sum: &mut f64) {
+        match &self.nodes[n] {
+            LNode::Leaf(tris) => *sum += sah.k_i * tris.len() as f64 * cell.surface_area(),
+            LNode::Inner {
+                axis,
+                pos,
+                left,
+                right,
+                t_ref,
+            } => {
+                let k = if t_ref.is_some() {
+                    sah.k_t + sah.k_i
+                } else {
+                    sah.k_t
+                };
+                *sum += k * cell.surface_area();
+                let (left_cell, right_cell) = cell.split(*axis as usize, *pos);
+                self.cost(*left, left_cell, sah, sum);
+                self.cost(*right, right_cell, sah, sum);
             }
         }
     }
@@ -286,6 +313,15 @@ fn literal_slim(
     };
     let file_id = |t: TriId| ids.as_ref().map_or(t.0, |ids| ids[t.0 as usize]);
     let sa_root = std_tree.bounds.surface_area();
+    // The price rule: the most SAH cost a byte saved may add.
+    let cost_of = |tree: &LTree, n: usize, cell: Aabb| {
+        let mut sum = 0.0;
+        tree.cost(n, cell, &config.sah, &mut sum);
+        sum
+    };
+    let per_byte = (ids.is_some() && p.cost_ratio.is_finite()).then(|| {
+        p.cost_ratio * cost_of(&tree, root, std_tree.bounds) / tree.bytes(root, &file_id) as f64
+    });
     let mut stack = Vec::new();
     if p.max_t2rn > 0 {
         stack.push((root, std_tree.bounds, 0u32, 0u32));
@@ -330,6 +366,20 @@ fn literal_slim(
                 report.rebuilds += 1;
                 report.rebuilt_refs += tris.len();
                 report.rejected += 1;
+            } else if let (Some(per_byte), Some(old)) = (per_byte, old)
+                && {
+                    let mut fresh_tree = LTree::default();
+                    let f = fresh_tree.append(&fresh);
+                    cost_of(&fresh_tree, f, cell) + config.sah.k_i * cell.surface_area()
+                        - cost_of(&tree, i, cell)
+                        > per_byte * (old - (ir_bytes(&fresh, &file_id) + 8)) as f64
+                }
+            {
+                // Smaller, but it costs rays more than its bytes are
+                // worth: rejected by the price rule.
+                report.rebuilds += 1;
+                report.rebuilt_refs += tris.len();
+                report.priced += 1;
             } else {
                 report.rebuilds += 1;
                 report.rebuilt_refs += tris.len();
@@ -413,11 +463,15 @@ fn slim_checked(std: &TreeIr, scene: &TriangleColumns, p: &SlimParams) -> (TreeI
     assert_eq!(report.hoisted, tree.n_t_inner(), "{p:?}");
     assert_eq!(
         report.rebuilds,
-        report.hoisted + report.cancelled + report.rejected,
+        report.hoisted + report.cancelled + report.rejected + report.priced,
         "{p:?}"
     );
     if p.rule == HoistRule::Paper {
-        assert_eq!((report.rejected, report.skipped), (0, 0), "{p:?}");
+        assert_eq!(
+            (report.rejected, report.priced, report.skipped),
+            (0, 0, 0),
+            "{p:?}"
+        );
     }
     // The byte count of the literal rule, and `slim::tree_bytes`, are the
     // written file's `tree_bytes`; with the byte rule every hoist makes
@@ -437,6 +491,24 @@ fn slim_checked(std: &TreeIr, scene: &TriangleColumns, p: &SlimParams) -> (TreeI
         if p.rule == (HoistRule::Bytes { reordered }) {
             assert!(slim_bytes <= std_bytes, "{p:?}");
             assert_eq!(slim_bytes < std_bytes, report.hoisted > 0, "{p:?}");
+            // Under the price rule each hoist adds at most `cost_ratio ·
+            // C_std / B_std` of SAH cost a byte it saves, so the whole tree
+            // does too (the changes add up).
+            if p.cost_ratio.is_finite() {
+                let [slim_cost, std_cost] = [&tree, std].map(|t| {
+                    let mut lt = LTree::default();
+                    let root = lt.append(t);
+                    let mut sum = 0.0;
+                    lt.cost(root, t.bounds, &config().sah, &mut sum);
+                    sum
+                });
+                let allowed =
+                    p.cost_ratio * std_cost / std_bytes as f64 * (std_bytes - slim_bytes) as f64;
+                assert!(
+                    slim_cost - std_cost <= allowed + 1e-9 * std_cost,
+                    "{p:?}: cost {std_cost} -> {slim_cost}, {std_bytes} -> {slim_bytes} bytes"
+                );
+            }
         }
     }
     assert!(max_t2_on_path(&tree) <= p.max_t2rn, "{p:?}");
@@ -517,8 +589,12 @@ const PRESETS: [SlimParams; 6] = [
     PAPER_SMALL_BYTES,
 ];
 
-/// Random thresholds in `0.05..0.95`, `max_t2rn` in `0..5`, any rule and
-/// a rebuild's `K_T` factor of 1, 1.5 or 2.
+/// The price rule's ratios the random parameters take: none, the `fast`
+/// preset's, and ones that price out most hoists or all.
+const COST_RATIOS: [f64; 4] = [f64::INFINITY, SlimParams::FAST.cost_ratio, 0.001, 0.0];
+
+/// Random thresholds in `0.05..0.95`, `max_t2rn` in `0..5`, any rule, a
+/// rebuild's `K_T` factor of 1, 1.5 or 2 and any of [`COST_RATIOS`].
 fn params_strategy() -> impl Strategy<Value = SlimParams> {
     (
         0.05f64..0.95,
@@ -526,13 +602,15 @@ fn params_strategy() -> impl Strategy<Value = SlimParams> {
         0u32..5,
         0..RULES.len(),
         0..3u32,
+        0..COST_RATIOS.len(),
     )
-        .prop_map(|(tau_occu, tau_freq, max_t2rn, rule, c)| SlimParams {
+        .prop_map(|(tau_occu, tau_freq, max_t2rn, rule, c, r)| SlimParams {
             tau_occu,
             tau_freq,
             max_t2rn,
             rule: RULES[rule],
             coarsen: 1.0 + 0.5 * f64::from(c),
+            cost_ratio: COST_RATIOS[r],
         })
 }
 
@@ -866,6 +944,7 @@ fn slim_hits_on_shipped_bunny() {
         max_t2rn: 4,
         rule: HoistRule::Paper,
         coarsen: 1.0,
+        cost_ratio: f64::INFINITY,
     };
     for p in PRESETS.into_iter().chain([aggressive]) {
         let (tree, _) = slim::slim(&std, &scene, &config(), &p);
@@ -908,7 +987,7 @@ proptest! {
         let std = std_tree(&scene);
         for max_t2rn in 0..5 {
             for rule in RULES {
-                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule, coarsen: 1.0 };
+                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule, coarsen: 1.0, cost_ratio: f64::INFINITY };
                 let (tree, report) = slim::slim(&std, &scene, &config(), &p);
                 prop_assert!(max_t2_on_path(&tree) <= max_t2rn, "{:?}", p);
                 prop_assert_eq!(report.hoisted, tree.n_t_inner());
@@ -1254,6 +1333,7 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
             hoisted: 1,
             cancelled: 0,
             rejected: 0,
+            priced: 0,
             skipped: 0,
             rebuilds: 1,
             rebuilt_refs: 4,
@@ -1319,6 +1399,7 @@ fn huge_triangle_over_2x2_grid_is_hoisted_as_worked_out_by_hand() {
             hoisted: 0,
             cancelled: 0,
             rejected: 3,
+            priced: 0,
             skipped: 0,
             rebuilds: 3,
             rebuilt_refs: 6,
@@ -1424,6 +1505,7 @@ fn small_disjoint_triangles_are_not_hoisted() {
             max_t2rn: 4,
             rule: HoistRule::Paper,
             coarsen: 1.0,
+            cost_ratio: f64::INFINITY,
         };
         for p in [PAPER_FAST_BYTES, half] {
             let (tree, report) = slim_checked(&std, &scene, &p);
@@ -1450,6 +1532,7 @@ fn small_disjoint_triangles_are_not_hoisted() {
                 hoisted: 0,
                 cancelled: 2,
                 rejected: 0,
+                priced: 0,
                 skipped: 0,
                 rebuilds: 2,
                 rebuilt_refs: 2,
@@ -1467,7 +1550,7 @@ proptest! {
     #![proptest_config(cases(256))]
 
     /// `hoisted` is the number of type II nodes of the result, every
-    /// rebuild either hoists or is cancelled, and the `.kd` file counts the
+    /// rebuild hoists or is cancelled, rejected or priced out, and the `.kd` file counts the
     /// same type II nodes.
     #[test]
     fn report_counts_the_type_ii_nodes(
@@ -1480,7 +1563,7 @@ proptest! {
         prop_assert_eq!(report.hoisted, tree.n_t_inner());
         prop_assert_eq!(
             report.rebuilds,
-            report.hoisted + report.cancelled + report.rejected
+            report.hoisted + report.cancelled + report.rejected + report.priced
         );
         prop_assert!(report.rebuilt_refs <= report.rebuilds * scene.len());
         let bytes = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap();

@@ -138,7 +138,7 @@ fn sweep_families_hold_its_points_and_the_presets_exactly() {
     let std = preset("std");
     assert_eq!((f(&std["k_t"]), f(&std["k_i"])), (15.0, 20.0));
     assert!(std["tau_occu"].is_null() && std["hoisted"] == 0);
-    for (name, coarsen) in [("fast", 1.0), ("small", 2.0)] {
+    for (name, coarsen) in [("fast", 1.5), ("small", 2.0)] {
         let p = preset(name);
         assert_eq!((f(&p["k_t"]), f(&p["k_i"])), (15.0, 20.0), "{name}");
         assert_eq!(

@@ -52,6 +52,17 @@
 //! leaves the rebuilt subtree's node count as it was (see the field's
 //! docs), so this is where a hoist's nodes are saved.
 //!
+//! *Deviation from the paper ([`SlimParams::cost_ratio`], the `fast`
+//! preset):* the byte rule's hoist is also priced. A hoist that saves
+//! `ΔB` bytes is kept only if it raises the SAH cost (the std build's
+//! `K_T` and `K_I`, the hoisted triangle one test at its node) by at most
+//! `cost_ratio · ΔB · C_std / B_std`. The costs of a hoist's old and new
+//! subtrees are summed in pre-order in `f64` (`cost.rs`), so the literal
+//! algorithm in the tests prices it identically. Why: a hoist high in the
+//! tree is tested by every ray through its node for a few bytes of leaf
+//! indices; priced, and with rebuilds at 1.5 × `K_T`, `fast` is both
+//! smaller and faster (see the preset's docs).
+//!
 //! **Exact arithmetic.** Leaf surface areas enter the occupancy as integers
 //! (`SA(leaf)/SA(root)` in units of 2⁻⁴⁰), so sums are exact and
 //! independent of summation order; the fast implementation here and the
@@ -103,6 +114,7 @@
 //! subtree slimmed on its own under the decided top.
 
 mod bytes;
+mod cost;
 mod oracle;
 mod params;
 mod pass;
@@ -219,11 +231,20 @@ pub fn slim_with_progress(
             )
         },
     );
+    let price = match (&bytes, params.cost_ratio.is_finite()) {
+        (Some(b), true) => {
+            let model = cost::CostModel::new(&config.sah);
+            let per_byte = params.cost_ratio * model.tree(tree) / b.tree(tree) as f64;
+            Some((model, per_byte))
+        }
+        _ => None,
+    };
     let ctx = Ctx {
         scene,
         params,
         sa_root: tree.bounds.surface_area(),
         bytes,
+        price,
         progress,
     };
     phases.analysis_s += lap(&mut clock);
@@ -272,10 +293,11 @@ pub fn slim_with_progress(
                 // The original subtree stays, and its children are
                 // processed as if nothing was picked here, with the same
                 // analysis.
-                Outcome::Cancelled | Outcome::Rejected | Outcome::Skipped => {
+                Outcome::Cancelled | Outcome::Rejected | Outcome::Priced | Outcome::Skipped => {
                     match outcome {
                         Outcome::Cancelled => report.cancelled += 1,
                         Outcome::Rejected => report.rejected += 1,
+                        Outcome::Priced => report.priced += 1,
                         _ => report.skipped += 1,
                     }
                     todo.extend(p.at.children(&work, p.at.t2rn, p.at.analysis.clone(), progress));

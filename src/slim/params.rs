@@ -56,27 +56,44 @@ pub struct SlimParams {
     /// paper rule; the triangle removed straddles both children of most
     /// splits, which makes splitting *more* attractive).
     pub coarsen: f64,
+    /// The price rule, with [`HoistRule::Bytes`]: a hoist is kept only
+    /// if it raises the tree's SAH cost by at most this many times the
+    /// share of the tree's bytes it saves, `ΔC / C_std ≤ cost_ratio ·
+    /// ΔB / B_std`. `C` is the SAH cost of the std build's `K_T` and `K_I`
+    /// (a hoisted triangle a test at its node, see `slim::cost`), `C_std`
+    /// and `B_std` those of the std tree. Infinity keeps every hoist that
+    /// saves bytes. Why: a hoist near the root is tested by every ray
+    /// through its node, and the bytes it saves are a few indices in
+    /// leaves most rays never reach (on stk_candela_city the `fast` tree
+    /// without it tested 4.4 hoisted triangles a primary ray to save 0.13
+    /// leaf tests, 4.5 % slower packets than std; at 0.01, with rebuilds
+    /// at 1.5 × `K_T`, it is within 1.3 % of std there and 35 % smaller).
+    pub cost_ratio: f64,
 }
 
 impl SlimParams {
     /// The `fast` preset: low thresholds (τ_occu 0.1, τ_freq 0.05,
-    /// max_t2rn 16) with the byte rule for a reordered file and the
-    /// paper's rebuild: 22–35 % fewer tree bytes than std on dieselpower,
-    /// aneurysm and bunny_scan, tracing primary packets at 0.96–1.13×
-    /// std's speed (`docs/perf-notes.md`, "Hoisting that pays").
+    /// max_t2rn 16) with the byte rule for a reordered file, rebuilt
+    /// subtrees priced with 1.5 × `K_T`, and the price rule at 0.01: 24–40 %
+    /// fewer tree bytes than std on the six shared scenes, tracing primary
+    /// packets at 0.987–1.137× std's speed (without the price rule and the
+    /// coarsening, 22–34 % and 0.938–1.096×; `docs/perf-notes.md`, "A price
+    /// on hoists").
     pub const FAST: SlimParams = SlimParams {
         tau_occu: 0.1,
         tau_freq: 0.05,
         max_t2rn: 16,
         rule: HoistRule::Bytes { reordered: true },
-        coarsen: 1.0,
+        coarsen: 1.5,
+        cost_ratio: 0.01,
     };
     /// The `small` preset: the thresholds of `fast`, the rebuilt subtrees
-    /// priced with twice `K_T`: 49–64 % fewer tree bytes than std on the
-    /// same scenes, at 0.96–1.16× std's speed (`docs/perf-notes.md`,
+    /// priced with twice `K_T`, no price rule: 49–64 % fewer tree bytes
+    /// than std on the same scenes, at 0.96–1.16× std's speed (`docs/perf-notes.md`,
     /// "Hoisting that pays").
     pub const SMALL: SlimParams = SlimParams {
         coarsen: 2.0,
+        cost_ratio: f64::INFINITY,
         ..SlimParams::FAST
     };
     /// The paper's `f` setting (τ_occu 0.9, τ_freq 0.7, max_t2rn 4) with
@@ -87,6 +104,7 @@ impl SlimParams {
         max_t2rn: 4,
         rule: HoistRule::Paper,
         coarsen: 1.0,
+        cost_ratio: f64::INFINITY,
     };
     /// The paper's `s` setting (τ_occu 0.5, τ_freq 0.4, max_t2rn 4) with
     /// its Algorithm 1.
@@ -121,6 +139,9 @@ pub struct SlimReport {
     /// Hoists rejected by [`HoistRule::Bytes`] (the rebuilt subtree was not
     /// smaller).
     pub rejected: usize,
+    /// Hoists that saved bytes but were rejected by the price rule
+    /// ([`SlimParams::cost_ratio`]).
+    pub priced: usize,
     /// Hoists rejected by [`HoistRule::Bytes`] without a rebuild: the
     /// replaced subtree takes at most 8 bytes more than the smallest
     /// rebuilt subtree could ([`min_subtree_bytes`]), so no rebuild can
@@ -128,7 +149,7 @@ pub struct SlimReport {
     ///
     /// [`min_subtree_bytes`]: super::min_subtree_bytes
     pub skipped: usize,
-    /// Subtrees rebuilt (`hoisted + cancelled + rejected`).
+    /// Subtrees rebuilt (`hoisted + cancelled + rejected + priced`).
     pub rebuilds: usize,
     /// Triangle references rebuilt (the work of the rebuilds).
     pub rebuilt_refs: usize,

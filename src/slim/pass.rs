@@ -5,6 +5,7 @@
 
 use super::SlimParams;
 use super::bytes::{ByteModel, min_subtree_bytes};
+use super::cost::CostModel;
 use super::oracle::{Analysis, analyze};
 use super::work::{WNode, Work};
 use crate::build::level::SubtreeBuilder;
@@ -129,6 +130,10 @@ pub(super) enum Outcome {
     Hoisted(TreeIr),
     Cancelled,
     Rejected,
+    /// Smaller, but rejected by the price rule
+    /// ([`SlimParams::cost_ratio`]): it costs rays more than its bytes
+    /// are worth.
+    Priced,
     /// Rejected without a rebuild: the subtree is too small for any
     /// rebuilt one to save bytes ([`min_subtree_bytes`]).
     Skipped,
@@ -140,6 +145,9 @@ pub(super) struct Ctx<'a> {
     pub(super) params: &'a SlimParams,
     pub(super) sa_root: f64,
     pub(super) bytes: Option<ByteModel>,
+    /// The price rule: the cost model and the most SAH cost a byte saved
+    /// may add (`cost_ratio · C_std / B_std`); `None` without one.
+    pub(super) price: Option<(CostModel, f64)>,
     pub(super) progress: Option<&'a Progress>,
 }
 
@@ -200,12 +208,19 @@ pub(super) fn rebuild_pick(
     else {
         return (Outcome::Rejected, tris.len());
     };
+    let new = ctx.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
     let outcome = if matches!(nodes[0], Node::Leaf { .. }) {
         Outcome::Cancelled
-    } else if let (Some(m), Some(old)) = (&ctx.bytes, old)
-        && m.nodes(nodes, leaf_tris) + 8 >= old
+    } else if let (Some(new), Some(old)) = (new, old)
+        && new >= old
     {
         Outcome::Rejected
+    } else if let (Some((model, per_byte)), Some(new), Some(old)) = (&ctx.price, new, old)
+        && model.nodes(nodes, p.at.cell) + model.hoisted(&p.at.cell)
+            - model.work_subtree(work, p.at.node, p.at.cell)
+            > per_byte * (old - new) as f64
+    {
+        Outcome::Priced
     } else {
         Outcome::Hoisted(TreeIr {
             bounds: p.at.cell,

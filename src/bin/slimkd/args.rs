@@ -259,11 +259,12 @@ pub(crate) struct CellsArgs {
 #[derive(clap::Args, Clone)]
 pub(crate) struct BuildArgs {
     /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.1, τ_freq 0.05,
-    /// max_t2rn 16, coarsen 1), `small` (the same, coarsen 2), with the
-    /// hoist rule `bytes`; with `--hoist-rule paper`, the paper's settings
+    /// max_t2rn 16, coarsen 1.5, cost ratio 0.01), `small` (the same,
+    /// coarsen 2, no cost ratio), with the hoist rule `bytes`; with `--hoist-rule paper`, the paper's settings
     /// (Choi et al. 2013): fast τ_occu 0.9, τ_freq 0.7, small 0.5, 0.4,
-    /// both max_t2rn 4, coarsen 1. The hoisting flags (--tau-occu,
-    /// --tau-freq, --max-t2rn, --coarsen, --hoist-rule) override what a
+    /// both max_t2rn 4, coarsen 1, no cost ratio. The hoisting flags
+    /// (--tau-occu, --tau-freq, --max-t2rn, --coarsen, --cost-ratio,
+    /// --hoist-rule) override what a
     /// slim preset sets; with `std` (the default) they need both
     /// --tau-occu and --tau-freq (then the rest is small's unless given,
     /// and the file records the preset as custom).
@@ -293,10 +294,18 @@ pub(crate) struct BuildArgs {
     #[arg(long)]
     pub(crate) max_t2rn: Option<u32>,
     /// Factor on K_T in the SAH of rebuilt subtrees, at least 1
-    /// (overrides the preset's: fast 1, small 2; 1 is the paper's
+    /// (overrides the preset's: fast 1.5, small 2; 1 is the paper's
     /// rebuild; with `--preset std` it needs --tau-occu and --tau-freq).
     #[arg(long, value_parser = parse_coarsen, allow_hyphen_values = true)]
     pub(crate) coarsen: Option<f64>,
+    /// The price rule of the `bytes` hoist rule: a hoist is kept only if
+    /// it raises the tree's SAH cost (the std tree's K_T and K_I, a
+    /// hoisted triangle one test at its node) by at most this many times
+    /// the share of the tree's bytes it saves; a number ≥ 0, or `inf` for
+    /// no price (overrides the preset's: fast 0.01, small inf; with
+    /// `--preset std` it needs --tau-occu and --tau-freq).
+    #[arg(long, value_parser = parse_cost_ratio, allow_hyphen_values = true)]
+    pub(crate) cost_ratio: Option<f64>,
     /// Worker threads (default, or 0: all cores).
     #[arg(short = 'j', long)]
     pub(crate) threads: Option<usize>,
@@ -378,11 +387,12 @@ pub(crate) enum PresetArg {
 
 impl BuildArgs {
     /// The hoisting flags.
-    pub(crate) const HOISTING: [&str; 5] = [
+    pub(crate) const HOISTING: [&str; 6] = [
         "--tau-occu",
         "--tau-freq",
         "--max-t2rn",
         "--coarsen",
+        "--cost-ratio",
         "--hoist-rule",
     ];
 
@@ -424,12 +434,13 @@ impl BuildArgs {
             (PresetArg::Small, true) => Some(SlimParams::PAPER_SMALL),
         };
         // `check` has made sure that std comes with both thresholds (which
-        // replace small's below); only max_t2rn, coarsen and the rule are
+        // replace small's below); only max_t2rn, coarsen, the cost ratio and the rule are
         // taken.
         let custom = self.tau_occu.is_some()
             || self.tau_freq.is_some()
             || self.max_t2rn.is_some()
             || self.coarsen.is_some()
+            || self.cost_ratio.is_some()
             || paper;
         let mut p = base.unwrap_or(if paper {
             SlimParams::PAPER_SMALL
@@ -448,6 +459,9 @@ impl BuildArgs {
         }
         if let Some(v) = self.coarsen {
             p.coarsen = v;
+        }
+        if let Some(v) = self.cost_ratio {
+            p.cost_ratio = v;
         }
         match (base, custom) {
             (None, false) => (None, Preset::Std),
@@ -652,6 +666,18 @@ pub(crate) fn parse_coarsen(s: &str) -> Result<f64, String> {
         .map_err(|_| format!("expected a number ≥ 1, got `{s}`"))?;
     if !(v.is_finite() && v >= 1.0) {
         return Err(format!("`{s}` is not a finite number ≥ 1"));
+    }
+    Ok(v)
+}
+
+/// Parses the price rule's ratio: a number ≥ 0, or `inf`.
+pub(crate) fn parse_cost_ratio(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a number ≥ 0 or `inf`, got `{s}`"))?;
+    if v.is_nan() || v < 0.0 {
+        return Err(format!("`{s}` is not a number ≥ 0 or `inf`"));
     }
     Ok(v)
 }

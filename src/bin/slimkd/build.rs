@@ -300,16 +300,18 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats, v
     }
     if let Some((p, r, ph)) = &built.slim {
         println!(
-            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
+            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}, cost ratio {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} by the price rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
             built.preset.name(),
             p.tau_occu,
             p.tau_freq,
             p.max_t2rn,
             p.coarsen,
+            p.cost_ratio,
             report::rule_name(p.rule),
             r.hoisted,
             r.rebuilds,
             r.rejected,
+            r.priced,
             r.cancelled,
             built.std_seconds,
             built.seconds - built.std_seconds,

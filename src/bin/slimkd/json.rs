@@ -106,6 +106,7 @@ pub(crate) struct SlimJson {
     hoisted: usize,
     cancelled: usize,
     rejected: usize,
+    priced: usize,
     rebuilds: usize,
     rebuilt_refs: u64,
     passes: u32,
@@ -131,6 +132,8 @@ pub(crate) struct BuildJson {
     pub(crate) tau_freq: Option<f64>,
     pub(crate) max_t2rn: Option<u32>,
     pub(crate) coarsen: Option<f64>,
+    /// `None` (JSON `null`) without a slim pass or without a price.
+    pub(crate) cost_ratio: Option<f64>,
     pub(crate) hoist_rule: Option<&'static str>,
     pub(crate) level: Option<LevelJson>,
     pub(crate) slim: Option<SlimJson>,
@@ -152,6 +155,7 @@ impl BuildJson {
             tau_freq: slim.map(|(p, _, _)| p.tau_freq),
             max_t2rn: slim.map(|(p, _, _)| p.max_t2rn),
             coarsen: slim.map(|(p, _, _)| p.coarsen),
+            cost_ratio: slim.and_then(|(p, _, _)| Some(p.cost_ratio).filter(|r| r.is_finite())),
             hoist_rule: slim.map(|(p, _, _)| report::rule_name(p.rule)),
             level: built.level.as_ref().map(|r| LevelJson {
                 sah_s: r.phases.sah_s,
@@ -176,6 +180,7 @@ impl BuildJson {
                 hoisted: r.hoisted,
                 cancelled: r.cancelled,
                 rejected: r.rejected,
+                priced: r.priced,
                 rebuilds: r.rebuilds,
                 rebuilt_refs: r.rebuilt_refs as u64,
                 passes: ph.passes,

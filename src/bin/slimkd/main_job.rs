@@ -175,6 +175,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         tau_freq: None,
         max_t2rn: None,
         coarsen: None,
+        cost_ratio: None,
         hoist_rule: HoistRuleArg::Bytes,
         given: Vec::new(),
     };

@@ -35,15 +35,16 @@ pub const FRONT_KT: [f64; 5] = [10.0, 15.0, 20.0, 30.0, 45.0];
 /// `(τ_occu, τ_freq)` of the threshold families, from the least hoisting
 /// to the most; `(0.1, 0.05)` is the presets'.
 pub const FRONT_TAUS: [(f64, f64); 4] = [(0.5, 0.4), (0.3, 0.2), (0.1, 0.05), (0.05, 0.025)];
-/// `coarsen` of the coarsen family, at the presets' thresholds (1 is
-/// `fast`, 2 `small`).
+/// `coarsen` of the coarsen family, at the presets' thresholds and
+/// without the price rule (2 is `small`).
 pub const FRONT_COARSEN: [f64; 4] = [1.0, 1.5, 2.0, 3.0];
 
 /// One tree of the sweep.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrontSetting {
     /// Unique within the grid: `std`, `fast`, `small`, `K_T 30`,
-    /// `0.3/0.2`, `0.3/0.2 c2` (τ_occu/τ_freq, coarsen).
+    /// `0.3/0.2 c2`, `0.3/0.2 c1.5 p0.01` (τ_occu/τ_freq, coarsen, the
+    /// price rule's ratio).
     pub label: String,
     pub k_t: f64,
     pub k_i: f64,
@@ -85,14 +86,15 @@ impl FrontGrid {
     }
 }
 
-/// The default grid: 15 trees in four families.
+/// The default grid: 16 trees in four families.
 ///
 /// - `K_T` (std trees at K_I 20): [`FRONT_KT`]; `K_T 15` is `std`.
-/// - hoisting, coarsen 1, and hoisting, coarsen 2: [`FRONT_TAUS`] with the
-///   presets' `max_t2rn` and rule, each line starting at `std` (no
-///   hoisting); `0.1/0.05` is `fast` and `small`.
-/// - coarsen at τ 0.1/0.05: [`FRONT_COARSEN`], from `fast` through
+/// - hoisting with `fast`'s rebuild (`coarsen`, price rule) and with
+///   `small`'s: [`FRONT_TAUS`] with the presets' `max_t2rn` and rule,
+///   each line starting at `std` (no hoisting); `0.1/0.05` is `fast` and
 ///   `small`.
+/// - coarsen at τ 0.1/0.05 without the price rule: [`FRONT_COARSEN`],
+///   through `small`.
 pub fn default_grid() -> FrontGrid {
     let sah = build::sah::SahParams::default();
     let mut grid = FrontGrid {
@@ -110,22 +112,24 @@ pub fn default_grid() -> FrontGrid {
         slim: None,
         preset: (k_t == sah.k_t).then_some(TreeKind::Std),
     };
-    let slim_of = |(tau_occu, tau_freq): (f64, f64), coarsen: f64| {
+    let slim_of = |(tau_occu, tau_freq): (f64, f64), base: SlimParams| {
         let params = SlimParams {
             tau_occu,
             tau_freq,
-            coarsen,
-            ..SlimParams::FAST
+            ..base
         };
         let preset = [TreeKind::Fast, TreeKind::Small]
             .into_iter()
             .find(|k| k.params(SlimParams::FAST.rule) == Some(params));
+        let mut label = format!("{tau_occu}/{tau_freq}");
+        if params.coarsen != 1.0 {
+            label += &format!(" c{}", params.coarsen);
+        }
+        if params.cost_ratio.is_finite() {
+            label += &format!(" p{}", params.cost_ratio);
+        }
         FrontSetting {
-            label: match preset {
-                Some(k) => k.name().to_string(),
-                None if coarsen == 1.0 => format!("{tau_occu}/{tau_freq}"),
-                None => format!("{tau_occu}/{tau_freq} c{coarsen}"),
-            },
+            label: preset.map_or(label, |k| k.name().to_string()),
             k_t: sah.k_t,
             k_i: sah.k_i,
             slim: Some(params),
@@ -138,21 +142,29 @@ pub fn default_grid() -> FrontGrid {
         points: kt,
     });
     let std = grid.add(std_of(sah.k_t));
-    for coarsen in [1.0, 2.0] {
+    for (name, base) in [("fast", SlimParams::FAST), ("small", SlimParams::SMALL)] {
         let mut points = vec![std];
-        points.extend(FRONT_TAUS.iter().map(|&t| grid.add(slim_of(t, coarsen))));
+        points.extend(FRONT_TAUS.iter().map(|&t| grid.add(slim_of(t, base))));
         grid.families.push(FrontFamily {
-            name: format!("τ_occu/τ_freq, coarsen {coarsen}"),
+            name: format!("τ_occu/τ_freq, rebuilt as {name}"),
             points,
         });
     }
     let taus = (SlimParams::FAST.tau_occu, SlimParams::FAST.tau_freq);
     let points = FRONT_COARSEN
         .iter()
-        .map(|&c| grid.add(slim_of(taus, c)))
+        .map(|&coarsen| {
+            grid.add(slim_of(
+                taus,
+                SlimParams {
+                    coarsen,
+                    ..SlimParams::SMALL
+                },
+            ))
+        })
         .collect();
     grid.families.push(FrontFamily {
-        name: format!("coarsen, τ {}/{}", taus.0, taus.1),
+        name: format!("coarsen, τ {}/{}, no price", taus.0, taus.1),
         points,
     });
     grid
@@ -681,6 +693,7 @@ struct FrontPointJson<'a> {
     tau_freq: Option<f64>,
     max_t2rn: Option<u32>,
     coarsen: Option<f64>,
+    cost_ratio: Option<f64>,
     hoist_rule: Option<&'static str>,
     tree_bytes: u64,
     nodes_total: u64,
@@ -724,6 +737,7 @@ impl<'a> SceneFrontJson<'a> {
                         tau_freq: slim.map(|s| s.tau_freq),
                         max_t2rn: slim.map(|s| s.max_t2rn),
                         coarsen: slim.map(|s| s.coarsen),
+                        cost_ratio: slim.map(|s| s.cost_ratio).filter(|r| r.is_finite()),
                         hoist_rule: slim.map(|s| rule_name(s.rule)),
                         tree_bytes: p.tree_bytes,
                         nodes_total: p.nodes,
@@ -780,7 +794,7 @@ mod tests {
     #[test]
     fn default_grid_has_the_presets_exactly_and_unique_labels() {
         let g = default_grid();
-        assert_eq!(g.settings.len(), 15);
+        assert_eq!(g.settings.len(), 16);
         let find = |k: TreeKind| {
             g.settings
                 .iter()

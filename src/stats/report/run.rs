@@ -278,6 +278,7 @@ pub fn run_with_progress(
                         rule: options.rule,
                         // The paper's rebuild: Figure 5 sweeps its thresholds.
                         coarsen: 1.0,
+                        cost_ratio: f64::INFINITY,
                     };
                     sweep.push(sweep_point(
                         name,
