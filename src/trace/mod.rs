@@ -25,7 +25,6 @@
 mod file;
 pub mod packet;
 pub mod rays;
-pub mod wide;
 
 pub use file::FileWalk;
 pub(crate) use file::NO_WORD;

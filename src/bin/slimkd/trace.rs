@@ -46,8 +46,6 @@ pub struct TraceArgs {
 pub enum TraceMode {
     Single,
     Packet,
-    /// Single rays over an in-memory layout of three tree levels a step.
-    Wide,
 }
 
 /// `slimkd trace --json`.
@@ -95,15 +93,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
     let packets = args.mode == TraceMode::Packet;
     let scalar = Scalar::new(&file);
     let packet = PacketTracer::new(&file);
-    let wide = (args.mode == TraceMode::Wide).then(|| slimkd::trace::wide::WideTracer::new(&file));
-    let tracer: &dyn ClosestHit = match (&wide, packets) {
-        (Some(w), _) => w,
-        (None, true) => &packet,
-        (None, false) => &scalar,
-    };
-    if let Some(w) = &wide {
-        eprintln!("wide layout: {} bytes", w.bytes());
-    }
+    let tracer: &dyn ClosestHit = if packets { &packet } else { &scalar };
     let (rates, last) = pool.install(|| {
         let mut last = rays::trace_batch(tracer, &rays, query, packets);
         let mut rates = Vec::new();
