@@ -484,7 +484,7 @@ fn a_closed_output_pipe_ends_quietly() {
     let dir = fresh_temp_dir("closed-pipe");
     let mut child = Command::new(env!("CARGO_BIN_EXE_slimkd"))
         .current_dir(&dir)
-        .env("TMPDIR", &dir)
+        .env("TMPDIR", &*dir)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()

@@ -302,7 +302,8 @@ fn kd_errors_name_their_file_once() {
     std::fs::write(&flipped, &f).unwrap();
     let missing = dir.join("missing.kd");
     let rays = dir.join("none.rays");
-    for path in [&trunc, &garbage, &missing, &dir] {
+    let dir_path = dir.to_path_buf();
+    for path in [&trunc, &garbage, &missing, &dir_path] {
         let p = s(path);
         for args in [
             vec!["info", p],
@@ -310,7 +311,7 @@ fn kd_errors_name_their_file_once() {
             vec!["render", p, "--size", "8x8", "--mode", "packet"],
             vec!["trace", p, s(&rays)],
         ] {
-            if path == &dir && args[0] == "render" {
+            if path == &dir_path && args[0] == "render" {
                 continue; // a directory is not taken for a .kd file there
             }
             let err = exits(&slimkd(&args), 1, &format!("{args:?}"));

@@ -7,7 +7,7 @@
 
 mod common;
 
-use common::temp_dir;
+use common::{TestDir, temp_dir};
 use glam::Vec3;
 use proptest::prelude::*;
 use slimkd::geom::double_area;
@@ -15,13 +15,21 @@ use slimkd::scene::{LoadSummary, SceneError, TriangleColumns, load_obj, load_obj
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+/// The directory the tests of this file write their scenes into, shared
+/// (each file has a name of its own); a static guard is never dropped, so
+/// it stays after the run.
+fn scratch() -> &'static Path {
+    static DIR: std::sync::OnceLock<TestDir> = std::sync::OnceLock::new();
+    DIR.get_or_init(|| temp_dir("scratch"))
+}
+
 type Loaded = Result<(TriangleColumns, LoadSummary), SceneError>;
 
 /// Writes `bytes` to a fresh file named after `name`.
 fn write_temp(name: &str, bytes: &[u8]) -> PathBuf {
     static COUNTER: AtomicUsize = AtomicUsize::new(0);
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    let path = temp_dir("scratch").join(format!("{n}-{name}.obj"));
+    let path = scratch().join(format!("{n}-{name}.obj"));
     std::fs::write(&path, bytes).expect("write the scratch file");
     path
 }
@@ -566,7 +574,7 @@ f 2 -4 3
 
 #[test]
 fn error_nonexistent_file() {
-    let path = temp_dir("scratch").join("there-is-no-such-file.obj");
+    let path = scratch().join("there-is-no-such-file.obj");
     let err = load_obj(&path).unwrap_err();
     let shown = err.to_string();
     match err {
@@ -585,7 +593,7 @@ fn error_nonexistent_file() {
 
 #[test]
 fn error_reading_a_folder() {
-    let dir = temp_dir("scratch").join("a-folder.obj");
+    let dir = scratch().join("a-folder.obj");
     std::fs::create_dir_all(&dir).unwrap();
     let err = load_obj(&dir).unwrap_err();
     let shown = err.to_string();
@@ -1227,7 +1235,7 @@ fn load_progress_ends_at_one() {
     assert_eq!(progress.fraction(), 1.0);
     let (plain, _) = load_obj(&path).unwrap();
     assert_eq!(tris(&watched), tris(&plain));
-    let cache = temp_dir("scratch").join("progress.kds");
+    let cache = scratch().join("progress.kds");
     let (_, summary) = load_obj(&path).unwrap();
     slimkd::scene::write_scene_cache(&cache, &plain, &summary).unwrap();
     let progress = slimkd::progress::Progress::default();
@@ -1259,7 +1267,7 @@ fn error_messages_escape_control_bytes() {
 #[cfg(target_os = "linux")]
 #[test]
 fn error_reading_a_fifo() {
-    let fifo = temp_dir("scratch").join("a-fifo.obj");
+    let fifo = scratch().join("a-fifo.obj");
     let _ = std::fs::remove_file(&fifo);
     let made = std::process::Command::new("mkfifo").arg(&fifo).status();
     if !made.is_ok_and(|s| s.success()) {

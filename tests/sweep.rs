@@ -14,9 +14,10 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 /// The sweep of the embedded scene (one round, 16×16 frames) and its
-/// directory, run once for the tests that read it.
-fn sweep() -> &'static (Value, std::path::PathBuf) {
-    static SWEEP: OnceLock<(Value, std::path::PathBuf)> = OnceLock::new();
+/// directory, run once for the tests that read it (a static is never
+/// dropped, so this one directory stays).
+fn sweep() -> &'static (Value, common::TestDir) {
+    static SWEEP: OnceLock<(Value, common::TestDir)> = OnceLock::new();
     SWEEP.get_or_init(|| {
         let dir = fresh_temp_dir("sweep");
         let d = dir.to_str().unwrap();

@@ -259,24 +259,50 @@ pub fn degenerate_scene(name: &str) -> Vec<[Vec3; 3]> {
         .1
 }
 
+/// A directory of one test under the system temporary directory, removed
+/// with everything in it when the test ends, unless it fails: a failing
+/// test's files stay for a look.
+pub struct TestDir(std::path::PathBuf);
+
+impl std::ops::Deref for TestDir {
+    type Target = std::path::Path;
+    fn deref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl AsRef<std::path::Path> for TestDir {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl Drop for TestDir {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
 /// A directory of this test process (named after the test file, the
 /// process and `name`) under the system temporary directory, made if
-/// missing; what is in it stays.
-pub fn temp_dir(name: &str) -> std::path::PathBuf {
+/// missing; removed when the returned guard drops (see [`TestDir`]).
+pub fn temp_dir(name: &str) -> TestDir {
     let dir = std::env::temp_dir().join(format!(
         "slimkd-{}-{}-{name}",
         env!("CARGO_CRATE_NAME"),
         std::process::id()
     ));
     std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
-    dir
+    TestDir(dir)
 }
 
 /// [`temp_dir`], emptied first: a fresh, empty directory for one test.
-pub fn fresh_temp_dir(name: &str) -> std::path::PathBuf {
+pub fn fresh_temp_dir(name: &str) -> TestDir {
     let dir = temp_dir(name);
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
+    let _ = std::fs::remove_dir_all(&*dir);
+    std::fs::create_dir_all(&*dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
     dir
 }
 
