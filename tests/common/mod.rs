@@ -301,8 +301,8 @@ pub fn temp_dir(name: &str) -> TestDir {
 /// [`temp_dir`], emptied first: a fresh, empty directory for one test.
 pub fn fresh_temp_dir(name: &str) -> TestDir {
     let dir = temp_dir(name);
-    let _ = std::fs::remove_dir_all(&*dir);
-    std::fs::create_dir_all(&*dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
     dir
 }
 
