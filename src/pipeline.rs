@@ -115,6 +115,7 @@ pub fn file_config(
         k_i: config.sah.k_i,
         lambda_empty: config.sah.lambda_empty,
         depth_limit: config.sah.depth_limit(n_tris),
+        split_price: config.sah.split_price,
         preset,
         tau_occu,
         tau_freq,

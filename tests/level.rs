@@ -111,10 +111,11 @@ proptest! {
         k_i in 1.0f64..40.0,
         t in 0..THRESHOLDS.len(),
         tiny in 0..TINY.len(),
+        split_price in prop::sample::select(vec![0.0, 0.1, 1.0, 8.0]),
     ) {
         let scene = columns(&tris);
         let config = BuildConfig {
-            sah: SahParams { max_depth: Some(depth), k_t, k_i, ..SahParams::default() },
+            sah: SahParams { max_depth: Some(depth), k_t, k_i, split_price, ..SahParams::default() },
         };
         let dir = fresh_temp_dir("prop-depth");
         let options = LevelOptions {

@@ -438,9 +438,28 @@ fn literal_slim(
 // Helpers: scenes, parameters, tree figures, hit checks.
 // ---------------------------------------------------------------------
 
-/// The default SAH settings, for every build here.
+thread_local! {
+    /// Whether [`config`] prices splits on this thread.
+    static PRICED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// The build configuration of the slim tests on this thread: the classic
+/// SAH without a split price, in which the examples are worked out by
+/// hand, or inside [`priced`] the default configuration.
 fn config() -> BuildConfig {
-    BuildConfig::default()
+    let mut c = BuildConfig::default();
+    if !PRICED.get() {
+        c.sah.split_price = 0.0;
+    }
+    c
+}
+
+/// Runs `f` with [`config`] the default configuration (splits priced).
+fn priced<R>(f: impl FnOnce() -> R) -> R {
+    PRICED.set(true);
+    let r = f();
+    PRICED.set(false);
+    r
 }
 
 /// The standard tree (sweep builder).
@@ -751,10 +770,14 @@ proptest! {
         random in params_strategy(),
     ) {
         let scene = columns(&tris);
-        let std = std_tree(&scene);
-        for p in PRESETS.into_iter().chain([random]) {
-            slim_checked(&std, &scene, &p);
-        }
+        let run = || {
+            let std = std_tree(&scene);
+            for p in PRESETS.into_iter().chain([random]) {
+                slim_checked(&std, &scene, &p);
+            }
+        };
+        run();
+        priced(run);
     }
 }
 
@@ -769,15 +792,20 @@ fn fast_equals_literal_on_shipped_bunny() {
 
 /// The same on the shipped Nexuiz map (35k triangles, many of them big
 /// and skinny: about 2k hoists with the paper's `f` setting and 11k with
-/// its `s`; 6k with the `fast` preset and 4k with `small`).
+/// its `s`; 6k with the `fast` preset and 4k with `small`), without and
+/// with the split price.
 #[test]
 fn fast_equals_literal_on_shipped_nexuiz() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let scene = slimkd::scene::load_obj(&path).unwrap().0;
-    let std = std_tree(&scene);
-    for p in PRESETS {
-        slim_checked(&std, &scene, &p);
-    }
+    let run = || {
+        let std = std_tree(&scene);
+        for p in PRESETS {
+            slim_checked(&std, &scene, &p);
+        }
+    };
+    run();
+    priced(run);
 }
 
 /// Why `small` rebuilds with a larger K_T: on the shipped Nexuiz map a

@@ -9,6 +9,7 @@ mod common;
 
 use common::{dir_entries, fresh_temp_dir, json, slimkd};
 use serde_json::Value;
+use slimkd::build::sah::SahParams;
 use slimkd::stats::report::{self, FrontGrid, FrontOptions, FrontSetting, ReportError};
 use std::path::Path;
 use std::sync::OnceLock;
@@ -131,6 +132,17 @@ fn sweep_families_hold_its_points_and_the_presets_exactly() {
         .map(|n| f(&pts[labels.iter().position(|l| n == l).unwrap()]["k_t"]))
         .collect();
     assert_eq!(kts, report::FRONT_KT);
+    // The split-price family varies only μ.
+    let mu: Vec<(f64, f64)> = families[1]["points"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| {
+            let p = &pts[labels.iter().position(|l| n == l).unwrap()];
+            (f(&p["split_price"]), f(&p["k_t"]))
+        })
+        .collect();
+    assert_eq!(mu, report::FRONT_SPLIT_PRICE.map(|m| (m, 15.0)));
     let preset = |name: &str| {
         let found: Vec<&Value> = pts.iter().filter(|p| p["preset"] == name).collect();
         assert_eq!(found.len(), 1, "{name}");
@@ -138,6 +150,7 @@ fn sweep_families_hold_its_points_and_the_presets_exactly() {
     };
     let std = preset("std");
     assert_eq!((f(&std["k_t"]), f(&std["k_i"])), (15.0, 20.0));
+    assert_eq!(f(&std["split_price"]), SahParams::default().split_price);
     assert!(std["tau_occu"].is_null() && std["hoisted"] == 0);
     for (name, coarsen) in [("fast", 1.5), ("small", 2.0)] {
         let p = preset(name);
@@ -297,6 +310,7 @@ fn sweep_options_out_of_range_are_errors() {
         label: "std".into(),
         k_t: 15.0,
         k_i: 20.0,
+        split_price: 0.0,
         slim: None,
         preset: None,
     };

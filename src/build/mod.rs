@@ -35,7 +35,7 @@ use crate::geom::{Aabb, clip_split};
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, NodeId, TreeIr, TriId};
 use glam::Vec3;
-use sah::{Side, Split};
+use sah::{LeafRule, Side, Split};
 
 /// What every builder needs to know.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -179,7 +179,7 @@ pub(crate) fn root_cell(union: Aabb) -> Aabb {
 struct TreeWriter<'a> {
     tree: TreeIr,
     sah: &'a SahParams,
-    depth_limit: u32,
+    rule: LeafRule,
     progress: Option<&'a Progress>,
 }
 
@@ -197,7 +197,7 @@ impl<'a> TreeWriter<'a> {
                 leaf_tris: Vec::new(),
             },
             sah: &config.sah,
-            depth_limit: config.sah.depth_limit(scene.len()),
+            rule: config.sah.leaf_rule(scene.len(), || bounds),
             progress,
         }
     }
@@ -222,20 +222,12 @@ impl<'a> TreeWriter<'a> {
         weight: u64,
     ) -> Option<(Split, Aabb, Aabb)> {
         let n = refs.len();
-        if sah::is_leaf(
-            self.sah,
-            best.as_ref(),
-            n,
-            depth,
-            self.depth_limit,
-            cell,
-            |s| {
-                let k = s.axis as usize;
-                refs.iter()
-                    .filter(|r| sah::straddles(r.bounds.min[k], r.bounds.max[k], s.pos))
-                    .count()
-            },
-        ) {
+        if sah::is_leaf(self.sah, best.as_ref(), n, depth, &self.rule, cell, |s| {
+            let k = s.axis as usize;
+            refs.iter()
+                .filter(|r| sah::straddles(r.bounds.min[k], r.bounds.max[k], s.pos))
+                .count()
+        }) {
             self.leaf(refs.iter().map(|r| r.tri));
             Progress::add(self.progress, weight);
             return None;

@@ -10,8 +10,23 @@
 //! with `λ = 0.8` when one side is empty and the plane does not lie on a face
 //! of `V`, else 1. A leaf costs `K_I · N`. Triangles lying in the plane
 //! ("planar") go to whichever side is cheaper, the left on a tie. A node
-//! becomes a leaf when no split costs less than the leaf, or at the depth
-//! limit. All arithmetic is `f64` in a fixed order.
+//! becomes a leaf when no split costs less than the leaf, when the split
+//! does not pay its bytes (below), or at the depth limit. All arithmetic is
+//! `f64` in a fixed order.
+//!
+//! **The price of a split.** The tree's SAH cost is the sum over nodes of
+//! `SA(V)/SA(root)` times each node's own cost, so splitting `V` instead of
+//! making it a leaf lowers the tree's cost by `SA(V)/SA(root) · (K_I·N −
+//! C(p))` (its children taken as leaves), and adds `8 + 2·S` bytes: one
+//! node word, and a 16-bit index for each of the `S` references that
+//! straddle the plane. With a price `μ > 0` ([`SahParams::split_price`]) a
+//! split is taken only when `SA(V)/SA(root) · (K_I·N − C(p)) ≥ μ ·
+//! (8 + 2·S) / N_root`: the build minimises cost + μ · bytes per
+//! triangle, one node at a time. Deep splits in regions of many
+//! overlapping triangles save the tree a sliver of cost for many
+//! duplicated references; they are what the price removes (at the default
+//! `μ = 0.5` the shared scenes' trees lose 18–65 % of their bytes for at
+//! most 0.34 % of SAH cost).
 //!
 //! **Flat splits.** In a flat cell (zero extent on one axis) the children
 //! of a split in its plane have surface areas that sum to the cell's, so
@@ -47,6 +62,15 @@ pub struct SahParams {
     /// `⌊8 + 1.3·log2 N⌋` for `N` input triangles (Havran's rule, as in PBRT).
     /// Either is clamped to [`crate::tree::MAX_DEPTH`].
     pub max_depth: Option<u32>,
+    /// `μ`, the SAH cost a split must save (per `SA(root)`) for each byte
+    /// per triangle it adds (the module's "price of a split"); 0 takes
+    /// every split that costs less than the leaf.
+    pub split_price: f64,
+    /// `SA(root) / N_root` of the scene the tree is for; `None` takes it
+    /// from the build's root cell and triangle count. A build of a part of
+    /// a scene (a rebuilt subtree, a cell) sets it to the whole scene's, so
+    /// that its nodes are priced as in the whole build.
+    pub price_scale: Option<f64>,
 }
 
 impl Default for SahParams {
@@ -56,8 +80,33 @@ impl Default for SahParams {
             k_i: 20.0,
             lambda_empty: 0.8,
             max_depth: None,
+            split_price: DEFAULT_SPLIT_PRICE,
+            price_scale: None,
         }
     }
+}
+
+/// The default `μ` ([`SahParams::split_price`]): on the shared scenes it
+/// takes 18–65 % off the std trees' bytes for at most 0.34 % of SAH cost;
+/// primary packets trace as fast, single rays at 0.92–1.18× (μ = 1: 23–71 %
+/// fewer bytes, single rays down to 0.88×; docs/perf-notes.md, "The price
+/// of a split").
+pub const DEFAULT_SPLIT_PRICE: f64 = 0.5;
+
+/// `SA(root) / N_root`, the price scale of a scene whose root cell is
+/// `root` and which has `n_tris` triangles.
+pub fn price_scale(root: &Aabb, n_tris: usize) -> f64 {
+    root.surface_area() / n_tris.max(1) as f64
+}
+
+/// The node-independent part of the leaf rules (`is_leaf`) for one build.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LeafRule {
+    /// Nodes at this depth are leaves.
+    pub depth_limit: u32,
+    /// `μ · SA(root) / N_root`: a split of cell `V` must lower
+    /// `SA(V) · (K_I·N − C(p))` by this much per byte it adds.
+    pub byte_price: f64,
 }
 
 impl SahParams {
@@ -66,6 +115,24 @@ impl SahParams {
         self.max_depth
             .unwrap_or_else(|| (8.0 + 1.3 * (n_tris.max(1) as f64).log2()).floor() as u32)
             .min(crate::tree::MAX_DEPTH)
+    }
+
+    /// The leaf rule of a build of a scene of `n_tris` triangles whose
+    /// root cell is `root()` (called only when `price_scale` is `None` and
+    /// the price is not 0).
+    pub fn leaf_rule(&self, n_tris: usize, root: impl FnOnce() -> Aabb) -> LeafRule {
+        let byte_price = if self.split_price > 0.0 {
+            self.split_price
+                * self
+                    .price_scale
+                    .unwrap_or_else(|| price_scale(&root(), n_tris))
+        } else {
+            0.0
+        };
+        LeafRule {
+            depth_limit: self.depth_limit(n_tris),
+            byte_price,
+        }
     }
 
     /// The cost of a leaf with `n` triangles.
@@ -374,10 +441,12 @@ pub(crate) fn plane_cost(
 
 /// Whether a node of `n` references in `cell` becomes a leaf, given its
 /// best split: when there is none, at the depth limit, when the split
-/// costs at least the leaf, or when it is a flat split that more than
-/// `n / 2^⌊depth / FLAT_HALVING⌋` references straddle ([`FLAT_HALVING`];
-/// `straddlers` counts them, and is called only for a flat split that
-/// pays).
+/// costs at least the leaf, when it does not pay its bytes
+/// ([`LeafRule::byte_price`]; the module's "price of a split"), or when
+/// it is a flat split that more than `n / 2^⌊depth / FLAT_HALVING⌋`
+/// references straddle ([`FLAT_HALVING`]). `straddlers` counts the
+/// references that straddle the split, and is called only for a split
+/// that costs less than the leaf, and at most once.
 ///
 /// Each rule depends on the node alone, so every builder decides alike; a
 /// stricter rule than "costs at least the leaf" keeps every sweep's
@@ -388,22 +457,29 @@ pub(crate) fn is_leaf(
     best: Option<&Split>,
     n: usize,
     depth: u32,
-    depth_limit: u32,
+    rule: &LeafRule,
     cell: &Aabb,
     straddlers: impl FnOnce(&Split) -> usize,
 ) -> bool {
     match best {
         None => true,
         Some(s) => {
-            if depth >= depth_limit || s.cost >= params.leaf_cost(n) {
+            let leaf = params.leaf_cost(n);
+            if depth >= rule.depth_limit || s.cost >= leaf {
                 return true;
             }
+            let sa = cell.surface_area();
             let d = [0, 1, 2].map(|k| f64::from(cell.max[k]) - f64::from(cell.min[k]));
-            if !is_flat_split(d, cell.surface_area(), s.axis as usize) {
+            let flat = is_flat_split(d, sa, s.axis as usize);
+            if !flat && rule.byte_price == 0.0 {
                 return false;
             }
+            let st = straddlers(s);
+            if sa * (leaf - s.cost) < rule.byte_price * (8 + 2 * st as u64) as f64 {
+                return true;
+            }
             let halvings = depth / FLAT_HALVING;
-            (straddlers(s) as u128) << halvings > n as u128
+            flat && (st as u128) << halvings > n as u128
         }
     }
 }
@@ -412,6 +488,11 @@ pub(crate) fn is_leaf(
 mod tests {
     use super::*;
     use glam::Vec3;
+
+    const NO_PRICE: LeafRule = LeafRule {
+        depth_limit: 40,
+        byte_price: 0.0,
+    };
 
     fn pc(left: usize, right: usize, planar: usize) -> PlaneCounts {
         PlaneCounts {
@@ -477,6 +558,51 @@ mod tests {
     }
 
     #[test]
+    fn a_split_must_pay_its_bytes() {
+        let p = SahParams::default();
+        let cube = Aabb::new(Vec3::ZERO, Vec3::ONE);
+        let split = Split {
+            cost: 150.0,
+            axis: 0,
+            pos: 0.5,
+            planar: Side::Left,
+        };
+        // SA 6 times the saving 200 − 150 is 300; 5 straddlers add
+        // 8 + 2·5 = 18 bytes, so the split pays up to a price of 300/18.
+        let rule = |byte_price| LeafRule {
+            depth_limit: 40,
+            byte_price,
+        };
+        assert!(!is_leaf(&p, Some(&split), 10, 3, &rule(16.0), &cube, |_| 5));
+        assert!(is_leaf(&p, Some(&split), 10, 3, &rule(17.0), &cube, |_| 5));
+        assert!(!is_leaf(&p, Some(&split), 10, 3, &rule(17.0), &cube, |_| 4));
+        // Without a price the straddlers are not counted.
+        let never = |_: &Split| -> usize { unreachable!() };
+        assert!(!is_leaf(&p, Some(&split), 10, 3, &NO_PRICE, &cube, never));
+    }
+
+    #[test]
+    fn the_price_scale_is_the_root_area_per_triangle() {
+        let root = Aabb::new(Vec3::ZERO, Vec3::new(1.0, 2.0, 3.0));
+        let p = SahParams {
+            split_price: 2.0,
+            ..SahParams::default()
+        };
+        assert_eq!(price_scale(&root, 11), 22.0 / 11.0);
+        assert_eq!(p.leaf_rule(11, || root).byte_price, 4.0);
+        let given = SahParams {
+            price_scale: Some(0.5),
+            ..p
+        };
+        assert_eq!(given.leaf_rule(11, || unreachable!()).byte_price, 1.0);
+        let free = SahParams {
+            split_price: 0.0,
+            ..p
+        };
+        assert_eq!(free.leaf_rule(11, || unreachable!()).byte_price, 0.0);
+    }
+
+    #[test]
     fn depth_limit_rule() {
         let p = SahParams::default();
         assert_eq!(p.depth_limit(0), 8);
@@ -523,15 +649,21 @@ mod tests {
         let n = 64;
         // At depth 0 up to all of them, at depth 6 up to half, at 12 a quarter.
         for (depth, allowed) in [(0, 64), (5, 64), (6, 32), (12, 16)] {
-            assert!(!is_leaf(&p, Some(&split(0)), n, depth, 40, &flat, |_| {
-                allowed
-            }));
+            assert!(!is_leaf(
+                &p,
+                Some(&split(0)),
+                n,
+                depth,
+                &NO_PRICE,
+                &flat,
+                |_| { allowed }
+            ));
             assert!(is_leaf(
                 &p,
                 Some(&split(0)),
                 n,
                 depth,
-                40,
+                &NO_PRICE,
                 &flat,
                 |_| allowed + 1
             ));
@@ -539,8 +671,24 @@ mod tests {
         // Not a flat split (across the flat axis, or in a cube): not counted.
         let cube = Aabb::new(Vec3::ZERO, Vec3::ONE);
         let never = |_: &Split| -> usize { panic!("counted a split that is not flat") };
-        assert!(!is_leaf(&p, Some(&split(2)), n, 12, 40, &flat, never));
-        assert!(!is_leaf(&p, Some(&split(0)), n, 12, 40, &cube, never));
+        assert!(!is_leaf(
+            &p,
+            Some(&split(2)),
+            n,
+            12,
+            &NO_PRICE,
+            &flat,
+            never
+        ));
+        assert!(!is_leaf(
+            &p,
+            Some(&split(0)),
+            n,
+            12,
+            &NO_PRICE,
+            &cube,
+            never
+        ));
         // A split that does not pay is a leaf without counting.
         assert!(is_leaf(
             &p,
@@ -550,7 +698,7 @@ mod tests {
             }),
             n,
             0,
-            40,
+            &NO_PRICE,
             &flat,
             never
         ));

@@ -17,9 +17,10 @@ use std::path::{Path, PathBuf};
 const PLAN_MAGIC: [u8; 8] = *b"SLIMKPL\0";
 const CELL_MAGIC: [u8; 8] = *b"SLIMKDC\0";
 const PART_MAGIC: [u8; 8] = *b"SLIMKPT\0";
-const VERSION: u32 = 1;
-const PLAN_HEADER: usize = 8 + 4 + 4 + 8 + 8 + 3 * 8 + 4 + 4 + 8 + 8 + 24 + 3 * 8;
-const CELL_HEADER: usize = 8 + 4 + 4 + 4 + 4 + 3 * 8 + 4 + 4 + 24 + 8;
+/// 2: the SAH parameters hold the split price and its scale.
+const VERSION: u32 = 2;
+const PLAN_HEADER: usize = 8 + 4 + 4 + 8 + 8 + 5 * 8 + 4 + 4 + 8 + 8 + 24 + 3 * 8;
+const CELL_HEADER: usize = 8 + 4 + 4 + 4 + 4 + 5 * 8 + 4 + 4 + 24 + 8;
 const PART_HEADER: usize = 8 + 4 + 4 + 4 + 4 + 8 + 24 + 8 + 8;
 /// Bytes of one reference of a cell file: id, box, triangle.
 const CELL_REF: u64 = 4 + 24 + 36;
@@ -73,7 +74,8 @@ pub struct Plan {
     pub scene_hash: u64,
     /// The scene's triangles.
     pub n_tris: u64,
-    /// `K_T`, `K_I` and `λ` (`max_depth` is `None`: `depth_limit` holds it).
+    /// `K_T`, `K_I`, `λ`, `μ` and the whole scene's price scale (`max_depth`
+    /// is `None`: `depth_limit` holds it).
     pub sah: SahParams,
     /// The depth limit of the whole scene.
     pub depth_limit: u32,
@@ -91,7 +93,7 @@ pub struct CellInput {
     pub index: u32,
     /// The plan's cells.
     pub n_cells: u32,
-    /// `K_T`, `K_I` and `λ`.
+    /// `K_T`, `K_I`, `λ`, `μ` and the whole scene's price scale.
     pub sah: SahParams,
     /// The depth limit of the whole scene.
     pub depth_limit: u32,
@@ -146,10 +148,13 @@ impl<W: Write> Out<W> {
         }
         Ok(())
     }
+    /// `K_T`, `K_I`, `λ`, `μ` and the price scale (0 for none).
     fn sah(&mut self, p: &SahParams) -> std::io::Result<()> {
         self.f64(p.k_t)?;
         self.f64(p.k_i)?;
-        self.f64(p.lambda_empty)
+        self.f64(p.lambda_empty)?;
+        self.f64(p.split_price)?;
+        self.f64(p.price_scale.unwrap_or(0.0))
     }
     fn tree_columns(&mut self, t: &TreeIr) -> std::io::Result<()> {
         for n in &t.nodes {
@@ -391,9 +396,15 @@ impl<'a> In<'a> {
             k_i: self.f64(),
             lambda_empty: self.f64(),
             max_depth: None,
+            split_price: self.f64(),
+            price_scale: Some(self.f64()).filter(|&s| s != 0.0),
         };
         let positive = |x: f64| x.is_finite() && x > 0.0;
-        if !(positive(p.k_t) && positive(p.k_i) && p.lambda_empty > 0.0 && p.lambda_empty <= 1.0) {
+        let costs_ok = positive(p.k_t) && positive(p.k_i);
+        let lambda_ok = p.lambda_empty > 0.0 && p.lambda_empty <= 1.0;
+        let price_ok =
+            p.split_price.is_finite() && p.split_price >= 0.0 && p.price_scale.is_none_or(positive);
+        if !(costs_ok && lambda_ok && price_ok) {
             return Err(self.corrupt("corrupt SAH parameters".into()));
         }
         Ok(p)

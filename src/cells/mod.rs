@@ -33,9 +33,9 @@
 //!
 //! | file | header | then |
 //! |---|---|---|
-//! | plan | magic `SLIMKPL\0`, version 1, reserved 0, scene hash `u64`, triangles `u64`, `K_T`, `K_I`, `λ` (`f64`), depth limit `u32`, K `u32`, cell bound `u64`, minimum `u64`, root box (6 `f32`), nodes `u64`, leaf entries `u64`, cells `u64` | nodes (3 `u32` each), leaf entries (`u32`), per cell: node `u32`, references `u64`, CRC `u32`, length `u64` |
-//! | cell | magic `SLIMKDC\0`, version 1, reserved 0, cell number `u32`, cells `u32`, `K_T`, `K_I`, `λ` (`f64`), depth limit `u32`, depth `u32`, cell box (6 `f32`), references `u64` | triangle ids (`u32`, ascending), boxes (6 `f32`), triangles (9 `f32`) |
-//! | part | magic `SLIMKPT\0`, version 1, reserved 0, cell CRC `u32`, reserved 0, cell length `u64`, cell box (6 `f32`), nodes `u64`, leaf entries `u64` | nodes (3 `u32` each), leaf entries (`u32`, the scene's triangle ids) |
+//! | plan | magic `SLIMKPL\0`, version 2, reserved 0, scene hash `u64`, triangles `u64`, `K_T`, `K_I`, `λ`, `μ`, price scale (`f64`), depth limit `u32`, K `u32`, cell bound `u64`, minimum `u64`, root box (6 `f32`), nodes `u64`, leaf entries `u64`, cells `u64` | nodes (3 `u32` each), leaf entries (`u32`), per cell: node `u32`, references `u64`, CRC `u32`, length `u64` |
+//! | cell | magic `SLIMKDC\0`, version 2, reserved 0, cell number `u32`, cells `u32`, `K_T`, `K_I`, `λ`, `μ`, price scale (`f64`), depth limit `u32`, depth `u32`, cell box (6 `f32`), references `u64` | triangle ids (`u32`, ascending), boxes (6 `f32`), triangles (9 `f32`) |
+//! | part | magic `SLIMKPT\0`, version 2, reserved 0, cell CRC `u32`, reserved 0, cell length `u64`, cell box (6 `f32`), nodes `u64`, leaf entries `u64` | nodes (3 `u32` each), leaf entries (`u32`, the scene's triangle ids) |
 //!
 //! A node is `[axis, position bits, right child]` or `[3, start, count]`
 //! for a leaf (the level builder's packed form).
@@ -140,12 +140,23 @@ pub fn write_plan_dir(
 ) -> Result<Plan, CellsError> {
     let n_cells = top.cells.len() as u32;
     let depth_limit = config.sah.depth_limit(scene.len());
+    // Each cell's nodes are priced as nodes of the whole tree.
+    let sah = SahParams {
+        max_depth: None,
+        price_scale: Some(
+            config
+                .sah
+                .price_scale
+                .unwrap_or_else(|| crate::build::sah::price_scale(&top.tree.bounds, scene.len())),
+        ),
+        ..config.sah
+    };
     let mut cells = Vec::with_capacity(top.cells.len());
     for (i, (node, cell)) in top.cells.iter().enumerate() {
         let id = write_cell(
             &cell_path(dir, i),
             scene,
-            &config.sah,
+            &sah,
             depth_limit,
             i as u32,
             n_cells,
@@ -160,10 +171,7 @@ pub fn write_plan_dir(
     let plan = Plan {
         scene_hash,
         n_tris: scene.len() as u64,
-        sah: SahParams {
-            max_depth: None,
-            ..config.sah
-        },
+        sah,
         depth_limit,
         cut: cut_for(scene.len(), k, small_threshold),
         top: top.tree,
@@ -188,6 +196,11 @@ pub fn plan_matches(
         && plan.sah.k_t.to_bits() == config.sah.k_t.to_bits()
         && plan.sah.k_i.to_bits() == config.sah.k_i.to_bits()
         && plan.sah.lambda_empty.to_bits() == config.sah.lambda_empty.to_bits()
+        && plan.sah.split_price.to_bits() == config.sah.split_price.to_bits()
+        && config
+            .sah
+            .price_scale
+            .is_none_or(|s| Some(s) == plan.sah.price_scale)
         && plan.depth_limit == config.sah.depth_limit(scene.len())
         && plan.cut == cut_for(scene.len(), k, small_threshold)
 }

@@ -61,7 +61,9 @@
 //! | 336 | 4 | CRC-32 of bytes 0..336 |
 //! | 340 | 8 | empty leaves without a word |
 //! | 348 | 8 | one-triangle leaves (no index entry) |
-//! | 356 | 28 | reserved (zero) |
+//! | 356 | 8 | the SAH's split price `μ` (f64; 0: none, as in files written before it) |
+//! | 364 | 16 | reserved (zero) |
+//! | 380 | 4 | CRC-32 of bytes 356..380 (0 with all of 356..380 zero in files written before the split price) |
 //!
 //! Sections, in order: `nodes` (u64 node words, see [`node`]), `idx32`
 //! (u32), `idx16` (u16), `vertices` (3 × f32), `triangles` (3 × u32 vertex
@@ -188,7 +190,21 @@ pub(crate) const SCENE_NAME_AT: usize = 168;
 /// the one-triangle leaves (u64), after its checksummed part.
 pub(crate) const IMPLICIT_EMPTY_AT: usize = 340;
 pub(crate) const ONE_LEAVES_AT: usize = 348;
-pub(crate) const RESERVED_AT: usize = 356;
+pub(crate) const SPLIT_PRICE_AT: usize = 356;
+pub(crate) const RESERVED_AT: usize = 364;
+pub(crate) const TAIL_CRC: usize = 380;
+
+/// Whether the header's tail (bytes 356..380, after the checksummed part
+/// and the two counts, which are checked against the nodes) matches its
+/// CRC-32 at [`TAIL_CRC`]. Files written before the tail held the split
+/// price have zero there and in the whole tail: those pass. Otherwise the
+/// stored CRC must be the computed one, so a changed split price cannot go
+/// unnoticed.
+pub(crate) fn tail_crc_ok(header: &[u8]) -> bool {
+    let stored = u32::from_le_bytes(header[TAIL_CRC..TAIL_CRC + 4].try_into().unwrap());
+    let legacy = stored == 0 && header[SPLIT_PRICE_AT..TAIL_CRC].iter().all(|&x| x == 0);
+    legacy || stored == crc32fast::hash(&header[SPLIT_PRICE_AT..TAIL_CRC])
+}
 
 // The header table must fit before the header checksum.
 const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);

@@ -12,7 +12,8 @@ use super::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
 use super::write::{FileConfig, Preset, SceneTag};
 use super::{
     ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, IMPLICIT_EMPTY_AT, MAGIC,
-    ONE_LEAVES_AT, RESERVED_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
+    ONE_LEAVES_AT, RESERVED_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, SPLIT_PRICE_AT,
+    Section, TAIL_CRC, VERSION, tail_crc_ok,
 };
 use crate::geom::Aabb;
 use crate::tree::MAX_DEPTH;
@@ -268,6 +269,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
             k_i: f64::from_bits(u64_at(b, 32)),
             lambda_empty: f64::from_bits(u64_at(b, 40)),
             depth_limit: u32_at(b, 48),
+            split_price: f64::from_bits(u64_at(b, SPLIT_PRICE_AT)),
             preset,
             tau_occu: f32::from_bits(u32_at(b, 56)),
             tau_freq: f32::from_bits(u32_at(b, 60)),
@@ -389,7 +391,7 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                 (e..e + 4, "the section table's reserved word, bytes")
             })
             .into_iter()
-            .chain([(RESERVED_AT..HEADER_SIZE, "header bytes")]);
+            .chain([(RESERVED_AT..TAIL_CRC, "header bytes")]);
         for (range, what) in reserved {
             if b[range.clone()].iter().any(|&x| x != 0) {
                 return Err(FormatError::Header(format!(
@@ -397,6 +399,17 @@ impl<D: AsRef<[u8]>> KdFile<D> {
                     range.start, range.end
                 )));
             }
+        }
+        if !tail_crc_ok(b) {
+            return Err(FormatError::Header(format!(
+                "header bytes {SPLIT_PRICE_AT}..{TAIL_CRC} do not match their CRC-32 at byte {TAIL_CRC}"
+            )));
+        }
+        let mu = config.split_price;
+        if !(mu.is_finite() && mu >= 0.0) {
+            return Err(FormatError::Header(format!(
+                "split price {mu} is not a finite number ≥ 0"
+            )));
         }
         for s in Section::ALL {
             let pad_end = match Section::ALL.get(s as usize + 1) {

@@ -143,6 +143,8 @@ pub struct FileConfig {
     pub lambda_empty: f64,
     /// The depth limit the build used.
     pub depth_limit: u32,
+    /// The SAH's split price `μ` (0: none).
+    pub split_price: f64,
     /// The slim preset, or `Std`.
     pub preset: Preset,
     /// The hoisting occupancy threshold (0 for `Std`).
@@ -162,6 +164,7 @@ impl Default for FileConfig {
             k_i: 20.0,
             lambda_empty: 0.8,
             depth_limit: 0,
+            split_price: 0.0,
             preset: Preset::Std,
             tau_occu: 0.0,
             tau_freq: 0.0,
@@ -777,6 +780,7 @@ pub(super) fn finish_kd<W: Read + Write + Seek>(
         counts.n_implicit_empty,
     );
     put_u64(&mut header, super::ONE_LEAVES_AT, counts.n_one_leaves);
+    put_u64(&mut header, super::SPLIT_PRICE_AT, c.split_price.to_bits());
     put_u64(&mut header, 104, counts.n_idx32);
     put_u64(&mut header, 112, counts.n_idx16);
     put_u64(&mut header, 120, n_tris as u64);
@@ -798,6 +802,8 @@ pub(super) fn finish_kd<W: Read + Write + Seek>(
     }
     let crc = crc32fast::hash(&header[..HEADER_CRC]);
     put_u32(&mut header, HEADER_CRC, crc);
+    let tail = crc32fast::hash(&header[super::SPLIT_PRICE_AT..super::TAIL_CRC]);
+    put_u32(&mut header, super::TAIL_CRC, tail);
     (|| {
         let end = out.stream_position()?;
         debug_assert_eq!(end, offset);

@@ -142,9 +142,9 @@ use work::{WNode, Work};
 
 /// Rebuilds a subtree from scratch, as Algorithm 1 does: the triangles
 /// `tris` (ascending), each clipped to `cell`, built by the sweep builder
-/// at `depth`. Triangles that do not meet `cell` are left out. (The pass
-/// itself builds the same subtree with the level builder's
-/// `SubtreeBuilder`.)
+/// at `depth`, its splits priced as nodes of the whole scene's tree.
+/// Triangles that do not meet `cell` are left out. (The pass itself builds
+/// the same subtree with the level builder's `SubtreeBuilder`.)
 pub fn rebuild(
     scene: &TriangleColumns,
     config: &BuildConfig,
@@ -158,7 +158,11 @@ pub fn rebuild(
             clip_triangle(&scene.tri(tri.0), cell).map(|bounds| TriRef { tri, bounds })
         })
         .collect();
-    sweep::build_subtree(scene, config, refs, *cell, depth, None)
+    let mut config = *config;
+    (config.sah.price_scale).get_or_insert_with(|| {
+        crate::build::sah::price_scale(&crate::build::root_cell(scene.bounds()), scene.len())
+    });
+    sweep::build_subtree(scene, &config, refs, *cell, depth, None)
 }
 
 /// Applies Algorithm 1 to a standard tree.
@@ -248,7 +252,10 @@ pub fn slim_with_progress(
         progress,
     };
     phases.analysis_s += lap(&mut clock);
-    let rebuild_config = params.rebuild_config(config);
+    // Rebuilt subtrees are priced as nodes of the whole tree.
+    let mut rebuild_config = params.rebuild_config(config);
+    (rebuild_config.sah.price_scale)
+        .get_or_insert_with(|| crate::build::sah::price_scale(&tree.bounds, scene.len()));
     let mut todo = vec![Todo {
         node: root,
         size: tree.nodes.len() as u32,

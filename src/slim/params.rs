@@ -121,7 +121,8 @@ impl SlimParams {
 
     /// The build configuration of rebuilt subtrees: `config` with `K_T`
     /// times [`SlimParams::coarsen`] (the same depth limit, so the
-    /// rebuilt subtrees stay inside the std tree's depth).
+    /// rebuilt subtrees stay inside the std tree's depth, and the same
+    /// split price).
     pub fn rebuild_config(&self, config: &crate::build::BuildConfig) -> crate::build::BuildConfig {
         let mut c = *config;
         c.sah.k_t *= self.coarsen;

@@ -116,7 +116,7 @@ pub(crate) enum Command {
         #[command(flatten)]
         cells: CellsArgs,
         #[command(flatten)]
-        build: BuildArgs,
+        build: Box<BuildArgs>,
     },
     /// Build one cell of a build in cells (a cell file that `build
     /// --cells` wrote) into its part file: the cell's subtree, exactly as
@@ -318,6 +318,12 @@ pub(crate) struct BuildArgs {
     /// SAH cost of a ray–triangle test (the file records it).
     #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
     pub(crate) ki: f64,
+    /// SAH price of a split, μ ≥ 0: a split is taken only if the SAH cost
+    /// it saves (weighted by its cell's share of the root's surface area)
+    /// is at least μ times the bytes it adds per triangle of the scene; 0
+    /// takes every split that pays for itself (the file records it).
+    #[arg(long, value_parser = parse_price, default_value_t = slimkd::build::sah::SahParams::default().split_price)]
+    pub(crate) split_price: f64,
     /// SAH factor in (0, 1] on the intersection cost of a split that cuts
     /// off empty space (the file records it).
     #[arg(long, value_parser = parse_lambda, default_value_t = slimkd::build::sah::SahParams::default().lambda_empty)]
@@ -690,6 +696,18 @@ pub(crate) fn parse_cost(s: &str) -> Result<f64, String> {
         .map_err(|_| format!("expected a positive number, got `{s}`"))?;
     if !(v.is_finite() && v > 0.0) {
         return Err(format!("`{s}` is not a finite number above 0"));
+    }
+    Ok(v)
+}
+
+/// Parses the split price μ, a finite number ≥ 0.
+pub(crate) fn parse_price(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("expected a number ≥ 0, got `{s}`"))?;
+    if !(v.is_finite() && v >= 0.0) {
+        return Err(format!("`{s}` is not a finite number ≥ 0"));
     }
     Ok(v)
 }

@@ -173,6 +173,7 @@ pub(crate) fn build_config(args: &BuildArgs) -> BuildConfig {
     config.sah.k_t = args.kt;
     config.sah.k_i = args.ki;
     config.sah.lambda_empty = args.lambda;
+    config.sah.split_price = args.split_price;
     config
 }
 

@@ -43,6 +43,7 @@ struct InfoJson {
     k_i: f64,
     lambda_empty: f64,
     depth_limit: u32,
+    split_price: f64,
     tau_occu: f32,
     tau_freq: f32,
     max_t2rn: u32,
@@ -149,6 +150,7 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
                 k_i: c.k_i,
                 lambda_empty: c.lambda_empty,
                 depth_limit: c.depth_limit,
+                split_price: c.split_price,
                 tau_occu: c.tau_occu,
                 tau_freq: c.tau_freq,
                 max_t2rn: c.max_t2rn,
@@ -184,12 +186,13 @@ pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
         format::VERSION
     );
     println!(
-        "build       preset {}, K_T {}, K_I {}, λ {}, depth limit {}, τ_occu {}, τ_freq {}, max_t2rn {}",
+        "build       preset {}, K_T {}, K_I {}, λ {}, depth limit {}, split price {}, τ_occu {}, τ_freq {}, max_t2rn {}",
         c.preset.name(),
         c.k_t,
         c.k_i,
         c.lambda_empty,
         c.depth_limit,
+        c.split_price,
         c.tau_occu,
         c.tau_freq,
         c.max_t2rn

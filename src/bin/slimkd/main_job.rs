@@ -170,6 +170,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         kt: slimkd::build::sah::SahParams::default().k_t,
         ki: slimkd::build::sah::SahParams::default().k_i,
         lambda: slimkd::build::sah::SahParams::default().lambda_empty,
+        split_price: slimkd::build::sah::SahParams::default().split_price,
         preset: PresetArg::Std,
         tau_occu: None,
         tau_freq: None,

@@ -35,7 +35,7 @@ use super::classify::{DROPPED, SideCounts, classify_ref, goes_to, is_clipped, si
 use super::events::{Box6, ev_ref, push_events, to_aabb, to_box, with_ref};
 use super::sweep::{Alone, sweep_events};
 use super::tiny::{self, MAX_TINY};
-use crate::build::sah::{self, SahParams, Split};
+use crate::build::sah::{self, LeafRule, SahParams, Split};
 use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
@@ -46,7 +46,7 @@ use crate::tree::{Node, NodeId, TriId};
 pub struct Finisher<'a> {
     scene: &'a TriangleColumns,
     params: &'a SahParams,
-    depth_limit: u32,
+    rule: LeafRule,
     progress: Option<&'a Progress>,
     /// Reference stacks: each open node's references are a range below
     /// `ref_top`. The vectors only grow (to the deepest path's needs), so
@@ -99,13 +99,13 @@ impl<'a> Finisher<'a> {
     pub fn new(
         scene: &'a TriangleColumns,
         params: &'a SahParams,
-        depth_limit: u32,
+        rule: LeafRule,
         progress: Option<&'a Progress>,
     ) -> Finisher<'a> {
         Finisher {
             scene,
             params,
-            depth_limit,
+            rule,
             progress,
             tri: Vec::new(),
             boxes: Vec::new(),
@@ -230,7 +230,7 @@ impl<'a> Finisher<'a> {
         let mut best = None;
         // At the depth limit the node is a leaf whatever its best split
         // ([`sah::is_leaf`]), so the sweep is skipped.
-        if sa > 0.0 && depth < self.depth_limit {
+        if sa > 0.0 && depth < self.rule.depth_limit {
             let cap = self.params.leaf_cost(n);
             for (axis, ev) in self.ev.iter().enumerate() {
                 let ev = &ev[e0[axis]..e0[axis] + ne[axis]];
@@ -255,7 +255,7 @@ impl<'a> Finisher<'a> {
         let split: Split = best.expect("a split exists when the node is not a leaf");
         let (lc, rc) = cell.split(split.axis as usize, split.pos);
         let c = self.classify(r0, n, &split, &lc, &rc);
-        if depth + 1 >= self.depth_limit {
+        if depth + 1 >= self.rule.depth_limit {
             // Both children lie at the depth limit, so they are leaves: they
             // need their triangle lists (the clipping above decided which
             // straddlers stay), not their events.
@@ -454,7 +454,7 @@ impl<'a> Finisher<'a> {
     /// [`sah::is_leaf`] for the references `r0..r0 + n` in `cell` with
     /// their best split.
     fn is_leaf(&self, best: Option<&Split>, r0: usize, n: usize, depth: u32, cell: &Aabb) -> bool {
-        sah::is_leaf(self.params, best, n, depth, self.depth_limit, cell, |s| {
+        sah::is_leaf(self.params, best, n, depth, &self.rule, cell, |s| {
             straddlers(&self.boxes[r0..r0 + n], s)
         })
     }
@@ -486,7 +486,7 @@ impl<'a> Finisher<'a> {
         }
         let sa = cell.surface_area();
         let mut best = None;
-        if n > 0 && sa > 0.0 && depth < self.depth_limit {
+        if n > 0 && sa > 0.0 && depth < self.rule.depth_limit {
             let boxes = &self.boxes[r0..r0 + n];
             let scratch = &mut self.tiny_scratch;
             let (simd, params) = (self.simd, self.params);

@@ -119,7 +119,7 @@ use self::events::{
 };
 use self::pieces::{PIECE, Piece, pieces};
 use self::sweep::best_splits;
-use super::sah::{self, Split};
+use super::sah::{self, LeafRule, Split};
 use super::{BuildConfig, Progress, root_cell};
 use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
@@ -279,7 +279,8 @@ fn run<T>(
         progress,
         options,
         scratch: &scratch,
-        depth_limit: config.sah.depth_limit(scene.len()),
+        // Replaced once the root cell is known.
+        rule: config.sah.leaf_rule(scene.len(), || Aabb::EMPTY),
         small_threshold,
         cut: cut.map(|rule| (rule, Vec::new())),
         recs: vec![Rec::Open],
@@ -303,6 +304,9 @@ fn run<T>(
         None => b.root()?,
         Some(node) => (node.cell, b.node_level(node)?),
     };
+    // A build from a node (a cell of a cut) is priced as the whole scene's
+    // when the configuration gives its price scale, as `cells` does.
+    b.rule = config.sah.leaf_rule(scene.len(), || bounds);
     b.report.phases.setup_s = lap(&mut clock);
     b.sample_rss();
     b.levels(root_level)?;
@@ -375,7 +379,9 @@ struct Builder<'a> {
     progress: Option<&'a Progress>,
     options: &'a LevelOptions,
     scratch: &'a Scratch,
-    depth_limit: u32,
+    /// The leaf rule; its price scale is the root's, set once the root
+    /// cell is known ([`Builder::root`]) unless the configuration gives it.
+    rule: LeafRule,
     /// Open nodes with fewer references are finished depth-first.
     small_threshold: usize,
     /// The rule of a cut into cells, and the cells cut so far.
@@ -394,7 +400,7 @@ struct Builder<'a> {
 struct Finish<'a> {
     scene: &'a TriangleColumns,
     params: sah::SahParams,
-    depth_limit: u32,
+    rule: LeafRule,
     progress: Option<&'a Progress>,
     chunk_words: usize,
     chunk_dir: Option<Arc<std::path::Path>>,
@@ -420,7 +426,7 @@ impl Finish<'_> {
                 || {
                     (
                         usize::MAX,
-                        Finisher::new(self.scene, &self.params, self.depth_limit, self.progress)
+                        Finisher::new(self.scene, &self.params, self.rule, self.progress)
                             .with_new_events(self.mode)
                             .with_tiny(self.tiny),
                         Ok(SubStream::new(self.chunk_words, self.chunk_dir.clone())),
@@ -465,9 +471,13 @@ pub(crate) struct SubtreeBuilder<'a> {
 
 impl<'a> SubtreeBuilder<'a> {
     pub fn new(scene: &'a TriangleColumns, config: &'a BuildConfig) -> SubtreeBuilder<'a> {
-        let depth_limit = config.sah.depth_limit(scene.len());
+        // The scene's bounds are its root cell ([`root_cell`]); the slim pass
+        // gives the price scale in `config`, so that workers skip this pass.
+        let rule = config
+            .sah
+            .leaf_rule(scene.len(), || root_cell(scene.bounds()));
         SubtreeBuilder {
-            finisher: Finisher::new(scene, &config.sah, depth_limit, None)
+            finisher: Finisher::new(scene, &config.sah, rule, None)
                 .with_tiny(DEFAULT_TINY_THRESHOLD),
             tri: Vec::new(),
             boxes: Vec::new(),
@@ -809,7 +819,7 @@ impl<'a> Builder<'a> {
         let finish = Finish {
             scene: self.scene,
             params: self.config.sah,
-            depth_limit: self.depth_limit,
+            rule: self.rule,
             progress: self.progress,
             chunk_words: self.subs.chunk_words(),
             chunk_dir: self.subs.dir.clone(),
@@ -885,7 +895,7 @@ impl<'a> Builder<'a> {
         let mut clock = Instant::now();
 
         // 2. SAH.
-        let best = best_splits(&self.config.sah, self.depth_limit, l, big);
+        let best = best_splits(&self.config.sah, self.rule.depth_limit, l, big);
         self.report.phases.sah_s += lap(&mut clock);
 
         // 3. Leaves out; splits kept.
@@ -927,7 +937,7 @@ impl<'a> Builder<'a> {
                 best[bi].as_ref(),
                 nd.n,
                 depth,
-                self.depth_limit,
+                &self.rule,
                 &nd.cell,
                 |s| dfs::straddlers(&l.bounds[nd.refs..nd.refs + nd.n], s),
             ) {

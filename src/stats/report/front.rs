@@ -35,6 +35,9 @@ pub const FRONT_KT: [f64; 5] = [10.0, 15.0, 20.0, 30.0, 45.0];
 /// `(τ_occu, τ_freq)` of the threshold families, from the least hoisting
 /// to the most; `(0.1, 0.05)` is the presets'.
 pub const FRONT_TAUS: [(f64, f64); 4] = [(0.5, 0.4), (0.3, 0.2), (0.1, 0.05), (0.05, 0.025)];
+/// `μ` of the split-price family (std trees, default `K_T`, `K_I`): from
+/// none to eight times the default.
+pub const FRONT_SPLIT_PRICE: [f64; 5] = [0.0, 0.25, 0.5, 1.0, 8.0];
 /// `coarsen` of the coarsen family, at the presets' thresholds and
 /// without the price rule (2 is `small`).
 pub const FRONT_COARSEN: [f64; 4] = [1.0, 1.5, 2.0, 3.0];
@@ -42,12 +45,14 @@ pub const FRONT_COARSEN: [f64; 4] = [1.0, 1.5, 2.0, 3.0];
 /// One tree of the sweep.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrontSetting {
-    /// Unique within the grid: `std`, `fast`, `small`, `K_T 30`,
+    /// Unique within the grid: `std`, `fast`, `small`, `K_T 30`, `μ 0.25`,
     /// `0.3/0.2 c2`, `0.3/0.2 c1.5 p0.01` (τ_occu/τ_freq, coarsen, the
     /// price rule's ratio).
     pub label: String,
     pub k_t: f64,
     pub k_i: f64,
+    /// The SAH's split price `μ`.
+    pub split_price: f64,
     /// The slim pass after the std build of `k_t`, `k_i`; `None`: the std
     /// tree itself.
     pub slim: Option<SlimParams>,
@@ -76,7 +81,10 @@ impl FrontGrid {
     /// new.
     fn add(&mut self, setting: FrontSetting) -> usize {
         let same = |s: &FrontSetting| {
-            s.k_t == setting.k_t && s.k_i == setting.k_i && s.slim == setting.slim
+            s.k_t == setting.k_t
+                && s.k_i == setting.k_i
+                && s.split_price == setting.split_price
+                && s.slim == setting.slim
         };
         if let Some(i) = self.settings.iter().position(same) {
             return i;
@@ -86,9 +94,10 @@ impl FrontGrid {
     }
 }
 
-/// The default grid: 16 trees in four families.
+/// The default grid: 20 trees in five families.
 ///
 /// - `K_T` (std trees at K_I 20): [`FRONT_KT`]; `K_T 15` is `std`.
+/// - the split price (std trees): [`FRONT_SPLIT_PRICE`], through `std`.
 /// - hoisting with `fast`'s rebuild (`coarsen`, price rule) and with
 ///   `small`'s: [`FRONT_TAUS`] with the presets' `max_t2rn` and rule,
 ///   each line starting at `std` (no hoisting); `0.1/0.05` is `fast` and
@@ -101,17 +110,24 @@ pub fn default_grid() -> FrontGrid {
         settings: Vec::new(),
         families: Vec::new(),
     };
-    let std_of = |k_t: f64| FrontSetting {
-        label: if k_t == sah.k_t {
-            "std".into()
-        } else {
-            format!("K_T {k_t}")
-        },
-        k_t,
-        k_i: sah.k_i,
-        slim: None,
-        preset: (k_t == sah.k_t).then_some(TreeKind::Std),
+    let std_priced = |k_t: f64, split_price: f64| {
+        let default = k_t == sah.k_t && split_price == sah.split_price;
+        FrontSetting {
+            label: if default {
+                "std".into()
+            } else if split_price == sah.split_price {
+                format!("K_T {k_t}")
+            } else {
+                format!("μ {split_price}")
+            },
+            k_t,
+            k_i: sah.k_i,
+            split_price,
+            slim: None,
+            preset: default.then_some(TreeKind::Std),
+        }
     };
+    let std_of = |k_t: f64| std_priced(k_t, sah.split_price);
     let slim_of = |(tau_occu, tau_freq): (f64, f64), base: SlimParams| {
         let params = SlimParams {
             tau_occu,
@@ -132,6 +148,7 @@ pub fn default_grid() -> FrontGrid {
             label: preset.map_or(label, |k| k.name().to_string()),
             k_t: sah.k_t,
             k_i: sah.k_i,
+            split_price: sah.split_price,
             slim: Some(params),
             preset,
         }
@@ -140,6 +157,14 @@ pub fn default_grid() -> FrontGrid {
     grid.families.push(FrontFamily {
         name: format!("K_T (std, K_I {})", sah.k_i),
         points: kt,
+    });
+    let priced: Vec<usize> = FRONT_SPLIT_PRICE
+        .iter()
+        .map(|&mu| grid.add(std_priced(sah.k_t, mu)))
+        .collect();
+    grid.families.push(FrontFamily {
+        name: format!("split price μ (std, K_T {})", sah.k_t),
+        points: priced,
     });
     let std = grid.add(std_of(sah.k_t));
     for (name, base) in [("fast", SlimParams::FAST), ("small", SlimParams::SMALL)] {
@@ -295,8 +320,14 @@ pub fn run_front(
         .build()
         .map_err(ReportError::ThreadPool)?;
     // Per scene: a step per std build, per slim pass and per round.
-    let mut keys: Vec<(f64, f64)> = grid.settings.iter().map(|s| (s.k_t, s.k_i)).collect();
-    keys.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let mut keys: Vec<(f64, f64, f64)> = (grid.settings.iter())
+        .map(|s| (s.k_t, s.k_i, s.split_price))
+        .collect();
+    keys.sort_by(|a, b| {
+        (a.0.total_cmp(&b.0))
+            .then(a.1.total_cmp(&b.1))
+            .then(a.2.total_cmp(&b.2))
+    });
     keys.dedup();
     let slims = grid.settings.iter().filter(|s| s.slim.is_some()).count();
     let per_scene = keys.len() + slims + options.reps + 1;
@@ -334,22 +365,23 @@ fn sweep_scene(
     pool: &rayon::ThreadPool,
     step: &mut dyn FnMut(&str),
 ) -> Result<SceneFront, ReportError> {
-    // The std trees a setting starts from, by (K_T, K_I), with their build
-    // times.
-    let mut bases: Vec<((f64, f64), TreeIr, f64)> = Vec::new();
+    // The std trees a setting starts from, by (K_T, K_I, μ), with their
+    // build times.
+    let mut bases: Vec<((f64, f64, f64), TreeIr, f64)> = Vec::new();
     let mut files = Vec::new();
     let mut points = Vec::new();
     for setting in &grid.settings {
         let mut config = BuildConfig::default();
         config.sah.k_t = setting.k_t;
         config.sah.k_i = setting.k_i;
-        let key = (setting.k_t, setting.k_i);
+        config.sah.split_price = setting.split_price;
+        let key = (setting.k_t, setting.k_i, setting.split_price);
         let base = match bases.iter().position(|(k, _, _)| *k == key) {
             Some(i) => i,
             None => {
                 step(&format!(
-                    "{name}: building std tree, K_T {} K_I {}",
-                    setting.k_t, setting.k_i
+                    "{name}: building std tree, K_T {} K_I {} μ {}",
+                    setting.k_t, setting.k_i, setting.split_price
                 ));
                 let start = Instant::now();
                 let tree = pool
@@ -689,6 +721,7 @@ struct FrontPointJson<'a> {
     preset: Option<&'static str>,
     k_t: f64,
     k_i: f64,
+    split_price: f64,
     tau_occu: Option<f64>,
     tau_freq: Option<f64>,
     max_t2rn: Option<u32>,
@@ -733,6 +766,7 @@ impl<'a> SceneFrontJson<'a> {
                         preset: p.setting.preset.map(TreeKind::name),
                         k_t: p.setting.k_t,
                         k_i: p.setting.k_i,
+                        split_price: p.setting.split_price,
                         tau_occu: slim.map(|s| s.tau_occu),
                         tau_freq: slim.map(|s| s.tau_freq),
                         max_t2rn: slim.map(|s| s.max_t2rn),
@@ -794,7 +828,7 @@ mod tests {
     #[test]
     fn default_grid_has_the_presets_exactly_and_unique_labels() {
         let g = default_grid();
-        assert_eq!(g.settings.len(), 16);
+        assert_eq!(g.settings.len(), 20);
         let find = |k: TreeKind| {
             g.settings
                 .iter()
@@ -811,7 +845,7 @@ mod tests {
         labels.sort_unstable();
         labels.dedup();
         assert_eq!(labels.len(), g.settings.len());
-        assert_eq!(g.families.len(), 4);
+        assert_eq!(g.families.len(), 5);
         for f in &g.families {
             assert!(f.points.len() >= 4, "{}", f.name);
         }

@@ -49,9 +49,9 @@ mod run;
 mod tables;
 
 pub use front::{
-    FRONT_COARSEN, FRONT_JSON, FRONT_KT, FRONT_MARKDOWN, FRONT_TAUS, FrontFamily, FrontGrid,
-    FrontOptions, FrontPoint, FrontReport, FrontSetting, SceneFront, default_grid, pareto_front,
-    run_front,
+    FRONT_COARSEN, FRONT_JSON, FRONT_KT, FRONT_MARKDOWN, FRONT_SPLIT_PRICE, FRONT_TAUS,
+    FrontFamily, FrontGrid, FrontOptions, FrontPoint, FrontReport, FrontSetting, SceneFront,
+    default_grid, pareto_front, run_front,
 };
 pub use run::{run, run_with_progress};
 pub use tables::duplication;
