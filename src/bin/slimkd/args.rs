@@ -654,86 +654,75 @@ pub(crate) fn check_image_output(path: &Path) -> Res<()> {
 
 /// Parses a hoisting threshold: a number in [0, 1].
 pub(crate) fn parse_tau(s: &str) -> Result<f64, String> {
+    parse_number(s, "a number in [0, 1]", "is not in [0, 1]", |v| {
+        !(0.0..=1.0).contains(&v)
+    })
+}
+
+/// Parses `s` as an `f64`: "expected EXPECTED, got `s`" if it is no number,
+/// "`s` REFUSED" if `rejects` holds for it.
+fn parse_number(
+    s: &str,
+    expected: &str,
+    refused: &str,
+    rejects: impl Fn(f64) -> bool,
+) -> Result<f64, String> {
     let v: f64 = s
         .trim()
         .parse()
-        .map_err(|_| format!("expected a number in [0, 1], got `{s}`"))?;
-    if !(0.0..=1.0).contains(&v) {
-        return Err(format!("`{s}` is not in [0, 1]"));
+        .map_err(|_| format!("expected {expected}, got `{s}`"))?;
+    if rejects(v) {
+        return Err(format!("`{s}` {refused}"));
     }
     Ok(v)
 }
 
 /// Parses the factor on K_T of rebuilt subtrees: a finite number ≥ 1.
 pub(crate) fn parse_coarsen(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected a number ≥ 1, got `{s}`"))?;
-    if !(v.is_finite() && v >= 1.0) {
-        return Err(format!("`{s}` is not a finite number ≥ 1"));
-    }
-    Ok(v)
+    parse_number(s, "a number ≥ 1", "is not a finite number ≥ 1", |v| {
+        !(v.is_finite() && v >= 1.0)
+    })
 }
 
 /// Parses the price rule's ratio: a number ≥ 0, or `inf`.
 pub(crate) fn parse_cost_ratio(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected a number ≥ 0 or `inf`, got `{s}`"))?;
-    if v.is_nan() || v < 0.0 {
-        return Err(format!("`{s}` is not a number ≥ 0 or `inf`"));
-    }
-    Ok(v)
+    parse_number(
+        s,
+        "a number ≥ 0 or `inf`",
+        "is not a number ≥ 0 or `inf`",
+        |v| v.is_nan() || v < 0.0,
+    )
 }
 
 /// Parses an SAH cost constant: a finite number above 0.
 pub(crate) fn parse_cost(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected a positive number, got `{s}`"))?;
-    if !(v.is_finite() && v > 0.0) {
-        return Err(format!("`{s}` is not a finite number above 0"));
-    }
-    Ok(v)
+    parse_number(
+        s,
+        "a positive number",
+        "is not a finite number above 0",
+        |v| !(v.is_finite() && v > 0.0),
+    )
 }
 
 /// Parses the split price μ, a finite number ≥ 0.
 pub(crate) fn parse_price(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected a number ≥ 0, got `{s}`"))?;
-    if !(v.is_finite() && v >= 0.0) {
-        return Err(format!("`{s}` is not a finite number ≥ 0"));
-    }
-    Ok(v)
+    parse_number(s, "a number ≥ 0", "is not a finite number ≥ 0", |v| {
+        !(v.is_finite() && v >= 0.0)
+    })
 }
 
 /// Parses the empty-space factor λ, in (0, 1].
 pub(crate) fn parse_lambda(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected a number in (0, 1], got `{s}`"))?;
-    if !(v > 0.0 && v <= 1.0) {
-        return Err(format!("`{s}` is not in (0, 1]"));
-    }
-    Ok(v)
+    parse_number(s, "a number in (0, 1]", "is not in (0, 1]", |v| {
+        !(v > 0.0 && v <= 1.0)
+    })
 }
 
 /// Parses a field of view in degrees, in (0, 180).
 pub(crate) fn parse_fov(s: &str) -> Result<f64, String> {
-    let v: f64 = s
-        .trim()
-        .parse()
-        .map_err(|_| format!("expected degrees in (0, 180), got `{s}`"))?;
-    if !(v > 0.0 && v < 180.0) {
-        return Err(format!("`{s}` is not in (0, 180)"));
-    }
-    Ok(v)
+    parse_number(s, "degrees in (0, 180)", "is not in (0, 180)", |v| {
+        !(v > 0.0 && v < 180.0)
+    })
 }
 
 /// Parses a count of at least 1.
