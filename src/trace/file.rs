@@ -168,6 +168,10 @@ impl<'a> Walk<'a> for FileWalk<'a> {
         self.step_limit
     }
 
+    fn tag(&self) -> (usize, usize) {
+        (self.nodes.as_ptr() as usize, self.nodes.len())
+    }
+
     #[inline(always)]
     fn input_id(&self, t: u32) -> TriId {
         // A map entry out of range (a file not validated) reads as `t`, so

@@ -22,10 +22,12 @@
 //! thousand times larger than its distance to the eye, seen at a grazing
 //! angle).
 
+pub mod context;
 mod file;
 pub mod packet;
 pub mod rays;
 
+pub use context::{HitContext, locate, locate_into};
 pub use file::FileWalk;
 pub(crate) use file::NO_WORD;
 
@@ -106,6 +108,29 @@ pub trait ClosestHit: Sync {
     /// Traces a 4×4 block of rays.
     fn closest_hit_4x4(&self, rays: &[Ray; 16], out: &mut [Hit; 16]) {
         self.closest_hit_n(rays, out);
+    }
+
+    /// Makes `ctx` the context of the cell holding `point`, for rays that
+    /// start there ([`context`]); the default leaves one that the `_from`
+    /// queries trace from the root.
+    fn locate_into(&self, point: Vec3, ctx: &mut HitContext) {
+        let _ = point;
+        *ctx = HitContext::default();
+    }
+
+    /// [`ClosestHit::closest_hit`], walked from `ctx` ([`context`]): the
+    /// same hit for any ray, less work for one that starts near the point
+    /// `ctx` was made for.
+    fn closest_hit_from(&self, ctx: &HitContext, ray: &Ray) -> Hit {
+        let _ = ctx;
+        self.closest_hit(ray)
+    }
+
+    /// [`ClosestHit::occluded`], walked from `ctx`: exactly
+    /// `closest_hit(ray).t < ray.tmax`.
+    fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
+        let _ = ctx;
+        self.occluded(ray)
     }
 }
 
@@ -202,6 +227,11 @@ pub trait Walk<'a>: Copy + Sync {
     /// once, so a walk that takes more steps is on nodes that share
     /// subtrees (a file not validated) and stops.
     fn step_limit(&self) -> u32;
+    /// The tree's identity, for [`HitContext`]s: the address and length
+    /// of its node storage (a context made in a tree that was dropped,
+    /// whose storage a tree of as many nodes reuses, would walk the new
+    /// tree along the old path: wrong hits, never unsafe ones).
+    fn tag(&self) -> (usize, usize);
 }
 
 /// An in-memory tree and its scene.
@@ -263,6 +293,10 @@ impl<'a> Walk<'a> for TreeTracer<'a> {
     #[inline]
     fn input_id(&self, t: u32) -> TriId {
         TriId(t)
+    }
+
+    fn tag(&self) -> (usize, usize) {
+        (self.tree.nodes.as_ptr() as usize, self.tree.nodes.len())
     }
 }
 
@@ -326,6 +360,25 @@ impl<'a, S: KdSource> ClosestHit for Scalar<'a, S> {
     fn occluded(&self, ray: &Ray) -> bool {
         self.walk::<true>(ray).is_hit()
     }
+
+    fn locate_into(&self, point: Vec3, ctx: &mut HitContext) {
+        locate_into(self.walk, point, ctx);
+    }
+
+    fn closest_hit_from(&self, ctx: &HitContext, ray: &Ray) -> Hit {
+        let w = self.walk;
+        crate::simd_dispatch!(self.level, |_WIDE| {
+            context::walk_from::<_, false, false>(w, ctx, ray, &mut TraceStats::default())
+        })
+    }
+
+    fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
+        let w = self.walk;
+        crate::simd_dispatch!(self.level, |_WIDE| {
+            context::walk_from::<_, true, false>(w, ctx, ray, &mut TraceStats::default())
+        })
+        .is_hit()
+    }
 }
 
 impl ClosestHit for TreeTracer<'_> {
@@ -335,6 +388,18 @@ impl ClosestHit for TreeTracer<'_> {
 
     fn occluded(&self, ray: &Ray) -> bool {
         occluded(self, ray)
+    }
+
+    fn locate_into(&self, point: Vec3, ctx: &mut HitContext) {
+        locate_into(*self, point, ctx);
+    }
+
+    fn closest_hit_from(&self, ctx: &HitContext, ray: &Ray) -> Hit {
+        context::walk_from::<_, false, false>(*self, ctx, ray, &mut TraceStats::default())
+    }
+
+    fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
+        context::walk_from::<_, true, false>(*self, ctx, ray, &mut TraceStats::default()).is_hit()
     }
 }
 
@@ -441,6 +506,21 @@ pub fn occluded<S: KdSource>(src: &S, ray: &Ray) -> bool {
     walk_ray::<_, true, false>(src.walk(), ray, &mut TraceStats::default()).is_hit()
 }
 
+/// [`traverse_counted`] walked from `ctx` ([`context`]).
+pub fn traverse_from_counted<S: KdSource>(
+    src: &S,
+    ctx: &HitContext,
+    ray: &Ray,
+    any: bool,
+    stats: &mut TraceStats,
+) -> Hit {
+    if any {
+        context::walk_from::<_, true, true>(src.walk(), ctx, ray, stats)
+    } else {
+        context::walk_from::<_, false, true>(src.walk(), ctx, ray, stats)
+    }
+}
+
 /// [`traverse`] (or [`occluded`], whose hit is any hit in `(tmin, tmax)`)
 /// with its work added to `stats`.
 pub fn traverse_counted<S: KdSource>(src: &S, ray: &Ray, any: bool, stats: &mut TraceStats) -> Hit {
@@ -539,19 +619,90 @@ pub(crate) fn walk_cells<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     rp: &RayPrecomp,
     inv_dir: Vec3,
     start: (u32, f32, f32),
-    mut best: Hit,
+    best: Hit,
     stats: &mut TraceStats,
     steps_left: &mut u64,
 ) -> Hit {
-    // Pending cells. Entries below `sp` are written; the traversal depth
-    // is at most MAX_DEPTH (checked by TreeIr::validate and
-    // KdFile::validate), so `sp` stays below MAX_STACK. The push checks
-    // it all the same (the compare the indexing made anyway) and drops the
-    // cell of a deeper path, which only a file that was not validated can
-    // make. Left uninitialised: zeroing 1.2 KB per ray cost 4 %
-    // of short rays' time.
-    let mut stack = [const { MaybeUninit::<(u32, f32, f32)>::uninit() }; MAX_STACK];
-    let mut sp = 0usize;
+    // Left uninitialised: zeroing 1.2 KB per ray cost 4 % of short rays'
+    // time.
+    let mut stack = [const { MaybeUninit::<Pending>::uninit() }; MAX_STACK];
+    let mut pending = PendingStack::new(&mut stack);
+    walk_pending::<W, ANY, COUNT>(
+        src,
+        ray,
+        rp,
+        inv_dir,
+        start,
+        best,
+        stats,
+        steps_left,
+        &mut pending,
+    )
+}
+
+/// A pending cell: its node and the ray's interval in it.
+pub(crate) type Pending = (u32, f32, f32);
+
+/// The walk's stack of pending cells: `cells[..len]` are written. The
+/// traversal depth is at most MAX_DEPTH (checked by TreeIr::validate and
+/// KdFile::validate), so `len` stays below MAX_STACK; a push checks it all
+/// the same (the compare the indexing made anyway) and drops the cell of
+/// a deeper path, which only a file that was not validated can make.
+pub(crate) struct PendingStack<'s> {
+    cells: &'s mut [MaybeUninit<Pending>; MAX_STACK],
+    len: usize,
+}
+
+impl<'s> PendingStack<'s> {
+    /// An empty stack over `cells`.
+    #[inline(always)]
+    pub(crate) fn new(cells: &'s mut [MaybeUninit<Pending>; MAX_STACK]) -> Self {
+        PendingStack { cells, len: 0 }
+    }
+
+    /// Pushes `cell` when `keep`, without a branch on `keep` (the write
+    /// is made either way, past the last cell when not kept).
+    #[inline(always)]
+    pub(crate) fn push_if(&mut self, cell: Pending, keep: bool) {
+        if self.len < MAX_STACK {
+            self.cells[self.len].write(cell);
+            self.len += usize::from(keep);
+        }
+    }
+
+    /// Pops the last cell pushed.
+    #[inline(always)]
+    pub(crate) fn pop(&mut self) -> Option<Pending> {
+        if self.len == 0 {
+            return None;
+        }
+        self.len -= 1;
+        // SAFETY: `cells[..len]` are written (`new` starts empty, `push`
+        // writes before it counts).
+        Some(unsafe { self.cells[self.len].assume_init() })
+    }
+}
+
+/// [`walk_cells`] with cells already pending below `start` (the walk from
+/// a [`HitContext`] resumes the root walk at its leaf with the cells the
+/// root walk would have pushed on the way down).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn walk_pending<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
+    src: W,
+    ray: &Ray,
+    rp: &RayPrecomp,
+    inv_dir: Vec3,
+    start: (u32, f32, f32),
+    mut best: Hit,
+    stats: &mut TraceStats,
+    steps_left: &mut u64,
+    pending: &mut PendingStack<'_>,
+) -> Hit {
+    // `stack[..sp]` are written (the stack's invariant), and the walk
+    // keeps it so.
+    let mut sp = pending.len;
+    let stack = &mut *pending.cells;
     let (mut node, mut tmin, mut tmax) = start;
     let org = ray.origin.to_array();
     let dir = ray.dir.to_array();

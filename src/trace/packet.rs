@@ -425,6 +425,25 @@ impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
         .is_hit()
     }
 
+    fn locate_into(&self, point: Vec3, ctx: &mut super::HitContext) {
+        super::locate_into(self.walk, point, ctx);
+    }
+
+    fn closest_hit_from(&self, ctx: &super::HitContext, ray: &Ray) -> Hit {
+        let w = self.walk;
+        crate::simd_dispatch!(self.level, |_WIDE| {
+            super::context::walk_from::<_, false, false>(w, ctx, ray, &mut TraceStats::default())
+        })
+    }
+
+    fn occluded_from(&self, ctx: &super::HitContext, ray: &Ray) -> bool {
+        let w = self.walk;
+        crate::simd_dispatch!(self.level, |_WIDE| {
+            super::context::walk_from::<_, true, false>(w, ctx, ray, &mut TraceStats::default())
+        })
+        .is_hit()
+    }
+
     fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
         self.dispatch::<false, false>(rays, out, &mut TraceStats::default())
     }

@@ -9,7 +9,7 @@
 //! threads in chunks of [`CHUNK`] consecutive rays; packets are 16
 //! consecutive rays of a chunk (the chunk's last packet may be shorter).
 
-use super::{ClosestHit, Hit, TraceStats};
+use super::{ClosestHit, Hit, HitContext, TraceStats};
 use crate::geom::Ray;
 use glam::Vec3;
 use rayon::prelude::*;
@@ -197,6 +197,37 @@ pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets:
         .par_chunks_mut(CHUNK)
         .zip(rays.par_chunks(CHUNK))
         .for_each(|(out, rays)| trace_chunk(tracer, rays, query, packets, out));
+    Traced {
+        results,
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}
+
+/// Traces `rays` like [`trace_batch`] one by one, each walked from the
+/// [`HitContext`] of its origin: a run of consecutive rays with the same
+/// origin (the shadow and AO rays of one hit point, as the peer program
+/// writes them) shares one context, located for the first of them and
+/// timed with the rays.
+pub fn trace_batch_from_hit(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
+    let mut results = vec![0f32; rays.len()];
+    let start = Instant::now();
+    results
+        .par_chunks_mut(CHUNK)
+        .zip(rays.par_chunks(CHUNK))
+        .for_each(|(out, rays)| {
+            let mut ctx = HitContext::default();
+            let mut at = None;
+            for (r, o) in rays.iter().zip(out.iter_mut()) {
+                if at != Some(r.origin) {
+                    tracer.locate_into(r.origin, &mut ctx);
+                    at = Some(r.origin);
+                }
+                *o = match query {
+                    Query::Closest => tracer.closest_hit_from(&ctx, r).t,
+                    Query::Occluded => f32::from(u8::from(tracer.occluded_from(&ctx, r))),
+                };
+            }
+        });
     Traced {
         results,
         seconds: start.elapsed().as_secs_f64(),

@@ -6,7 +6,7 @@ use serde::Serialize;
 use slimkd::fsio;
 use slimkd::trace::packet::PacketTracer;
 use slimkd::trace::rays::{self, Query};
-use slimkd::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
+use slimkd::trace::{self as tr, ClosestHit, Hit, KdSource, Scalar, TraceStats};
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -23,8 +23,11 @@ pub struct TraceArgs {
     /// Any-hit queries: 1 when something lies in (tmin, tmax), else 0.
     #[arg(long)]
     pub occluded: bool,
-    /// Traversal: `single` ray at a time, or `packet`s of 16 consecutive
-    /// rays.
+    /// Traversal: `single` ray at a time, `packet`s of 16 consecutive
+    /// rays, or single rays walked `from-hit`: from the context of their
+    /// origin (located once for a run of rays with the same origin, as
+    /// the shadow and AO rays of one hit point are; the location is
+    /// timed).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).
@@ -46,6 +49,7 @@ pub struct TraceArgs {
 pub enum TraceMode {
     Single,
     Packet,
+    FromHit,
 }
 
 /// `slimkd trace --json`.
@@ -95,10 +99,14 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
     let packet = PacketTracer::new(&file);
     let tracer: &dyn ClosestHit = if packets { &packet } else { &scalar };
     let (rates, last) = pool.install(|| {
-        let mut last = rays::trace_batch(tracer, &rays, query, packets);
+        let batch = || match args.mode {
+            TraceMode::FromHit => rays::trace_batch_from_hit(tracer, &rays, query),
+            _ => rays::trace_batch(tracer, &rays, query, packets),
+        };
+        let mut last = batch();
         let mut rates = Vec::new();
         for _ in 0..args.reps {
-            last = rays::trace_batch(tracer, &rays, query, packets);
+            last = batch();
             rates.push(last.mrays_per_s());
         }
         (rates, last)
@@ -108,6 +116,11 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
         let count = |r: &[slimkd::geom::Ray], out: &mut [Hit], s: &mut TraceStats| {
             if packets {
                 packet.trace_counted(r, any, out, s);
+            } else if args.mode == TraceMode::FromHit {
+                for (ray, h) in r.iter().zip(out.iter_mut()) {
+                    let ctx = tr::locate(file.walk(), ray.origin);
+                    *h = tr::traverse_from_counted(&file, &ctx, ray, any, s);
+                }
             } else {
                 for (ray, h) in r.iter().zip(out.iter_mut()) {
                     *h = tr::traverse_counted(&file, ray, any, s);
@@ -142,7 +155,11 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
     } else {
         "scalar"
     };
-    let mode = if packets { "packet" } else { "single" };
+    let mode = match args.mode {
+        TraceMode::Single => "single",
+        TraceMode::Packet => "packet",
+        TraceMode::FromHit => "from-hit",
+    };
     let query_name = if args.occluded { "occluded" } else { "closest" };
     let threads = pool.current_num_threads();
     let per_ray = |s: &TraceStats, v: u64| v as f64 / (s.rays.max(1)) as f64;
