@@ -254,3 +254,102 @@ fn file_normals_shade_as_the_scenes_columns() {
         }
     }
 }
+
+/// The AO frame (primary, shadow and AO rays) of every secondary mode,
+/// through a mapped file's scalar and packet tracers, lights every pixel
+/// exactly as brute force does, and counts the same occluded rays.
+#[test]
+fn ao_frames_match_brute_force_in_every_mode() {
+    use slimkd::format::{self, KdFile, WriteOptions};
+    use slimkd::render::{AoOptions, Secondary};
+    use slimkd::trace::packet::PacketTracer;
+    use slimkd::trace::{ClosestHit, Scalar};
+    let views =
+        render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
+            .unwrap();
+    for name in ["nexuiz_dieselpower", "bunny_npm"] {
+        let path = manifest(&format!("scenes/{name}.obj"));
+        let (scene, _) = scene::load_obj(&path).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let options = WriteOptions {
+            reorder: true,
+            ..Default::default()
+        };
+        let bytes = format::write_to_vec(&tree, &scene, &options).unwrap();
+        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
+        let view = render::find_view(&views, &path, "1").unwrap();
+        let cam = Camera::from_view(view, 48, 40);
+        let bounds = scene.bounds();
+        let want = render::trace_ao_frame(
+            &BruteForce(&scene),
+            &cam,
+            &bounds,
+            |_| &scene,
+            &AoOptions {
+                spp: 3,
+                secondary: Secondary::Single,
+            },
+        );
+        assert!(want.times.shadow_rays > 1000 && want.times.ao_rays == 3 * want.times.shadow_rays);
+        assert!(want.times.ao_occluded > 0 && want.times.ao_occluded < want.times.ao_rays);
+        let scalar = Scalar::new(&file);
+        let packet = PacketTracer::new(&file);
+        let tracers: [&dyn ClosestHit; 2] = [&scalar, &packet];
+        for tracer in tracers {
+            for secondary in [Secondary::Single, Secondary::Packet, Secondary::FromHit] {
+                let got = render::trace_ao_frame(
+                    tracer,
+                    &cam,
+                    &bounds,
+                    |buf| render::FileNormals::new(&file, buf),
+                    &AoOptions { spp: 3, secondary },
+                );
+                assert_eq!(got.primary.hits, want.primary.hits, "{name} {secondary:?}");
+                assert_eq!(got.light, want.light, "{name} {secondary:?}");
+                assert_eq!(got.times.shadowed, want.times.shadowed);
+                assert_eq!(got.times.ao_occluded, want.times.ao_occluded);
+                let image = render::shade_ao(&got);
+                assert_eq!(image.rgb.len(), 48 * 40);
+            }
+        }
+    }
+}
+
+#[test]
+fn cli_ao_frame_reports_each_ray_kind() {
+    let dir = fresh_temp_dir("render_ao");
+    let out = dir.join("ao.png");
+    let out_s = out.to_str().unwrap();
+    let run = slimkd(&[
+        "render",
+        "default",
+        "--view",
+        "1",
+        "--size",
+        "64x48",
+        "--shading",
+        "ao",
+        "--spp",
+        "2",
+        "--secondary",
+        "from-hit",
+        "--json",
+        "-o",
+        out_s,
+    ]);
+    let json = common::json(&run);
+    let ao = &json["ao"];
+    assert_eq!(ao["spp"], 2);
+    assert_eq!(ao["secondary"], "from-hit");
+    assert_eq!(ao["primary_rays"], 64 * 48);
+    let shadow = ao["shadow_rays"].as_u64().unwrap();
+    assert!(shadow > 0 && ao["ao_rays"].as_u64().unwrap() == 2 * shadow);
+    for key in ["frame_ms", "primary_ms", "context_ms", "shadow_ms", "ao_ms"] {
+        assert!(ao[key].as_f64().unwrap() >= 0.0, "{key}");
+    }
+    assert!(out.exists());
+    // --spp without --shading ao is a usage error.
+    let run = slimkd(&["render", "default", "--spp", "4"]);
+    assert_eq!(run.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("--shading ao"));
+}

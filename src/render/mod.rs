@@ -14,8 +14,10 @@
 //! `tmax = +∞`; `normalize` divides each component by
 //! `sqrt(x·x + y·y + z·z)`. `y = 0` is the top row.
 
+pub mod ao;
 mod image_out;
 
+pub use ao::{AoFrame, AoOptions, AoTimes, Secondary, shade_ao, trace_ao_frame};
 pub use image_out::{Frame, ImageError, write_depth_f32, write_exr, write_image, write_png};
 
 use crate::format::KdFile;
@@ -491,6 +493,12 @@ pub fn trace_frame_with_progress(
 pub trait TriangleNormals: Sync {
     /// The normal of input triangle `tri`.
     fn normal(&self, tri: u32) -> Vec3;
+}
+
+impl<T: TriangleNormals + ?Sized> TriangleNormals for &T {
+    fn normal(&self, tri: u32) -> Vec3 {
+        (**self).normal(tri)
+    }
 }
 
 impl TriangleNormals for TriangleColumns {

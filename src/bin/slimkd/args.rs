@@ -523,10 +523,22 @@ pub(crate) fn parse_bytes(s: &str) -> Result<u64, String> {
     Ok((n * (1u64 << shift) as f64) as u64)
 }
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub(crate) enum ShadingArg {
     EyeLight,
     Normals,
+    Ao,
+}
+
+/// How `render --shading ao` traces its shadow and AO rays.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum SecondaryArg {
+    /// One ray at a time from the root.
+    Single,
+    /// 16 rays at a time (packets with `--mode packet`).
+    Packet,
+    /// One ray at a time from the context of its hit point.
+    FromHit,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -583,9 +595,22 @@ pub(crate) struct RenderArgs {
     pub(crate) fov: Option<f64>,
     /// Image colours: `eye-light` (grey, lit from the eye by the cosine
     /// to the surface) or `normals` (the geometric normal facing the eye,
-    /// mapped from [-1, 1] to [0, 1] as RGB).
+    /// mapped from [-1, 1] to [0, 1] as RGB) or `ao` (a renderer's
+    /// frame: per hit a shadow ray to a point light near the eye and
+    /// --spp ambient-occlusion rays of 5 % of the scene's diagonal, the
+    /// rays of the Embree peer's `--make-rays`; the frame time is printed
+    /// by ray kind).
     #[arg(long, value_enum, default_value_t = ShadingArg::EyeLight)]
     pub(crate) shading: ShadingArg,
+    /// AO rays per hit pixel with `--shading ao` (default 4).
+    #[arg(long)]
+    pub(crate) spp: Option<u32>,
+    /// How `--shading ao` traces its shadow and AO rays: `packet` (the
+    /// default: 16 at a time, in packets with `--mode packet`), `single`
+    /// (one at a time from the root) or `from-hit` (one at a time from the
+    /// context of the hit point, one per pixel).
+    #[arg(long, value_enum)]
+    pub(crate) secondary: Option<SecondaryArg>,
     /// Traversal mode: 4×4 packets (the default, as the main job), single
     /// rays, or brute force (the reference).
     #[arg(long, value_enum, default_value_t = ModeArg::Packet)]

@@ -319,6 +319,60 @@ pub(crate) struct FrameJson {
     pub(crate) at: [f64; 3],
     pub(crate) up: [f64; 3],
     pub(crate) fov: f64,
+    /// `--shading ao`: the frame by ray kind.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) ao: Option<AoJson>,
+}
+
+/// `render --shading ao`: the frame's figures by ray kind, each the
+/// median over the reps.
+#[derive(Serialize)]
+pub(crate) struct AoJson {
+    pub(crate) spp: u32,
+    pub(crate) secondary: &'static str,
+    pub(crate) frame_ms: f64,
+    pub(crate) primary_ms: f64,
+    pub(crate) context_ms: f64,
+    pub(crate) shadow_ms: f64,
+    pub(crate) ao_ms: f64,
+    pub(crate) primary_rays: u64,
+    pub(crate) shadow_rays: u64,
+    pub(crate) ao_rays: u64,
+    pub(crate) shadowed: u64,
+    pub(crate) ao_occluded: u64,
+}
+
+impl AoJson {
+    /// The figures of the frames `reps` (at least one) traced with
+    /// `options`: times the median over them, counts the first's.
+    pub(crate) fn of(
+        options: &slimkd::render::AoOptions,
+        reps: &[slimkd::render::AoTimes],
+    ) -> AoJson {
+        use slimkd::render::{AoTimes, Secondary};
+        let med = |f: fn(&AoTimes) -> f64| {
+            1e3 * slimkd::pipeline::median(&reps.iter().map(f).collect::<Vec<_>>())
+        };
+        let t = reps[0];
+        AoJson {
+            spp: options.spp,
+            secondary: match options.secondary {
+                Secondary::Single => "single",
+                Secondary::Packet => "packet",
+                Secondary::FromHit => "from-hit",
+            },
+            frame_ms: med(AoTimes::frame_s),
+            primary_ms: med(|t| t.primary_s),
+            context_ms: med(|t| t.context_s),
+            shadow_ms: med(|t| t.shadow_s),
+            ao_ms: med(|t| t.ao_s),
+            primary_rays: t.primary_rays,
+            shadow_rays: t.shadow_rays,
+            ao_rays: t.ao_rays,
+            shadowed: t.shadowed,
+            ao_occluded: t.ao_occluded,
+        }
+    }
 }
 
 /// What `render` traced: a tree it built, or a file.

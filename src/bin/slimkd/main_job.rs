@@ -1,13 +1,15 @@
 //! `slimkd` without arguments: the std tree and the `small` and `fast` slim
 //! trees of the embedded scene, each written as a reordered `.kd` file into
 //! a temporary directory, mapped back and traced with packets from the same
-//! view; one table compares them, and the std frame goes to `slimkd.png`.
+//! view; one table compares them. The std tree then renders the frame a
+//! renderer would (primary rays, a shadow ray and AO rays per hit, the
+//! time by ray kind), and that picture goes to `slimkd.png`.
 
 use crate::*;
 use slimkd::build::BuildConfig;
 use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
 use slimkd::pipeline::{self, FiguresJson};
-use slimkd::render::{self, Camera, HitBuffer, Shading};
+use slimkd::render::{self, AoFrame, AoOptions, Camera, HitBuffer, Secondary};
 use slimkd::slim::{self, SlimParams};
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
@@ -20,6 +22,13 @@ const IMAGE: &str = "slimkd.png";
 /// Frames traced per tree (the median is reported).
 const REPS: usize = 3;
 const SIZE: (u32, u32) = (1024, 1024);
+/// The AO frame of the picture: 8 AO rays a hit (4 leave the picture
+/// grainy), shadow and AO rays in packets (the fastest way to trace them:
+/// `docs/perf-notes.md`, "Rays from a hit context").
+const AO: AoOptions = AoOptions {
+    spp: 8,
+    secondary: Secondary::Packet,
+};
 
 /// A directory of its own under the system temporary directory, removed
 /// when dropped (on success and on error).
@@ -56,6 +65,8 @@ struct MainJson {
     reps: usize,
     simd: &'static str,
     trees: Vec<MainTreeJson>,
+    /// The std tree's AO frame (the picture).
+    ao: AoJson,
     image: &'static str,
 }
 
@@ -80,6 +91,8 @@ struct Row {
     mrays: f64,
     frame: HitBuffer,
     write_s: f64,
+    /// The AO frame, of the tree that renders the picture.
+    ao: Option<AoFrame>,
 }
 
 /// Whether two frames hit the same triangles at the same distances, bit
@@ -115,6 +128,7 @@ fn write_and_trace(
     preset: Preset,
     params: Option<&SlimParams>,
     camera: &Camera,
+    ao: Option<&AoOptions>,
 ) -> Res<Row> {
     let path = dir.join(format!("{name}.kd"));
     let start = Instant::now();
@@ -137,8 +151,18 @@ fn write_and_trace(
         rates.push(buf.mrays_per_s());
         last = Some(buf);
     }
+    let ao = ao.map(|options| {
+        render::trace_ao_frame(
+            &tracer,
+            camera,
+            &file.bounds(),
+            |buf| render::FileNormals::new(&file, buf),
+            options,
+        )
+    });
     Ok(Row {
         name,
+        ao,
         figures: file.figures(),
         mrays: pipeline::median(&rates),
         frame: last.expect("REPS >= 1"),
@@ -206,6 +230,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         Preset::Std,
         None,
         &camera,
+        Some(&AO),
     )?];
     for (name, preset, params) in [
         ("small", Preset::Small, SlimParams::SMALL),
@@ -241,6 +266,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
             preset,
             Some(&params),
             &camera,
+            None,
         )?);
     }
     let n = loaded.scene.len().max(1) as f64;
@@ -290,8 +316,24 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
             );
         }
     }
-    let frame = render::shade(&rows[0].frame, &camera, &loaded.scene, Shading::EyeLight);
-    render::write_image(Path::new(IMAGE), &frame)?;
+    let ao = rows[0]
+        .ao
+        .as_ref()
+        .expect("the std row renders the AO frame");
+    let t = &ao.times;
+    say!(
+        "ao frame   std, {} AO rays a hit: {:.0} ms = primary {:.0} ({} rays) + shadow {:.0} ({} rays) + AO {:.0} ({} rays, {:.1} Mrays/s)",
+        AO.spp,
+        t.frame_s() * 1e3,
+        t.primary_s * 1e3,
+        t.primary_rays,
+        t.shadow_s * 1e3,
+        t.shadow_rays,
+        t.ao_s * 1e3,
+        t.ao_rays,
+        t.ao_rays as f64 / t.ao_s / 1e6
+    );
+    render::write_image(Path::new(IMAGE), &render::shade_ao(ao))?;
     say!("wrote      {IMAGE}");
     if ui.json {
         print_json(
@@ -322,6 +364,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
                         }
                     })
                     .collect(),
+                ao: AoJson::of(&AO, &[ao.times]),
                 image: IMAGE,
             },
         )?;

@@ -5,7 +5,9 @@ use crate::*;
 use slimkd::format::{self, Check, KdFile, Mapped};
 use slimkd::pipeline;
 use slimkd::progress::Progress;
-use slimkd::render::{self, Camera, HitBuffer, Shading, View};
+use slimkd::render::{
+    self, AoFrame, AoOptions, AoTimes, Camera, HitBuffer, Secondary, Shading, View,
+};
 use slimkd::scene::TriangleColumns;
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
@@ -133,6 +135,16 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
+    if args.shading != ShadingArg::Ao && (args.spp.is_some() || args.secondary.is_some()) {
+        return Err(Usage("--spp and --secondary need --shading ao".into()).into());
+    }
+    if let Some(spp) = args.spp {
+        // The rays are made before the clock starts: 32 bytes a ray, so
+        // 64 a pixel is 2 GiB at 1024x1024.
+        if !(1..=64).contains(&spp) {
+            return Err(Usage(format!("--spp {spp} is not in 1..=64")).into());
+        }
+    }
     if let Some(out) = &args.output {
         check_image_output(out)?;
     }
@@ -208,9 +220,43 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
         };
         let mut rates = Vec::new();
         let mut last: Option<HitBuffer> = None;
+        let mut ao_reps: Vec<AoTimes> = Vec::new();
+        let mut ao_light: Option<AoFrame> = None;
+        let ao_options = AoOptions {
+            spp: args.spp.unwrap_or(4),
+            secondary: match args.secondary.unwrap_or(SecondaryArg::Packet) {
+                SecondaryArg::Single => Secondary::Single,
+                SecondaryArg::Packet => Secondary::Packet,
+                SecondaryArg::FromHit => Secondary::FromHit,
+            },
+        };
         for rep in 0..args.reps {
             let progress = Progress::default();
             let rep_message = || format!("frame {} of {}", rep + 1, args.reps);
+            if args.shading == ShadingArg::Ao {
+                let frame = with_bar(ui.bars_off(), "rendering", &progress, &rep_message, || {
+                    Ok(match &source {
+                        Source::Built { loaded, .. } => render::trace_ao_frame(
+                            tracer.as_ref(),
+                            &camera,
+                            &bounds,
+                            |_| &loaded.scene,
+                            &ao_options,
+                        ),
+                        Source::File { file, .. } => render::trace_ao_frame(
+                            tracer.as_ref(),
+                            &camera,
+                            &bounds,
+                            |buf| render::FileNormals::new(file, buf),
+                            &ao_options,
+                        ),
+                    })
+                })?;
+                rates.push(frame.primary.mrays_per_s());
+                ao_reps.push(frame.times);
+                ao_light = Some(frame);
+                continue;
+            }
             let buf = with_bar(ui.bars_off(), "rendering", &progress, &rep_message, || {
                 Ok(render::trace_frame_with_progress(
                     tracer.as_ref(),
@@ -221,17 +267,27 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
             rates.push(buf.mrays_per_s());
             last = Some(buf);
         }
-        let buf = last.expect("reps >= 1");
-        let shading = match args.shading {
-            ShadingArg::EyeLight => Shading::EyeLight,
-            ShadingArg::Normals => Shading::Normals,
-        };
-        let frame = match &source {
-            Source::Built { loaded, .. } => render::shade(&buf, &camera, &loaded.scene, shading),
-            Source::File { file, .. } => {
-                render::shade(&buf, &camera, &render::FileNormals::new(file, &buf), shading)
+        let (buf, frame) = match ao_light {
+            Some(ao) => {
+                let frame = render::shade_ao(&ao);
+                (ao.primary, frame)
+            }
+            None => {
+                let buf = last.expect("reps >= 1");
+                let shading = match args.shading {
+                    ShadingArg::EyeLight | ShadingArg::Ao => Shading::EyeLight,
+                    ShadingArg::Normals => Shading::Normals,
+                };
+                let frame = match &source {
+                    Source::Built { loaded, .. } => render::shade(&buf, &camera, &loaded.scene, shading),
+                    Source::File { file, .. } => {
+                        render::shade(&buf, &camera, &render::FileNormals::new(file, &buf), shading)
+                    }
+                };
+                (buf, frame)
             }
         };
+        let ao = (!ao_reps.is_empty()).then(|| AoJson::of(&ao_options, &ao_reps));
         if let Some(out) = &args.output {
             render::write_image(out, &frame)?;
         }
@@ -277,6 +333,7 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
                         at: camera.at.to_array(),
                         up: camera.up.to_array(),
                         fov: camera.fov_deg,
+                        ao,
                     },
                 },
             )?;
@@ -300,6 +357,27 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
                 buf.n_hits(),
                 buf.checksum()
             );
+            if let Some(a) = &ao {
+                let rate = |n: u64, ms: f64| n as f64 / ms / 1e3;
+                println!(
+                    "ao frame   {:.1} ms (median of {}): primary {:.1} ms ({} rays, {:.2} Mrays/s), contexts {:.1} ms, shadow {:.1} ms ({} rays, {:.2} Mrays/s, {} shadowed), AO {:.1} ms ({} rays, {:.2} Mrays/s, {} occluded); secondary rays {}",
+                    a.frame_ms,
+                    args.reps,
+                    a.primary_ms,
+                    a.primary_rays,
+                    rate(a.primary_rays, a.primary_ms),
+                    a.context_ms,
+                    a.shadow_ms,
+                    a.shadow_rays,
+                    rate(a.shadow_rays, a.shadow_ms),
+                    a.shadowed,
+                    a.ao_ms,
+                    a.ao_rays,
+                    rate(a.ao_rays, a.ao_ms),
+                    a.ao_occluded,
+                    a.secondary
+                );
+            }
             if ui.verbose {
                 println!(
                     "camera     eye {},{},{} at {},{},{} up {},{},{} fov {}",

@@ -1,0 +1,398 @@
+//! A renderer's frame of ambient occlusion: what the library is for. The
+//! primary rays of a camera, then per hit a shadow ray to a point light
+//! and `spp` cosine-distributed AO rays, each any-hit, starting from the
+//! hit point; the frame time split by ray kind.
+//!
+//! The secondary rays are built as the Embree peer program's
+//! `--make-rays` builds its ray files (`../shared/peers/`), so that the
+//! frame compares kind by kind with Embree tracing those files: in `f64`,
+//! the hit point `p = o + t·d + ε·n` with `ε = 10⁻⁵` of the scene's
+//! diagonal and `n` the unit geometric normal facing the ray; the light
+//! at `eye + 0.05·diag·(right + up)`, the shadow ray ending `10⁻⁵` of its
+//! length short of it; AO rays of length `0.05·diag` about `n` (Duff et
+//! al. 2017's basis), their random numbers from splitmix64 seeded by
+//! `spp·pixel + k` (with `spp = 4`, the peer's rays exactly). Like the
+//! peer's files, the rays are made before the clock starts.
+
+use super::{Camera, Frame, HitBuffer, TriangleNormals, trace_frame};
+use crate::geom::{Aabb, Ray};
+use crate::trace::packet::LANES;
+use crate::trace::{ClosestHit, HitContext};
+use glam::{DVec3, Vec3};
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// How the secondary rays are traced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Secondary {
+    /// One ray at a time from the root.
+    Single,
+    /// 16 rays at a time through [`ClosestHit::occluded_n`] (a packet
+    /// tracer's packets).
+    Packet,
+    /// One ray at a time from the [`HitContext`] of the hit point, one
+    /// context for the pixel's shadow and AO rays (its location timed
+    /// apart).
+    FromHit,
+}
+
+/// The settings of an AO frame.
+#[derive(Clone, Copy, Debug)]
+pub struct AoOptions {
+    /// AO rays per hit pixel.
+    pub spp: u32,
+    /// How the shadow and AO rays are traced.
+    pub secondary: Secondary,
+}
+
+/// The figures of one AO frame: seconds of wall time by ray kind (the
+/// secondary pass's wall time split in proportion to its threads' time
+/// on each kind) and the rays traced.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct AoTimes {
+    /// Primary rays (one per pixel).
+    pub primary_s: f64,
+    /// Locating the hit points' contexts ([`Secondary::FromHit`] only).
+    pub context_s: f64,
+    /// Shadow rays.
+    pub shadow_s: f64,
+    /// AO rays.
+    pub ao_s: f64,
+    /// Primary rays traced.
+    pub primary_rays: u64,
+    /// Shadow rays traced.
+    pub shadow_rays: u64,
+    /// AO rays traced.
+    pub ao_rays: u64,
+    /// Shadow rays that found something before the light.
+    pub shadowed: u64,
+    /// AO rays that found something within their length.
+    pub ao_occluded: u64,
+}
+
+impl AoTimes {
+    /// The whole frame's seconds.
+    pub fn frame_s(&self) -> f64 {
+        self.primary_s + self.context_s + self.shadow_s + self.ao_s
+    }
+}
+
+/// A traced AO frame: the primary hits, per pixel the light it gets
+/// (`[0, 1]`, 0 where the primary ray missed) and the figures.
+pub struct AoFrame {
+    /// The primary hits.
+    pub primary: HitBuffer,
+    /// Per pixel, row-major: AO times the light's share.
+    pub light: Vec<f32>,
+    /// The figures.
+    pub times: AoTimes,
+}
+
+/// The secondary rays of one hit pixel.
+struct PixelRays {
+    pixel: u32,
+    /// The hit point, off the surface (every ray's origin).
+    origin: Vec3,
+    /// The shadow ray, if the point is not at the light.
+    shadow: Option<Ray>,
+    /// `spp` AO rays, from `ao[first..first + spp]`.
+    first: usize,
+    /// `n · l` toward the light (0 when facing away).
+    cos_light: f32,
+}
+
+fn splitmix64(s: &mut u64) -> u64 {
+    *s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *s;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+fn unit01(s: &mut u64) -> f64 {
+    (splitmix64(s) >> 11) as f64 * (1.0 / 9_007_199_254_740_992.0)
+}
+
+/// The secondary rays of every hit pixel (see the module docs), and the
+/// AO rays in one array, pixel after pixel.
+fn secondary_rays(
+    primary: &HitBuffer,
+    camera: &Camera,
+    bounds: &Aabb,
+    normals: &(impl TriangleNormals + ?Sized),
+    spp: u32,
+) -> (Vec<PixelRays>, Vec<Ray>) {
+    let (lo, hi) = (bounds.min.as_dvec3(), bounds.max.as_dvec3());
+    let diag = (hi - lo).length();
+    let (eps, radius) = (1e-5 * diag, 0.05 * diag);
+    let f = (camera.at - camera.eye).normalize();
+    let r = f.cross(camera.up).normalize();
+    let u = r.cross(f);
+    let light = camera.eye + 0.05 * diag * (r + u);
+    let width = primary.width;
+    let per_pixel: Vec<Option<(PixelRays, Vec<Ray>)>> = primary
+        .hits
+        .par_iter()
+        .enumerate()
+        .map(|(i, hit)| {
+            if !hit.is_hit() {
+                return None;
+            }
+            let ray = camera.ray(i as u32 % width, i as u32 / width);
+            let mut n = normals.normal(hit.tri.0).as_dvec3();
+            let len = n.length();
+            if len.is_nan() || len <= 0.0 {
+                return None;
+            }
+            let d = ray.dir.as_dvec3();
+            n /= if n.dot(d) > 0.0 { -len } else { len };
+            let p = ray.origin.as_dvec3() + f64::from(hit.t) * d + eps * n;
+            let origin = p.as_vec3();
+            let to_light = light - p;
+            let dist = to_light.length();
+            let shadow = (dist > 0.0).then(|| Ray {
+                origin,
+                dir: (to_light / dist).as_vec3(),
+                tmin: 0.0,
+                tmax: (dist * (1.0 - 1e-5)) as f32,
+            });
+            let cos_light = if dist > 0.0 {
+                n.dot(to_light / dist).max(0.0) as f32
+            } else {
+                0.0
+            };
+            // The orthonormal basis about n of Duff et al. (2017).
+            let sg = if n.z >= 0.0 { 1.0 } else { -1.0 };
+            let a = -1.0 / (sg + n.z);
+            let b = n.x * n.y * a;
+            let t1 = DVec3::new(1.0 + sg * n.x * n.x * a, sg * b, -sg * n.x);
+            let t2 = DVec3::new(b, sg + n.y * n.y * a, -n.y);
+            let ao = (0..spp)
+                .map(|k| {
+                    let mut st = u64::from(spp) * i as u64 + u64::from(k);
+                    let (u1, u2) = (unit01(&mut st), unit01(&mut st));
+                    let (rr, ph) = (u1.sqrt(), 2.0 * std::f64::consts::PI * u2);
+                    let lz = (1.0 - u1).max(0.0).sqrt();
+                    let w = rr * ph.cos() * t1 + rr * ph.sin() * t2 + lz * n;
+                    Ray {
+                        origin,
+                        dir: (w / w.length()).as_vec3(),
+                        tmin: 0.0,
+                        tmax: radius as f32,
+                    }
+                })
+                .collect();
+            Some((
+                PixelRays {
+                    pixel: i as u32,
+                    origin,
+                    shadow,
+                    first: 0,
+                    cos_light,
+                },
+                ao,
+            ))
+        })
+        .collect();
+    let mut pixels = Vec::new();
+    let mut ao = Vec::new();
+    for (mut px, rays) in per_pixel.into_iter().flatten() {
+        px.first = ao.len();
+        ao.extend(rays);
+        pixels.push(px);
+    }
+    (pixels, ao)
+}
+
+/// Hit pixels a worker takes at a time; each chunk's kinds are timed
+/// apart (a clock read per kind and chunk, not per ray).
+const CHUNK: usize = 64;
+
+/// What one chunk of pixels gives back.
+#[derive(Default)]
+struct ChunkOut {
+    context_s: f64,
+    shadow_s: f64,
+    ao_s: f64,
+    /// Per pixel of the chunk: shadowed, and AO rays that got out.
+    results: Vec<(bool, u32)>,
+}
+
+/// Traces an AO frame with `tracer` on the current rayon pool: the
+/// primary rays in 4×4 packets ([`trace_frame`]), then the secondary rays
+/// as `options` says. `bounds` is the scene's box (its diagonal sets the
+/// offsets and lengths); `normals` gives the normals of the triangles the
+/// primary rays hit (a file's [`FileNormals`](super::FileNormals) is made
+/// from the hits).
+pub fn trace_ao_frame<N: TriangleNormals>(
+    tracer: &dyn ClosestHit,
+    camera: &Camera,
+    bounds: &Aabb,
+    normals: impl FnOnce(&HitBuffer) -> N,
+    options: &AoOptions,
+) -> AoFrame {
+    let primary = trace_frame(tracer, camera);
+    let spp = options.spp as usize;
+    let normals = normals(&primary);
+    let (pixels, ao) = secondary_rays(&primary, camera, bounds, &normals, options.spp);
+    let start = Instant::now();
+    let chunks: Vec<ChunkOut> = pixels
+        .par_chunks(CHUNK)
+        .map_init(
+            || vec![HitContext::default(); CHUNK],
+            |contexts, chunk| trace_chunk(tracer, options.secondary, chunk, &ao, spp, contexts),
+        )
+        .collect();
+    let secondary_s = start.elapsed().as_secs_f64();
+    let thread_s: f64 = chunks
+        .iter()
+        .map(|c| c.context_s + c.shadow_s + c.ao_s)
+        .sum();
+    let share = |f: fn(&ChunkOut) -> f64| {
+        if thread_s > 0.0 {
+            secondary_s * chunks.iter().map(f).sum::<f64>() / thread_s
+        } else {
+            0.0
+        }
+    };
+    let mut light = vec![0f32; primary.hits.len()];
+    let (mut shadowed, mut ao_occluded) = (0u64, 0u64);
+    for (px, &(dark, open)) in pixels.iter().zip(chunks.iter().flat_map(|c| &c.results)) {
+        shadowed += u64::from(dark);
+        ao_occluded += u64::from(options.spp - open);
+        let ambient = if spp > 0 {
+            open as f32 / spp as f32
+        } else {
+            1.0
+        };
+        let direct = if dark { 0.0 } else { px.cos_light };
+        light[px.pixel as usize] = ambient * (0.3 + 0.7 * direct);
+    }
+    let times = AoTimes {
+        primary_s: primary.seconds,
+        context_s: share(|c| c.context_s),
+        shadow_s: share(|c| c.shadow_s),
+        ao_s: share(|c| c.ao_s),
+        primary_rays: primary.hits.len() as u64,
+        shadow_rays: pixels.iter().filter(|p| p.shadow.is_some()).count() as u64,
+        ao_rays: ao.len() as u64,
+        shadowed,
+        ao_occluded,
+    };
+    AoFrame {
+        primary,
+        light,
+        times,
+    }
+}
+
+/// One chunk of pixels: contexts, shadow rays, AO rays, each kind timed.
+fn trace_chunk(
+    tracer: &dyn ClosestHit,
+    mode: Secondary,
+    chunk: &[PixelRays],
+    ao: &[Ray],
+    spp: usize,
+    contexts: &mut [HitContext],
+) -> ChunkOut {
+    let mut out = ChunkOut {
+        results: vec![(false, 0); chunk.len()],
+        ..ChunkOut::default()
+    };
+    let t0 = Instant::now();
+    if mode == Secondary::FromHit {
+        for (px, ctx) in chunk.iter().zip(contexts.iter_mut()) {
+            tracer.locate_into(px.origin, ctx);
+        }
+    }
+    let t1 = Instant::now();
+    match mode {
+        Secondary::Single => {
+            for (px, res) in chunk.iter().zip(out.results.iter_mut()) {
+                res.0 = px.shadow.is_some_and(|r| tracer.occluded(&r));
+            }
+        }
+        Secondary::FromHit => {
+            for ((px, res), ctx) in chunk
+                .iter()
+                .zip(out.results.iter_mut())
+                .zip(contexts.iter())
+            {
+                res.0 = px.shadow.is_some_and(|r| tracer.occluded_from(ctx, &r));
+            }
+        }
+        Secondary::Packet => {
+            let rays: Vec<(usize, Ray)> = chunk
+                .iter()
+                .enumerate()
+                .filter_map(|(i, px)| px.shadow.map(|r| (i, r)))
+                .collect();
+            for group in rays.chunks(LANES) {
+                let batch: Vec<Ray> = group.iter().map(|&(_, r)| r).collect();
+                let mut occ = [false; LANES];
+                tracer.occluded_n(&batch, &mut occ[..batch.len()]);
+                for (&(i, _), o) in group.iter().zip(occ) {
+                    out.results[i].0 = o;
+                }
+            }
+        }
+    }
+    let t2 = Instant::now();
+    match mode {
+        Secondary::Single | Secondary::FromHit => {
+            for (i, (px, res)) in chunk.iter().zip(out.results.iter_mut()).enumerate() {
+                let rays = &ao[px.first..px.first + spp];
+                res.1 = if mode == Secondary::FromHit {
+                    let ctx = &contexts[i];
+                    rays.iter()
+                        .filter(|r| !tracer.occluded_from(ctx, r))
+                        .count() as u32
+                } else {
+                    rays.iter().filter(|r| !tracer.occluded(r)).count() as u32
+                };
+            }
+        }
+        Secondary::Packet => {
+            // The chunk's AO rays lie together in `ao`, pixel after pixel.
+            let (first, last) = match (chunk.first(), chunk.last()) {
+                (Some(a), Some(b)) => (a.first, b.first + spp),
+                _ => (0, 0),
+            };
+            let mut open = vec![0u32; chunk.len()];
+            for (g, group) in ao[first..last].chunks(LANES).enumerate() {
+                let mut occ = [false; LANES];
+                tracer.occluded_n(group, &mut occ[..group.len()]);
+                for (j, o) in occ[..group.len()].iter().enumerate() {
+                    open[(g * LANES + j) / spp.max(1)] += u32::from(!o);
+                }
+            }
+            for (res, o) in out.results.iter_mut().zip(open) {
+                res.1 = o;
+            }
+        }
+    }
+    let t3 = Instant::now();
+    out.context_s = (t1 - t0).as_secs_f64();
+    out.shadow_s = (t2 - t1).as_secs_f64();
+    out.ao_s = (t3 - t2).as_secs_f64();
+    out
+}
+
+/// The frame's picture: grey, the light each pixel gets, a dark blue
+/// background.
+pub fn shade_ao(frame: &AoFrame) -> Frame {
+    let background = [0.05f32, 0.05, 0.08];
+    let rgb = frame
+        .primary
+        .hits
+        .iter()
+        .zip(&frame.light)
+        .map(|(h, &l)| if h.is_hit() { [l, l, l] } else { background })
+        .collect();
+    Frame {
+        width: frame.primary.width,
+        height: frame.primary.height,
+        rgb,
+        depth: frame.primary.depth(),
+    }
+}
