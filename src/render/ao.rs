@@ -359,11 +359,28 @@ fn trace_chunk(
                 _ => (0, 0),
             };
             let mut open = vec![0u32; chunk.len()];
-            for (g, group) in ao[first..last].chunks(LANES).enumerate() {
+            let rays = &ao[first..last];
+            // Packets of one octant: the chunk's AO rays sorted by their
+            // direction's signs (stable, so neighbouring pixels stay
+            // together), so that a packet's lanes take each split's
+            // children in one order (ravenbridge AO rays: 2.41 → 2.75
+            // Mrays/s, dieselpower 12.1 → 12.8; the sort is timed).
+            let octant = |r: &Ray| {
+                usize::from(r.dir.x < 0.0)
+                    | usize::from(r.dir.y < 0.0) << 1
+                    | usize::from(r.dir.z < 0.0) << 2
+            };
+            let mut order: Vec<u32> = (0..rays.len() as u32).collect();
+            order.sort_by_key(|&i| octant(&rays[i as usize]));
+            let mut batch = [Ray::new(Vec3::ZERO, Vec3::X); LANES];
+            for group in order.chunks(LANES) {
+                for (b, &i) in batch.iter_mut().zip(group) {
+                    *b = rays[i as usize];
+                }
                 let mut occ = [false; LANES];
-                tracer.occluded_n(group, &mut occ[..group.len()]);
-                for (j, o) in occ[..group.len()].iter().enumerate() {
-                    open[(g * LANES + j) / spp.max(1)] += u32::from(!o);
+                tracer.occluded_n(&batch[..group.len()], &mut occ[..group.len()]);
+                for (&i, o) in group.iter().zip(occ) {
+                    open[i as usize / spp.max(1)] += u32::from(!o);
                 }
             }
             for (res, o) in out.results.iter_mut().zip(open) {
