@@ -27,7 +27,8 @@ pub struct TraceArgs {
     /// rays, or single rays walked `from-hit`: from the context of their
     /// origin (located once for a run of rays with the same origin, as
     /// the shadow and AO rays of one hit point are; the location is
-    /// timed).
+    /// timed), or any-hit queries as a `stream` of 256 rays at a time
+    /// (--occluded only).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).
@@ -50,6 +51,7 @@ pub enum TraceMode {
     Single,
     Packet,
     FromHit,
+    Stream,
 }
 
 /// `slimkd trace --json`.
@@ -95,12 +97,17 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
         Query::Closest
     };
     let packets = args.mode == TraceMode::Packet;
+    if args.mode == TraceMode::Stream && !args.occluded {
+        return Err(crate::Usage("--mode stream answers --occluded queries only".into()).into());
+    }
+    let stream = rays::STREAM;
     let scalar = Scalar::new(&file);
     let packet = PacketTracer::new(&file);
     let tracer: &dyn ClosestHit = if packets { &packet } else { &scalar };
     let (rates, last) = pool.install(|| {
         let batch = || match args.mode {
             TraceMode::FromHit => rays::trace_batch_from_hit(tracer, &rays, query),
+            TraceMode::Stream => rays::trace_batch_stream(&file, &rays, stream),
             _ => rays::trace_batch(tracer, &rays, query, packets),
         };
         let mut last = batch();
@@ -159,6 +166,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
         TraceMode::Single => "single",
         TraceMode::Packet => "packet",
         TraceMode::FromHit => "from-hit",
+        TraceMode::Stream => "stream",
     };
     let query_name = if args.occluded { "occluded" } else { "closest" };
     let threads = pool.current_num_threads();
