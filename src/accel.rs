@@ -31,7 +31,7 @@ use crate::geom::{Aabb, Ray, RayPrecomp};
 use crate::scene::{InvalidColumns, TriangleColumns};
 use crate::slim::{self, HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
-use crate::trace::{ClosestHit, FileWalk, Hit, Scalar, Walk};
+use crate::trace::{ClosestHit, FileWalk, Hit, HitContext, Scalar, Walk};
 use glam::Vec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -502,6 +502,40 @@ impl AccelTracer<'_> {
     /// [`Accel::occluded`].
     pub fn occluded(&self, ray: &Ray) -> bool {
         Scalar::new(&self.walk).occluded(ray)
+    }
+
+    /// [`Accel::intersect`], and the [`HitContext`] of the hit point
+    /// (`origin + t · dir`), from which the rays that leave it (shadow, AO,
+    /// reflection) can start: [`AccelTracer::occluded_from`],
+    /// [`AccelTracer::intersect_from`].
+    pub fn intersect_with_context(&self, ray: &Ray) -> Option<(HitRecord, HitContext)> {
+        let scalar = Scalar::new(&self.walk);
+        let hit = scalar.closest_hit(ray);
+        let record = self.record(ray, hit)?;
+        let mut ctx = HitContext::default();
+        scalar.locate_into(ray.origin + ray.dir * hit.t, &mut ctx);
+        Some((record, ctx))
+    }
+
+    /// The [`HitContext`] of the cell holding `point`.
+    pub fn locate(&self, point: Vec3) -> HitContext {
+        let mut ctx = HitContext::default();
+        Scalar::new(&self.walk).locate_into(point, &mut ctx);
+        ctx
+    }
+
+    /// [`AccelTracer::intersect`] walked from `ctx`: the same record for
+    /// any ray, less work for one that starts near the context's point (a
+    /// context of another accel walks from the root).
+    pub fn intersect_from(&self, ctx: &HitContext, ray: &Ray) -> Option<HitRecord> {
+        let hit = Scalar::new(&self.walk).closest_hit_from(ctx, ray);
+        self.record(ray, hit)
+    }
+
+    /// [`AccelTracer::occluded`] walked from `ctx`: the same answer for any
+    /// ray.
+    pub fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
+        Scalar::new(&self.walk).occluded_from(ctx, ray)
     }
 
     /// [`Accel::intersect_packet`].

@@ -103,6 +103,59 @@ fn assert_tracer_matches(accel: &Accel, rays: &[Ray]) {
         assert_eq!(tracer.intersect(ray), accel.intersect(ray), "ray {i}");
         assert_eq!(tracer.occluded(ray), accel.occluded(ray), "ray {i}");
     }
+    // Rays from a hit's context: the records of the root walk, for the
+    // rays that leave the hit point (short and long, every octant) and
+    // for unrelated rays.
+    let mut from_hits = 0;
+    for (i, ray) in rays.iter().enumerate() {
+        let with = tracer.intersect_with_context(ray);
+        assert_eq!(
+            with.as_ref().map(|(h, _)| *h),
+            tracer.intersect(ray),
+            "ray {i}"
+        );
+        let Some((hit, ctx)) = with else {
+            continue;
+        };
+        from_hits += 1;
+        let n = hit.ng.normalize();
+        let n = if n.dot(ray.dir) > 0.0 { -n } else { n };
+        let p = ray.origin + ray.dir * hit.t + n * 1e-3;
+        for k in 0..8 {
+            let d = Vec3::new(
+                if k & 1 == 0 { 1.0 } else { -1.0 },
+                if k & 2 == 0 { 0.5 } else { -0.5 },
+                if k & 4 == 0 { 0.25 } else { -0.75 },
+            );
+            let r = Ray {
+                tmax: if k % 3 == 0 {
+                    f32::INFINITY
+                } else {
+                    2.0 * k as f32
+                },
+                ..Ray::new(p, d + n)
+            };
+            assert_eq!(
+                tracer.intersect_from(&ctx, &r),
+                tracer.intersect(&r),
+                "ray {i}.{k}"
+            );
+            assert_eq!(
+                tracer.occluded_from(&ctx, &r),
+                tracer.occluded(&r),
+                "ray {i}.{k}"
+            );
+        }
+        let other = &rays[(i + 1) % rays.len()];
+        assert_eq!(tracer.intersect_from(&ctx, other), tracer.intersect(other));
+        assert_eq!(tracer.occluded_from(&ctx, other), tracer.occluded(other));
+        let located = tracer.locate(p);
+        assert_eq!(
+            tracer.occluded_from(&located, other),
+            tracer.occluded(other)
+        );
+    }
+    assert!(from_hits > 20, "{from_hits} hits");
     for chunk in rays.chunks(16) {
         let packet = RayPacket::from_rays(chunk);
         for mask in [0xFFFFu16, 0x0001, 0x8421, 0x7FFE, 0] {
