@@ -591,15 +591,28 @@ fn a_build_out_of_memory_is_an_error() {
             .output()
             .unwrap();
         let err = String::from_utf8_lossy(&run.stderr);
+        let clean_error = err.contains("slimkd: error: ") && err.contains("memory");
+        // Where the limit falls on a thread's start-up, the Rust runtime of
+        // a thread starting beside the one that ran out can fail to map its
+        // signal stack and panic (or abort) on its own, after slimkd's
+        // error is out and while the process ends: accepted only then, and
+        // only that panic.
+        let runtime_start_race =
+            clean_error && err.contains("failed to allocate an alternative stack");
         match run.status.code() {
             Some(0) => assert!(out.exists(), "{kib} KiB"),
-            Some(1) => assert!(
-                err.contains("slimkd: error: ") && err.contains("memory"),
-                "{kib} KiB: {err}"
-            ),
+            Some(1) => assert!(clean_error, "{kib} KiB: {err}"),
+            _ if runtime_start_race => {}
             other => panic!("{kib} KiB: status {other:?} ({})\n{err}", run.status),
         }
-        assert!(!err.contains("panicked"), "{kib} KiB: {err}");
+        let panics = err.matches("panicked").count();
+        let runtime_panics = err
+            .matches("failed to allocate an alternative stack")
+            .count();
+        assert!(
+            panics == 0 || (runtime_start_race && panics == runtime_panics),
+            "{kib} KiB: {err}"
+        );
         if kib == 400000 {
             assert_eq!(run.status.code(), Some(0), "{err}");
         }
