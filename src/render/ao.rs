@@ -36,6 +36,17 @@ pub enum Secondary {
     FromHit,
 }
 
+impl Secondary {
+    /// The mode's name, as the CLI spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Secondary::Single => "single",
+            Secondary::Packet => "packet",
+            Secondary::FromHit => "from-hit",
+        }
+    }
+}
+
 /// The settings of an AO frame.
 #[derive(Clone, Copy, Debug)]
 pub struct AoOptions {
@@ -254,7 +265,14 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     let chunks: Vec<ChunkOut> = pixels
         .par_chunks(CHUNK)
         .map_init(
-            || vec![HitContext::default(); CHUNK],
+            || {
+                let n = if options.secondary == Secondary::FromHit {
+                    CHUNK
+                } else {
+                    0
+                };
+                vec![HitContext::default(); n]
+            },
             |contexts, chunk| trace_chunk(tracer, options.secondary, chunk, &ao, spp, contexts),
         )
         .collect();

@@ -26,10 +26,10 @@
 //! a stale context costs speed, never a wrong hit.
 
 use super::{
-    Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, SourceNode, TraceStats, Walk, clip_ray,
-    max_num, min_num, test_one, walk_pending, walk_ray,
+    Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, RayStart, SourceNode, TraceStats, Walk,
+    max_num, min_num, ray_start, test_one, walk_pending, walk_ray,
 };
-use crate::geom::{Ray, RayPrecomp};
+use crate::geom::Ray;
 use glam::Vec3;
 use std::mem::MaybeUninit;
 
@@ -88,11 +88,6 @@ impl Default for HitContext {
 }
 
 impl HitContext {
-    /// The depth of the located cell (inner nodes on its path).
-    pub fn depth(&self) -> usize {
-        self.len
-    }
-
     /// Whether the context was made in the tree `walk` views.
     pub fn belongs_to<'a, W: Walk<'a>>(&self, walk: &W) -> bool {
         self.tag != (0, 0) && self.tag == walk.tag()
@@ -173,14 +168,15 @@ pub(crate) fn walk_from<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     if !ctx.belongs_to(&src) {
         return walk_ray::<W, ANY, COUNT>(src, ray, stats);
     }
-    if COUNT {
-        stats.rays += 1;
-    }
-    let inv_dir = Vec3::ONE / ray.dir;
-    let Some((t0, t1)) = clip_ray(&src.bounds(), ray, inv_dir) else {
+    let Some(RayStart {
+        inv_dir,
+        t0,
+        t1,
+        rp,
+    }) = ray_start::<W, COUNT>(src, ray, stats)
+    else {
         return Hit::MISS;
     };
-    let rp = RayPrecomp::new(ray);
     let mut steps_left = u64::from(src.step_limit());
     let mut best = Hit::MISS;
     // Hoisted triangles apply to their node's whole subtree, and every

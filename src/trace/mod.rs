@@ -575,6 +575,36 @@ fn test_one<'a, W: Walk<'a>, const ANY: bool>(
     false
 }
 
+/// What every walk of a ray starts from: its inverse direction, its
+/// interval in the root cell and the watertight test's constants.
+pub(crate) struct RayStart {
+    pub(crate) inv_dir: Vec3,
+    pub(crate) t0: f32,
+    pub(crate) t1: f32,
+    pub(crate) rp: RayPrecomp,
+}
+
+/// The [`RayStart`] of `ray` in `src`, counted as a ray under `COUNT`;
+/// `None` when it misses the root cell.
+#[inline(always)]
+pub(crate) fn ray_start<'a, W: Walk<'a>, const COUNT: bool>(
+    src: W,
+    ray: &Ray,
+    stats: &mut TraceStats,
+) -> Option<RayStart> {
+    if COUNT {
+        stats.rays += 1;
+    }
+    let inv_dir = Vec3::ONE / ray.dir;
+    let (t0, t1) = clip_ray(&src.bounds(), ray, inv_dir)?;
+    Some(RayStart {
+        inv_dir,
+        t0,
+        t1,
+        rp: RayPrecomp::new(ray),
+    })
+}
+
 /// One ray, front to back, with a fixed-size stack of pending cells.
 /// `ANY`: stop at the first hit in `(tmin, tmax)`; `COUNT`: add the work
 /// to `stats`.
@@ -584,14 +614,15 @@ pub(crate) fn walk_ray<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     ray: &Ray,
     stats: &mut TraceStats,
 ) -> Hit {
-    if COUNT {
-        stats.rays += 1;
-    }
-    let inv_dir = Vec3::ONE / ray.dir;
-    let Some((t0, t1)) = clip_ray(&src.bounds(), ray, inv_dir) else {
+    let Some(RayStart {
+        inv_dir,
+        t0,
+        t1,
+        rp,
+    }) = ray_start::<W, COUNT>(src, ray, stats)
+    else {
         return Hit::MISS;
     };
-    let rp = RayPrecomp::new(ray);
     let mut steps_left = u64::from(src.step_limit());
     let start = (0, t0, t1);
     walk_cells::<W, ANY, COUNT>(

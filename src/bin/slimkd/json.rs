@@ -349,18 +349,14 @@ impl AoJson {
         options: &slimkd::render::AoOptions,
         reps: &[slimkd::render::AoTimes],
     ) -> AoJson {
-        use slimkd::render::{AoTimes, Secondary};
+        use slimkd::render::AoTimes;
         let med = |f: fn(&AoTimes) -> f64| {
             1e3 * slimkd::pipeline::median(&reps.iter().map(f).collect::<Vec<_>>())
         };
         let t = reps[0];
         AoJson {
             spp: options.spp,
-            secondary: match options.secondary {
-                Secondary::Single => "single",
-                Secondary::Packet => "packet",
-                Secondary::FromHit => "from-hit",
-            },
+            secondary: options.secondary.name(),
             frame_ms: med(AoTimes::frame_s),
             primary_ms: med(|t| t.primary_s),
             context_ms: med(|t| t.context_s),

@@ -100,14 +100,13 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
     if args.mode == TraceMode::Stream && !args.occluded {
         return Err(crate::Usage("--mode stream answers --occluded queries only".into()).into());
     }
-    let stream = rays::STREAM;
     let scalar = Scalar::new(&file);
     let packet = PacketTracer::new(&file);
     let tracer: &dyn ClosestHit = if packets { &packet } else { &scalar };
     let (rates, last) = pool.install(|| {
         let batch = || match args.mode {
             TraceMode::FromHit => rays::trace_batch_from_hit(tracer, &rays, query),
-            TraceMode::Stream => rays::trace_batch_stream(&file, &rays, stream),
+            TraceMode::Stream => rays::trace_batch_stream(&file, &rays, rays::STREAM),
             _ => rays::trace_batch(tracer, &rays, query, packets),
         };
         let mut last = batch();
