@@ -539,7 +539,7 @@ fn a_fifo_is_refused_at_once() {
         let fifo = dir.join(name);
         let made = Command::new("mkfifo").arg(&fifo).status();
         if !made.is_ok_and(|s| s.success()) {
-            eprintln!("skipped: mkfifo is not available");
+            common::skip("mkfifo is not available");
             return;
         }
         let f = fifo.to_str().unwrap();
@@ -574,7 +574,7 @@ fn a_fifo_is_refused_at_once() {
 fn a_build_out_of_memory_is_an_error() {
     let probe = Command::new("sh").args(["-c", "ulimit -v 100000"]).status();
     if !probe.is_ok_and(|s| s.success()) {
-        eprintln!("skipped: this shell has no ulimit -v");
+        common::skip("this shell has no ulimit -v");
         return;
     }
     let dir = fresh_temp_dir("ulimit");
@@ -629,7 +629,7 @@ fn a_build_out_of_memory_is_an_error() {
 fn a_kill_at_the_rename_leaves_nothing_lasting() {
     let probe = Command::new("strace").arg("-V").output();
     if !probe.is_ok_and(|o| o.status.success()) {
-        eprintln!("skipped: strace is not installed");
+        common::skip("strace is not installed");
         return;
     }
     let dir = fresh_temp_dir("kill-at-rename");
@@ -649,7 +649,7 @@ fn a_kill_at_the_rename_leaves_nothing_lasting() {
     assert!(!killed.status.success());
     let left = common::dir_entries(&dir);
     if left.is_empty() {
-        eprintln!("skipped: strace could not inject the kill here");
+        common::skip("strace could not inject the kill here");
         return;
     }
     assert_eq!(left.len(), 1, "{left:?}");

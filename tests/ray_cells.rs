@@ -48,10 +48,10 @@ fn the_ray_driver_writes_the_file_of_build_o() {
         .output()
         .is_ok_and(|o| o.status.success());
     if !has_ray {
-        println!(
-            "skipped: `import ray` fails with {} (pip install ray, or set SLIMKD_PYTHON)",
+        skip(&format!(
+            "`import ray` fails with {} (pip install ray, or set SLIMKD_PYTHON)",
             py.display()
-        );
+        ));
         return;
     }
     let dir = fresh_temp_dir("ray");

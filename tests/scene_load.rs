@@ -1271,7 +1271,7 @@ fn error_reading_a_fifo() {
     let _ = std::fs::remove_file(&fifo);
     let made = std::process::Command::new("mkfifo").arg(&fifo).status();
     if !made.is_ok_and(|s| s.success()) {
-        eprintln!("skipped: mkfifo is not available");
+        common::skip("mkfifo is not available");
         return;
     }
     let err = load_obj(&fifo).unwrap_err();

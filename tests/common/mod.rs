@@ -328,3 +328,22 @@ pub fn json(out: &std::process::Output) -> serde_json::Value {
     );
     serde_json::from_slice(&out.stdout).expect("one JSON object")
 }
+
+/// Says that the calling test cannot run on this machine, and why, where
+/// `cargo test` shows it: on the process's standard error, which the test
+/// harness does not capture (it captures `println!` and `eprintln!`).
+/// Where `SLIMKD_REQUIRE_TOOLS` is set the test fails instead: `.ci/run`
+/// installs every tool the tests need and sets it, so nothing skips there.
+/// The caller returns after it.
+pub fn skip(reason: &str) {
+    use std::io::Write;
+    let test = std::thread::current()
+        .name()
+        .unwrap_or("a test")
+        .to_string();
+    assert!(
+        std::env::var_os("SLIMKD_REQUIRE_TOOLS").is_none(),
+        "{test} cannot run here: {reason} (SLIMKD_REQUIRE_TOOLS is set)"
+    );
+    let _ = writeln!(std::io::stderr(), "skipped {test}: {reason}");
+}
