@@ -1,4 +1,4 @@
-//! The sweep builder (Wald & Havran 2006) builds the same tree as the naive
+//! The Wald-Havran builder (Wald & Havran 2006) builds the same tree as the naive
 //! O(N²) reference, on random grid-snapped scenes where planar, coincident
 //! and flat cases are common.
 

@@ -14,7 +14,7 @@ use proptest::prelude::*;
 use slimkd::build::BuildError;
 use slimkd::build::level::{self, LevelOptions, LevelReport, NewEvents};
 use slimkd::build::sah::SahParams;
-use slimkd::build::{self as b, BuildConfig, Builder};
+use slimkd::build::{self as b, Algorithm, BuildConfig};
 use slimkd::format::{WriteOptions, write_to_vec};
 use slimkd::scene::TriangleColumns;
 use slimkd::tree::TreeIr;
@@ -252,7 +252,7 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
     let config = BuildConfig::default();
-    let want = b::build(&scene, &config, Builder::Sweep, None).unwrap();
+    let want = b::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
     want.validate(&scene).unwrap();
     let dir = fresh_temp_dir("nexuiz");
     for (t, budget) in [

@@ -1,5 +1,5 @@
 //! The one surface-area heuristic every builder calls (Wald & Havran 2006,
-//! §3), with the one tie-break, so that the naive, sweep and level builders
+//! §3), with the one tie-break, so that the naive, Wald-Havran and level builders
 //! can be asserted to produce the *same* tree.
 //!
 //! Cost of splitting cell `V` at plane `p` into `V_L`, `V_R` with `N_L`,

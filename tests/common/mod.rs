@@ -9,7 +9,7 @@ pub mod kd;
 use glam::Vec3;
 use proptest::prelude::*;
 use slimkd::build::level::LevelOptions;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
@@ -60,8 +60,8 @@ pub fn columns(tris: &[[Vec3; 3]]) -> TriangleColumns {
 /// preset (a valid tree too) and writes both trees to `.kd` bytes that
 /// read back, verify and hold the tree's nodes. Returns the standard tree.
 pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
-    let sweep = build::build(scene, config, Builder::Sweep, None).unwrap();
-    let naive = build::build(scene, config, Builder::Naive, None).unwrap();
+    let sweep = build::build(scene, config, Algorithm::WaldHavran, None).unwrap();
+    let naive = build::build(scene, config, Algorithm::Naive, None).unwrap();
     assert_eq!(sweep, naive, "sweep and naive trees differ");
     if let Err(e) = sweep.validate(scene) {
         panic!("invalid tree: {e}\n{sweep:?}");

@@ -8,9 +8,9 @@
 //! classification the level passes and the depth-first finisher share, so
 //! they cannot classify differently.
 
-use super::events::{Box6, n_events, to_aabb, to_box};
+use super::events::{PackedBox, n_events, to_aabb, to_box};
 use super::pieces::{Piece, carries};
-use super::{LNode, Level};
+use super::{Level, LevelNode};
 use crate::build::sah::Split;
 use crate::build::{Placement, TriRef, classify, clip_straddler};
 use crate::columns::ScatterSlice;
@@ -86,7 +86,7 @@ type ChildBoxes = (Option<Aabb>, Option<Aabb>);
 pub(super) fn classify_ref(
     scene: &TriangleColumns,
     tri: u32,
-    b: &Box6,
+    b: &PackedBox,
     split: &Split,
     lc: &Aabb,
     rc: &Aabb,
@@ -165,7 +165,7 @@ pub(super) fn classify_pass(
 ) -> Vec<Classified> {
     let place = ScatterSlice::new(place);
     // Sliced once: a column's `Deref` matches on where it lives.
-    let (tris, bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
+    let (tris, bounds): (&[u32], &[PackedBox]) = (&l.tri, &l.bounds);
     rpieces
         .par_iter()
         .map(|p| {
@@ -223,16 +223,16 @@ pub(super) fn write_children(
     rpieces: &[Piece],
     classified: &[Classified],
     rcarry: &[SideCounts],
-    next: &[LNode],
+    next: &[LevelNode],
     tri: &mut [u32],
-    boxes: &mut [Box6],
+    boxes: &mut [PackedBox],
     new_idx: &mut [u32],
 ) -> Vec<u64> {
     let tri = ScatterSlice::new(tri);
     let boxes = ScatterSlice::new(boxes);
     let new_idx = ScatterSlice::new(new_idx);
     // Sliced once: a column's `Deref` matches on where it lives.
-    let (l_tri, l_bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
+    let (l_tri, l_bounds): (&[u32], &[PackedBox]) = (&l.tri, &l.bounds);
     let copies: Vec<Vec<u64>> = rpieces
         .par_iter()
         .zip(classified.par_iter())

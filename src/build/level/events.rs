@@ -1,5 +1,5 @@
 //! The level builder's event encoding: one `u64` per event, whose integer
-//! order is the sweep order of [`crate::build::sweep::Event::cmp_order`].
+//! order is the sweep order of [`crate::build::wald_havran::Event::cmp_order`].
 //!
 //! | bits  | field |
 //! |-------|-------|
@@ -25,9 +25,9 @@
 
 use super::classify::{DROPPED, SLOT};
 use super::pieces::{PIECE, Pair, Piece, carries, pieces};
-use super::{LNode, Level, NewEvents};
+use super::{Level, LevelNode, NewEvents};
 use crate::build::sah::Split;
-use crate::build::sweep::EventKind;
+use crate::build::wald_havran::EventKind;
 use crate::columns::{Column, ScatterSlice};
 use crate::geom::Aabb;
 use glam::Vec3;
@@ -39,15 +39,15 @@ pub const REF_MASK: u64 = (1 << 30) - 1;
 
 /// A reference's box: `min` x, y, z then `max` x, y, z (a `Pod` column
 /// element; `Aabb` itself is not `Pod`).
-pub type Box6 = [f32; 6];
+pub type PackedBox = [f32; 6];
 
 #[inline]
-pub fn to_box(b: &Aabb) -> Box6 {
+pub fn to_box(b: &Aabb) -> PackedBox {
     [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
 }
 
 #[inline]
-pub fn to_aabb(b: &Box6) -> Aabb {
+pub fn to_aabb(b: &PackedBox) -> Aabb {
     Aabb::new(Vec3::new(b[0], b[1], b[2]), Vec3::new(b[3], b[4], b[5]))
 }
 
@@ -108,13 +108,13 @@ pub fn kind_of(e: u64) -> EventKind {
 /// How many events a box has on `axis`: one planar event when it is flat
 /// there, else a start and an end.
 #[inline]
-pub fn n_events(b: &Box6, axis: usize) -> usize {
+pub fn n_events(b: &PackedBox, axis: usize) -> usize {
     if b[axis] == b[axis + 3] { 1 } else { 2 }
 }
 
 /// Appends the events of reference `r` with box `b` on `axis`.
 #[inline]
-pub fn push_events(b: &Box6, axis: usize, r: u32, out: &mut Vec<u64>) {
+pub fn push_events(b: &PackedBox, axis: usize, r: u32, out: &mut Vec<u64>) {
     let (ev, n) = events_of(b, axis, r);
     out.push(ev[0]);
     if n == 2 {
@@ -126,7 +126,7 @@ pub fn push_events(b: &Box6, axis: usize, r: u32, out: &mut Vec<u64>) {
 /// first `n` of the array ([`n_events`]), a planar event when the box is
 /// flat there, else a start and an end.
 #[inline]
-pub fn events_of(b: &Box6, axis: usize, r: u32) -> ([u64; 2], usize) {
+pub fn events_of(b: &PackedBox, axis: usize, r: u32) -> ([u64; 2], usize) {
     let (lo, hi) = (b[axis], b[axis + 3]);
     if lo == hi {
         ([event(lo, EventKind::Planar, r), 0], 1)
@@ -148,7 +148,7 @@ pub(super) fn partition_events(
     splits: &[(usize, Split)],
     place: &[u8],
     new_idx: &[u32],
-    next: &[LNode],
+    next: &[LevelNode],
     ev: &mut [Column<'_, u64>; 3],
 ) {
     let [e0, e1, e2] = ev;
@@ -225,8 +225,8 @@ pub(super) fn partition_events(
 /// into the child's segments, behind the inherited events.
 pub(super) fn merge_new_events(
     mut copies: Vec<u64>,
-    boxes: &[Box6],
-    next: &[LNode],
+    boxes: &[PackedBox],
+    next: &[LevelNode],
     ev: &mut [Column<'_, u64>; 3],
     mode: NewEvents,
 ) {

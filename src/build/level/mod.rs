@@ -2,7 +2,7 @@
 //! Construction on GPU" (HPG 2011), on CPU cores with rayon.
 //!
 //! Consumes a scene, the [`BuildConfig`] and [`LevelOptions`]. Produces the
-//! standard tree as a [`TreeIr`] **equal** to [`super::sweep::build`]'s (the
+//! standard tree as a [`TreeIr`] **equal** to [`super::wald_havran::build`]'s (the
 //! same splits, the same leaves, the same order; see [`super`] for the one
 //! definition every builder follows) and a [`LevelReport`] with per-phase
 //! times and memory figures. The tree does not depend on the number of
@@ -14,11 +14,11 @@
 //! (`crate::columns`: in RAM below `mem_budget`, in mapped scratch files
 //! above it): each node's references (triangle id and clipped box,
 //! ascending by triangle) and, per axis, its events sorted as in the sweep
-//! builder (`events`). One call of `Builder::level` turns level `d`
+//! builder (`events`). One call of `LevelBuilder::level` turns level `d`
 //! into level `d + 1` (the paper's §4, Figure 2):
 //!
 //! 1. **Small nodes** (fewer than `small_threshold` references) are handed
-//!    to the depth-first builder (`dfs`: the sweep builder's algorithm
+//!    to the depth-first builder (`dfs`: the Wald-Havran builder's algorithm
 //!    on the same flat encoding, without an allocation per node), in
 //!    parallel across nodes (the paper's "small node stage", §4.3, which
 //!    there uses a different algorithm; here it is the same SAH, so the
@@ -39,7 +39,7 @@
 //!    best kept by `Split::keep_best`, whose total order makes the
 //!    reduction over pieces independent of their order. **Not in the
 //!    paper:** a plane whose cost provably exceeds the best so far is not
-//!    priced (`sweep::Pricer`); and a node at the depth limit is not swept, since
+//!    priced (`best_split::Pricer`); and a node at the depth limit is not swept, since
 //!    `sah::is_leaf` makes it a leaf whatever its best split.
 //! 3. **Leaves** (`sah::is_leaf`) stream out: their triangle lists are
 //!    appended to the leaf list at once.
@@ -80,7 +80,7 @@
 //! ([`LevelOptions::small_threshold_for_budget`]: 49.7 M triangles under
 //! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536),
 //! and a level in scratch is cut into groups of nodes that fit in RAM,
-//! each built to the end on its own (`Builder::levels`: 14.1 GB; 231 s at
+//! each built to the end on its own (`LevelBuilder::levels`: 14.1 GB; 231 s at
 //! 2048 references without groups, 177–182 s with). The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled; the
 //! depth-first subtrees, packed (12 bytes a node) in one stream per level
@@ -93,13 +93,13 @@
 //! sink (the streamed file writer), so the tree need not exist whole.
 
 mod assemble;
+mod best_split;
 mod classify;
 mod dfs;
 mod events;
 mod options;
 mod pieces;
 mod report;
-mod sweep;
 mod tiny;
 
 pub use self::options::{
@@ -110,15 +110,15 @@ pub use self::report::{LevelReport, Phases};
 pub use crate::columns::ScratchStats;
 pub use crate::sys::{cpu_seconds, rss};
 
-use self::assemble::{Rec, SubStore, SubStream, assemble, assemble_into};
+use self::assemble::{NodeRecord, SubStore, SubStream, assemble, assemble_into};
+use self::best_split::best_splits;
 use self::classify::{Classified, SideCounts, classify_pass, piece_carries, write_children};
 use self::dfs::Finisher;
 use self::events::{
-    Box6, MAX_REFS, events_of, merge_new_events, n_events, partition_events, push_events,
+    MAX_REFS, PackedBox, events_of, merge_new_events, n_events, partition_events, push_events,
     radix_sort_by_position_and_kind, to_aabb, to_box,
 };
 use self::pieces::{PIECE, Piece, pieces};
-use self::sweep::best_splits;
 use super::sah::{self, LeafRule, Split};
 use super::{BuildConfig, Progress, root_cell};
 use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
@@ -260,7 +260,12 @@ fn run<T>(
     options: &LevelOptions,
     start: Option<&CutCell>,
     cut: Option<Cut>,
-    out: impl FnOnce(Aabb, &[Rec], &[TriId], SubStore) -> Result<(T, Vec<(NodeId, u32)>), ColumnsError>,
+    out: impl FnOnce(
+        Aabb,
+        &[NodeRecord],
+        &[TriId],
+        SubStore,
+    ) -> Result<(T, Vec<(NodeId, u32)>), ColumnsError>,
 ) -> Result<(T, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let small_threshold = cut.map_or(options.small_threshold, |c| c.min_refs);
     // The finishers' working memory comes out of the budget first.
@@ -273,7 +278,7 @@ fn run<T>(
     })?;
     let start_rss = rss();
     let start_cpu = cpu_seconds();
-    let mut b = Builder {
+    let mut b = LevelBuilder {
         scene,
         config,
         progress,
@@ -283,7 +288,7 @@ fn run<T>(
         rule: config.sah.leaf_rule(scene.len(), || Aabb::EMPTY),
         small_threshold,
         cut: cut.map(|rule| (rule, Vec::new())),
-        recs: vec![Rec::Open],
+        recs: vec![NodeRecord::Open],
         leaf_tris: Vec::new(),
         // Under a budget the subtrees, most of the tree, are scratch files
         // too: held in anonymous memory they would grow past any budget.
@@ -344,7 +349,7 @@ fn run<T>(
 
 /// One node of a level.
 #[derive(Clone, Copy, Debug)]
-struct LNode {
+struct LevelNode {
     cell: Aabb,
     /// References `refs .. refs + n` of the level's columns.
     refs: usize,
@@ -367,27 +372,27 @@ struct LNode {
 struct Level<'s> {
     /// The depth of every node of the level (root = 0).
     depth: u32,
-    nodes: Vec<LNode>,
+    nodes: Vec<LevelNode>,
     tri: Column<'s, u32>,
-    bounds: Column<'s, Box6>,
+    bounds: Column<'s, PackedBox>,
     ev: [Column<'s, u64>; 3],
 }
 
-struct Builder<'a> {
+struct LevelBuilder<'a> {
     scene: &'a TriangleColumns,
     config: &'a BuildConfig,
     progress: Option<&'a Progress>,
     options: &'a LevelOptions,
     scratch: &'a Scratch,
     /// The leaf rule; its price scale is the root's, set once the root
-    /// cell is known ([`Builder::root`]) unless the configuration gives it.
+    /// cell is known ([`LevelBuilder::root`]) unless the configuration gives it.
     rule: LeafRule,
     /// Open nodes with fewer references are finished depth-first.
     small_threshold: usize,
     /// The rule of a cut into cells, and the cells cut so far.
     cut: Option<(Cut, Vec<CutCell>)>,
     /// One per node, in the order nodes were opened; record 0 is the root.
-    recs: Vec<Rec>,
+    recs: Vec<NodeRecord>,
     /// The triangle lists of the breadth-first leaves.
     leaf_tris: Vec<TriId>,
     /// The subtrees finished depth-first.
@@ -459,13 +464,13 @@ impl Finish<'_> {
 
 /// Builds subtrees of single nodes depth-first, with the finisher the
 /// level builder uses for its small nodes (`dfs`, no heap allocation per
-/// node): the subtree is the one [`super::sweep::build_subtree`] builds for
+/// node): the subtree is the one [`super::wald_havran::build_subtree`] builds for
 /// the same references, cell and depth. The slim post-pass rebuilds its
 /// subtrees with it. One per worker; its scratch is reused across builds.
 pub(crate) struct SubtreeBuilder<'a> {
     finisher: Finisher<'a>,
     tri: Vec<u32>,
-    boxes: Vec<Box6>,
+    boxes: Vec<PackedBox>,
     ev: [Vec<u64>; 3],
 }
 
@@ -535,11 +540,11 @@ impl<'a> SubtreeBuilder<'a> {
 /// The children of a level's split nodes after step 4, for step 5.
 struct Children<'s> {
     /// The next level's nodes: per split node, left then right.
-    nodes: Vec<LNode>,
+    nodes: Vec<LevelNode>,
     /// The next level's events per axis.
     ev_len: [usize; 3],
     tri: Column<'s, u32>,
-    bounds: Column<'s, Box6>,
+    bounds: Column<'s, PackedBox>,
     /// Per reference of the level: its placement code.
     place: Column<'s, u8>,
     /// Per reference of the level: its index in the next level and side,
@@ -549,7 +554,7 @@ struct Children<'s> {
     copies: Vec<u64>,
 }
 
-impl<'a> Builder<'a> {
+impl<'a> LevelBuilder<'a> {
     fn sample_rss(&mut self) {
         let (anon, file) = rss();
         self.report.peak_rss_anon_bytes = self.report.peak_rss_anon_bytes.max(anon);
@@ -576,7 +581,9 @@ impl<'a> Builder<'a> {
         let n = scene.len();
         Self::capacity(n)?;
         let mut tri = self.scratch.column_for_overwrite::<u32>("tri", n)?;
-        let mut boxes = self.scratch.column_for_overwrite::<Box6>("bounds", n)?;
+        let mut boxes = self
+            .scratch
+            .column_for_overwrite::<PackedBox>("bounds", n)?;
         tri.par_iter_mut()
             .zip(boxes.par_iter_mut())
             .enumerate()
@@ -598,7 +605,9 @@ impl<'a> Builder<'a> {
         let n = node.tris.len();
         Self::capacity(n)?;
         let mut tri = self.scratch.column_for_overwrite::<u32>("tri", n)?;
-        let mut boxes = self.scratch.column_for_overwrite::<Box6>("bounds", n)?;
+        let mut boxes = self
+            .scratch
+            .column_for_overwrite::<PackedBox>("bounds", n)?;
         tri.copy_from_slice(&node.tris);
         for (b, a) in boxes.iter_mut().zip(&node.boxes) {
             *b = to_box(a);
@@ -611,7 +620,7 @@ impl<'a> Builder<'a> {
     fn first_level(
         &mut self,
         tri: Column<'a, u32>,
-        boxes: Column<'a, Box6>,
+        boxes: Column<'a, PackedBox>,
         cell: Aabb,
         depth: u32,
     ) -> Result<Level<'a>, ColumnsError> {
@@ -645,7 +654,7 @@ impl<'a> Builder<'a> {
             })
             .collect();
         let ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
-        let node = LNode {
+        let node = LevelNode {
             cell,
             refs: 0,
             n,
@@ -665,7 +674,7 @@ impl<'a> Builder<'a> {
 
     /// Processes `first` and the levels below it until no node is left
     /// open. A level that went to scratch files is cut into groups of
-    /// consecutive nodes that fit in RAM ([`Builder::groups`]), and each
+    /// consecutive nodes that fit in RAM ([`LevelBuilder::groups`]), and each
     /// group's levels run to the end, one group after another, left to
     /// right. So under a budget only the top levels, whose nodes are too
     /// large, go through scratch (49.7 M triangles under 2 GiB: the level
@@ -694,7 +703,7 @@ impl<'a> Builder<'a> {
         Ok(())
     }
 
-    /// The groups of a level worth building apart ([`Builder::levels`]):
+    /// The groups of a level worth building apart ([`LevelBuilder::levels`]):
     /// `None` unless some of the level's columns are scratch files, it has
     /// more than one node, some node that is not finished depth-first,
     /// and more bytes than a group may hold (a third of the columns'
@@ -715,8 +724,8 @@ impl<'a> Builder<'a> {
             return None;
         }
         let max = budget / 3;
-        let bytes = |nd: &LNode| {
-            (nd.n * (size_of::<u32>() + size_of::<Box6>())
+        let bytes = |nd: &LevelNode| {
+            (nd.n * (size_of::<u32>() + size_of::<PackedBox>())
                 + nd.nev.iter().sum::<usize>() * size_of::<u64>()) as u64
         };
         let mut groups = Vec::new();
@@ -752,7 +761,7 @@ impl<'a> Builder<'a> {
             .column_for_overwrite::<u32>("tri", refs.len())?;
         let mut bounds = self
             .scratch
-            .column_for_overwrite::<Box6>("bounds", refs.len())?;
+            .column_for_overwrite::<PackedBox>("bounds", refs.len())?;
         tri.par_chunks_mut(PIECE)
             .zip(l.tri[refs.clone()].par_chunks(PIECE))
             .for_each(|(d, s)| d.copy_from_slice(s));
@@ -776,7 +785,7 @@ impl<'a> Builder<'a> {
         }
         let nodes = nodes
             .iter()
-            .map(|nd| LNode {
+            .map(|nd| LevelNode {
                 refs: nd.refs - refs.start,
                 ev: [0, 1, 2].map(|k| nd.ev[k] - first.ev[k]),
                 ..*nd
@@ -866,7 +875,7 @@ impl<'a> Builder<'a> {
                 continue;
             }
             let nd = &l.nodes[j];
-            self.recs[nd.rec as usize] = Rec::Cell(cells.len() as u32);
+            self.recs[nd.rec as usize] = NodeRecord::Cell(cells.len() as u32);
             cells.push(CutCell {
                 cell: nd.cell,
                 depth,
@@ -944,7 +953,7 @@ impl<'a> Builder<'a> {
                 let start = self.leaf_tris.len();
                 self.leaf_tris
                     .extend(l.tri[nd.refs..nd.refs + nd.n].iter().map(|&t| TriId(t)));
-                self.recs[nd.rec as usize] = Rec::Leaf {
+                self.recs[nd.rec as usize] = NodeRecord::Leaf {
                     start,
                     count: nd.n as u32,
                 };
@@ -987,7 +996,7 @@ impl<'a> Builder<'a> {
         let mut tri = self.scratch.column_for_overwrite::<u32>("tri", refs_at)?;
         let mut boxes = self
             .scratch
-            .column_for_overwrite::<Box6>("bounds", refs_at)?;
+            .column_for_overwrite::<PackedBox>("bounds", refs_at)?;
         let mut new_idx = self
             .scratch
             .column_for_overwrite::<u32>("new-idx", l.tri.len())?;
@@ -1024,7 +1033,7 @@ impl<'a> Builder<'a> {
         splits: &[(usize, Split)],
         rpieces: &[Piece],
         classified: &[Classified],
-    ) -> (Vec<LNode>, usize, [usize; 3]) {
+    ) -> (Vec<LevelNode>, usize, [usize; 3]) {
         let mut totals = vec![SideCounts::default(); splits.len()];
         for (p, c) in rpieces.iter().zip(classified) {
             for (k, si) in p.nodes.clone().enumerate() {
@@ -1039,7 +1048,7 @@ impl<'a> Builder<'a> {
             let (lc, rc) = nd.cell.split(split.axis as usize, split.pos);
             let (wl, wr) = Progress::share(nd.weight, t.n[0], t.n[1]);
             let left = self.recs.len() as u32;
-            self.recs[nd.rec as usize] = Rec::Inner {
+            self.recs[nd.rec as usize] = NodeRecord::Inner {
                 axis: split.axis,
                 pos: split.pos,
                 left,
@@ -1047,7 +1056,7 @@ impl<'a> Builder<'a> {
             };
             for (side, (cell, weight)) in [(lc, wl), (rc, wr)].into_iter().enumerate() {
                 let nev = [0, 1, 2].map(|k| t.inherited[side][k] + t.new[side][k]);
-                next_nodes.push(LNode {
+                next_nodes.push(LevelNode {
                     cell,
                     refs: refs_at,
                     n: t.n[side],
@@ -1056,7 +1065,7 @@ impl<'a> Builder<'a> {
                     weight,
                     rec: self.recs.len() as u32,
                 });
-                self.recs.push(Rec::Open);
+                self.recs.push(NodeRecord::Open);
                 refs_at += t.n[side];
                 for k in 0..3 {
                     ev_at[k] += nev[k];
@@ -1122,7 +1131,7 @@ impl<'a> Builder<'a> {
         }
         assert_eq!(next, small.len());
         for &j in small {
-            self.recs[l.nodes[j].rec as usize] = Rec::Sub(depth);
+            self.recs[l.nodes[j].rec as usize] = NodeRecord::Sub(depth);
         }
         self.report.small_nodes += small.len() as u64;
         Ok(())

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The best split of each of the `big` nodes (`None` for an empty node
-/// or a flat cell, as in the sweep builder).
+/// or a flat cell, as in the Wald-Havran builder).
 pub(super) fn best_splits(
     sah: &SahParams,
     depth_limit: u32,
@@ -114,7 +114,7 @@ pub(super) fn best_splits(
 
 /// Sweeps one node's sorted events (all of them, or one piece starting with
 /// `n_l` references left and `n_r` right of its first plane) and keeps the
-/// best plane: the sweep of [`crate::build::sweep::sweep_axis`], with carried
+/// best plane: the sweep of [`crate::build::wald_havran::sweep_axis`], with carried
 /// counts.
 ///
 /// Every plane that could win is priced by [`sah::split_cost`]. A plane is
