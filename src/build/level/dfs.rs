@@ -32,8 +32,9 @@
 
 use super::NewEvents;
 use super::best_split::{Alone, sweep_events};
-use super::classify::{DROPPED, SideCounts, classify_ref, goes_to, is_clipped, side_of};
+use super::classify::{SideCounts, classify_ref};
 use super::events::{PackedBox, ev_ref, push_events, to_aabb, to_box, with_ref};
+use super::placement::{DROPPED, goes_to, is_clipped, side_of};
 use super::tiny::{self, MAX_TINY};
 use crate::build::sah::{self, LeafRule, SahParams, Split};
 use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};

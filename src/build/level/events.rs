@@ -23,8 +23,8 @@
 //! ([`NewEvents::merge`]). And the root's first sort
 //! ([`radix_sort_by_position_and_kind`]).
 
-use super::classify::{DROPPED, SLOT};
 use super::pieces::{PIECE, Pair, Piece, carries, pieces};
+use super::placement::{DROPPED, SLOT};
 use super::{Level, LevelNode, NewEvents};
 use crate::build::sah::Split;
 use crate::build::wald_havran::EventKind;

@@ -99,6 +99,7 @@ mod dfs;
 mod events;
 mod options;
 mod pieces;
+mod placement;
 mod report;
 mod tiny;
 
@@ -548,7 +549,7 @@ struct Children<'s> {
     /// Per reference of the level: its placement code.
     place: Column<'s, u8>,
     /// Per reference of the level: its index in the next level and side,
-    /// or [`classify::DROPPED`] (see [`write_children`]).
+    /// or [`placement::DROPPED`] (see [`write_children`]).
     new_idx: Column<'s, u32>,
     /// The clipped copies, `(child node << 32) | new reference`.
     copies: Vec<u64>,
