@@ -256,3 +256,16 @@ impl<'a> TreeWriter<'a> {
         }
     }
 }
+
+/// The unit tests' random numbers: Marsaglia's xorshift64 from `seed`
+/// (not 0), small and reproducible on every platform.
+#[cfg(test)]
+pub(crate) fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut x = seed;
+    move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    }
+}

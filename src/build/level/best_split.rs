@@ -11,7 +11,7 @@
 
 use super::Level;
 use super::events::{ev_key, ev_kind, key_pos};
-use super::pieces::{PIECE, Pair, Piece, carries, pieces};
+use super::pieces::{PIECE, Pair, Piece, element_carries, pieces};
 use crate::build::sah::{self, PlaneCounts, SahParams, Split};
 use crate::geom::Aabb;
 use rayon::prelude::*;
@@ -47,22 +47,10 @@ pub(super) fn best_splits(
         // A run of equal positions is priced as one plane, so it must
         // not be cut.
         let ps = pieces(&segs, PIECE, |i| ev_key(ev[i]) != ev_key(ev[i - 1]));
-        // Counts of (starts + planars, ends + planars) in each part
-        // (but a node's last, which no carry needs).
-        let counts: Vec<Pair> = ps
-            .par_iter()
-            .map(|p| match &p.part {
-                Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
-                    let mut c = [0usize; 3];
-                    for &e in &ev[r.clone()] {
-                        c[ev_kind(e)] += 1;
-                    }
-                    Pair([c[2] + c[1], c[0] + c[1]])
-                }
-                _ => Pair::default(),
-            })
-            .collect();
-        let carry = carries(&ps, &counts);
+        // Carried counts of (starts + planars, ends + planars).
+        let carry = element_carries(&ps, &segs, ev, ev_kind, |c| {
+            Pair([c[2] + c[1], c[0] + c[1]])
+        });
         // Piece node indices refer to `valid`.
         tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
     }

@@ -23,7 +23,7 @@
 //! ([`NewEvents::merge`]). And the root's first sort
 //! ([`radix_sort_by_position_and_kind`]).
 
-use super::pieces::{PIECE, Pair, Piece, carries, pieces};
+use super::pieces::{PIECE, Pair, Piece, element_carries, pieces};
 use super::placement::{DROPPED, SLOT};
 use super::{Level, LevelNode, NewEvents};
 use crate::build::sah::Split;
@@ -166,22 +166,14 @@ pub(super) fn partition_events(
             .collect();
         let src: &[u64] = &l.ev[axis];
         let ps = pieces(&segs, PIECE, |_| true);
-        let counts: Vec<Pair> = ps
-            .par_iter()
-            .map(|p| match &p.part {
-                // A node's last part: no carry needs its counts.
-                Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
-                    // Counted by slot, without a branch on the side.
-                    let mut c = [0usize; 3];
-                    for &e in &src[r.clone()] {
-                        c[SLOT[usize::from(place[ev_ref(e) as usize])]] += 1;
-                    }
-                    Pair([c[0], c[1]])
-                }
-                _ => Pair::default(),
-            })
-            .collect();
-        let carry = carries(&ps, &counts);
+        // Counted by slot, without a branch on the side.
+        let carry = element_carries(
+            &ps,
+            &segs,
+            src,
+            |e| SLOT[usize::from(place[ev_ref(e) as usize])],
+            |c| Pair([c[0], c[1]]),
+        );
         tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
         segs_by_axis.push(segs);
     }
@@ -466,12 +458,10 @@ mod tests {
 
     #[test]
     fn radix_sort_sorts_like_a_comparison_sort() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = crate::build::xorshift(0x9E37_79B9_7F4A_7C15);
         let mut v = Vec::new();
         for r in 0..5000u64 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
+            let x = next();
             // Few distinct positions, so kinds and references decide ties.
             v.push((x % 97) << 35 | ((x >> 20) % 3) << 30 | r);
         }
@@ -484,13 +474,11 @@ mod tests {
 
     #[test]
     fn parallel_radix_pass_equals_the_serial_one() {
-        let mut x = 0x2545_F491_4F6C_DD1Du64;
+        let mut next = crate::build::xorshift(0x2545_F491_4F6C_DD1D);
         let n = 3 * RADIX_CHUNK + 12_345;
         let v: Vec<u64> = (0..n as u64)
             .map(|r| {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
+                let x = next();
                 // Few distinct digits in the top bits, so that stability
                 // decides the order of most events.
                 (x % 5000) << 35 | ((x >> 20) % 3) << 30 | r
@@ -521,13 +509,7 @@ mod tests {
 
     #[test]
     fn bucket_merge_equals_merge_back() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
+        let mut next = crate::build::xorshift(0x9E37_79B9_7F4A_7C15);
         for case in 0..500 {
             let (h, m) = ((next() % 200) as usize, (next() % 12) as usize);
             let range = 1 + next() % if case % 2 == 0 { 8 } else { 1000 };
