@@ -148,3 +148,46 @@ fn scratch_limit_is_enforced() {
     assert_eq!(entries(&d), 0);
     std::fs::remove_dir_all(d).unwrap();
 }
+
+#[test]
+fn error_messages() {
+    let path = PathBuf::from("/s/x");
+    let io = || io::Error::from(io::ErrorKind::NotFound);
+    let cases: [(ColumnsError, &str); 4] = [
+        (
+            ColumnsError::File {
+                path: path.clone(),
+                op: "map",
+                source: io(),
+            },
+            "scratch file /s/x: cannot map: entity not found",
+        ),
+        (
+            ColumnsError::Limit {
+                path: path.clone(),
+                limit: 100,
+                requested: 120,
+            },
+            "scratch directory /s/x: the scratch limit of 100 bytes would be exceeded (120 bytes requested)",
+        ),
+        (
+            ColumnsError::Memory {
+                bytes: 64,
+                source: io(),
+            },
+            "out of memory: cannot map 64 bytes for a column: entity not found (a smaller \
+             --mem-budget, e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
+        ),
+        (
+            ColumnsError::OutOfMemory(crate::sys::OutOfMemory {
+                what: "the tree",
+                bytes: 3 << 19,
+            }),
+            "out of memory: the tree (1.5 MiB) does not fit (a smaller --mem-budget, \
+             e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
+        ),
+    ];
+    for (e, want) in cases {
+        assert_eq!(e.to_string(), want);
+    }
+}
