@@ -34,7 +34,7 @@ mod common;
 
 use glam::Vec3;
 use slimkd::build::level::{self, LevelOptions, LevelReport, NewEvents};
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::geom::double_area;
 use slimkd::scene::TriangleColumns;
 use slimkd::tree::TreeIr;
@@ -92,7 +92,7 @@ fn random_soup(n: usize, seed: u64) -> TriangleColumns {
 }
 
 /// One timed build: the median seconds over `reps` runs and the last tree.
-fn time_build(scene: &TriangleColumns, builder: Builder, reps: usize) -> (f64, TreeIr) {
+fn time_build(scene: &TriangleColumns, builder: Algorithm, reps: usize) -> (f64, TreeIr) {
     let config = BuildConfig::default();
     let mut times = Vec::with_capacity(reps);
     let mut tree = None;
@@ -124,11 +124,11 @@ struct TreeLine {
     tree: TreeIr,
 }
 
-fn builder_name(builder: Builder) -> &'static str {
+fn builder_name(builder: Algorithm) -> &'static str {
     match builder {
-        Builder::Naive => "naive",
-        Builder::Sweep => "sweep",
-        Builder::Level => "level",
+        Algorithm::Naive => "naive",
+        Algorithm::WaldHavran => "sweep",
+        Algorithm::Level => "level",
     }
 }
 
@@ -341,16 +341,16 @@ fn main() {
                     "note: naive on {label} runs {naive_reps} time(s), since it is O(N²) per node"
                 );
             }
-            Some((naive_reps, time_build(&scene, Builder::Naive, naive_reps)))
+            Some((naive_reps, time_build(&scene, Algorithm::Naive, naive_reps)))
         };
-        let (sweep_s, sweep_tree) = time_build(&scene, Builder::Sweep, reps);
+        let (sweep_s, sweep_tree) = time_build(&scene, Algorithm::WaldHavran, reps);
         // Naive's time over sweep's, where naive ran.
         let ratio = naive.as_ref().map(|(_, (naive_s, _))| naive_s / sweep_s);
         if let Some((naive_reps, (naive_s, naive_tree))) = naive {
             timings.push(Timing {
                 scene: label.into(),
                 triangles: n,
-                builder: builder_name(Builder::Naive),
+                builder: builder_name(Algorithm::Naive),
                 reps: naive_reps,
                 seconds: naive_s,
                 ratio: None,
@@ -368,7 +368,7 @@ fn main() {
             }
             trees.push(TreeLine {
                 scene: label.into(),
-                builder: builder_name(Builder::Naive),
+                builder: builder_name(Algorithm::Naive),
                 triangles: n,
                 tree: naive_tree,
             });
@@ -378,14 +378,14 @@ fn main() {
         timings.push(Timing {
             scene: label.into(),
             triangles: n,
-            builder: builder_name(Builder::Sweep),
+            builder: builder_name(Algorithm::WaldHavran),
             reps,
             seconds: sweep_s,
             ratio,
         });
         trees.push(TreeLine {
             scene: label.into(),
-            builder: builder_name(Builder::Sweep),
+            builder: builder_name(Algorithm::WaldHavran),
             triangles: n,
             tree: sweep_tree,
         });
@@ -403,16 +403,21 @@ fn main() {
             (!no_check).then(|| {
                 (
                     None,
-                    build::build(&loaded.scene, &BuildConfig::default(), Builder::Sweep, None)
-                        .expect("the build"),
+                    build::build(
+                        &loaded.scene,
+                        &BuildConfig::default(),
+                        Algorithm::WaldHavran,
+                        None,
+                    )
+                    .expect("the build"),
                 )
             })
         } else {
-            let (seconds, tree) = time_build(&loaded.scene, Builder::Sweep, scene_reps);
+            let (seconds, tree) = time_build(&loaded.scene, Algorithm::WaldHavran, scene_reps);
             timings.push(Timing {
                 scene: loaded.name.clone(),
                 triangles: n,
-                builder: builder_name(Builder::Sweep),
+                builder: builder_name(Algorithm::WaldHavran),
                 reps: scene_reps,
                 seconds,
                 ratio: None,
@@ -448,7 +453,7 @@ fn main() {
             println!("check: level and sweep trees are equal on {}", loaded.name);
             trees.push(TreeLine {
                 scene: loaded.name.clone(),
-                builder: builder_name(Builder::Sweep),
+                builder: builder_name(Algorithm::WaldHavran),
                 triangles: n,
                 tree,
             });

@@ -18,7 +18,7 @@
 //! `scenes/nexuiz_dieselpower.obj`. For example
 //! `cargo bench --bench hoist -- ~/.cache/slimkd-scenes/{nexuiz_dieselpower,nexuiz_aneurysm,bunny_scan}.obj`.
 
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, ByteLayout, HoistRule, SlimParams, tree_bytes};
 use slimkd::tree::{Node, TreeIr};
@@ -58,7 +58,7 @@ fn leaves_at_limit(tree: &TreeIr, limit: u32) -> usize {
 }
 
 fn bench_scene(name: &str, scene: &TriangleColumns, config: &BuildConfig) {
-    let std_tree = build::build(scene, config, Builder::Level, None).expect("the std build");
+    let std_tree = build::build(scene, config, Algorithm::Level, None).expect("the std build");
     let s = figures(&std_tree, scene);
     let limit = config.sah.depth_limit(scene.len());
     println!(

@@ -21,7 +21,7 @@
 
 mod common;
 
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, SlimParams, SlimPhases, SlimReport};
@@ -82,7 +82,7 @@ fn bench_scene(name: &str, scene: &TriangleColumns, reps: usize) {
     let mut std_tree = None;
     for _ in 0..reps {
         let (start, cpu) = (Instant::now(), cpu_seconds());
-        let tree = build::build(scene, &config, Builder::Level, None).expect("the std build");
+        let tree = build::build(scene, &config, Algorithm::Level, None).expect("the std build");
         let s = start.elapsed().as_secs_f64();
         let std_cpu = cpu_seconds() - cpu;
         std_s.push(s);

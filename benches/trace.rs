@@ -21,7 +21,7 @@
 
 mod common;
 
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::render::{self, Camera, View};
@@ -58,8 +58,8 @@ fn bench_scene(
     reps: usize,
     pools: &[rayon::ThreadPool],
 ) {
-    let tree =
-        build::build(scene, &BuildConfig::default(), Builder::Level, None).expect("the std build");
+    let tree = build::build(scene, &BuildConfig::default(), Algorithm::Level, None)
+        .expect("the std build");
     let bytes = format::write_to_vec(
         &tree,
         scene,

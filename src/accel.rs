@@ -25,7 +25,7 @@
 //! std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
-use crate::build::{self, BuildConfig, BuildError, Builder};
+use crate::build::{self, Algorithm, BuildConfig, BuildError};
 use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped, WriteOptions};
 use crate::geom::{Aabb, Ray, RayPrecomp};
 use crate::scene::{InvalidColumns, TriangleColumns};
@@ -282,7 +282,8 @@ impl Accel {
 
     fn build_here(scene: &TriangleColumns, options: &BuildOptions) -> Result<Accel, AccelError> {
         let config = BuildConfig::default();
-        let tree = build::build(scene, &config, Builder::Level, None).map_err(AccelError::Build)?;
+        let tree =
+            build::build(scene, &config, Algorithm::Level, None).map_err(AccelError::Build)?;
         let rule = HoistRule::Bytes {
             reordered: options.reorder,
         };

@@ -7,7 +7,7 @@
 //!    cache) into [`scene::TriangleColumns`].
 //! 2. [`build::build`] builds the standard SAH kd-tree (exact SAH, perfect
 //!    splits) as a [`tree::TreeIr`]; [`build::naive`] is the O(N²)
-//!    reference, [`build::sweep`] the O(N log N) builder of Wald & Havran
+//!    reference, [`build::wald_havran`] the O(N log N) builder of Wald & Havran
 //!    (2006), and [`build::level`] the breadth-first parallel builder of
 //!    Wu, Zhao & Liu (2011) over columns that may live in scratch
 //!    files; all three produce the same tree.
@@ -34,7 +34,7 @@
 //! let scene = TriangleColumns::from_triangles(&[[
 //!     Vec3::new(0.0, 0.0, 5.0), Vec3::new(2.0, 0.0, 5.0), Vec3::new(0.0, 2.0, 5.0),
 //! ]]).unwrap();
-//! let tree = build::build(&scene, &build::BuildConfig::default(), build::Builder::Sweep, None).unwrap();
+//! let tree = build::build(&scene, &build::BuildConfig::default(), build::Algorithm::WaldHavran, None).unwrap();
 //! tree.validate(&scene).unwrap();
 //! let hit = trace::closest_hit(&tree, &scene, &Ray::new(Vec3::new(0.5, 0.5, 0.0), Vec3::Z));
 //! assert_eq!(hit.t, 5.0);

@@ -23,25 +23,16 @@ pub fn allocation_failure_is_handled() -> bool {
 }
 
 /// A large allocation that did not fit: what it was for and its size.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "out of memory: {what} ({:.1} MiB) does not fit (a smaller --mem-budget, \
+     e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
+    *bytes as f64 / (1 << 20) as f64
+)]
 pub struct OutOfMemory {
     pub what: &'static str,
     pub bytes: u64,
 }
-
-impl std::fmt::Display for OutOfMemory {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "out of memory: {} ({:.1} MiB) does not fit (a smaller --mem-budget, \
-             e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
-            self.what,
-            self.bytes as f64 / (1 << 20) as f64
-        )
-    }
-}
-
-impl std::error::Error for OutOfMemory {}
 
 /// Reserves room for `additional` more elements of `v` exactly, or says
 /// that `what` did not fit.

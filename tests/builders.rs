@@ -1,4 +1,4 @@
-//! The sweep builder (Wald & Havran 2006) builds the same tree as the naive
+//! The Wald-Havran builder (Wald & Havran 2006) builds the same tree as the naive
 //! O(N²) reference, on random grid-snapped scenes where planar, coincident
 //! and flat cases are common.
 
@@ -13,13 +13,13 @@ proptest! {
     #![proptest_config(cases(512))]
 
     #[test]
-    fn sweep_equals_naive(tris in grid_scene(40)) {
+    fn wald_havran_equals_naive(tris in grid_scene(40)) {
         let scene = columns(&tris);
         build_checked(&scene, &BuildConfig::default());
     }
 
     #[test]
-    fn sweep_equals_naive_with_depth_limit(tris in grid_scene(30), depth in 0u32..4) {
+    fn wald_havran_equals_naive_with_depth_limit(tris in grid_scene(30), depth in 0u32..4) {
         let scene = columns(&tris);
         let config = BuildConfig { sah: SahParams { max_depth: Some(depth), ..SahParams::default() } };
         let tree = build_checked(&scene, &config);
@@ -28,7 +28,7 @@ proptest! {
     }
 
     #[test]
-    fn sweep_equals_naive_with_other_constants(
+    fn wald_havran_equals_naive_with_other_constants(
         tris in grid_scene(30),
         k_t in 1.0f64..40.0,
         k_i in 1.0f64..40.0,
@@ -51,7 +51,7 @@ proptest! {
     #![proptest_config(cases(256))]
 
     #[test]
-    fn sweep_equals_naive_on_float_scenes(tris in prop::collection::vec(float_triangle(), 1..60)) {
+    fn wald_havran_equals_naive_on_float_scenes(tris in prop::collection::vec(float_triangle(), 1..60)) {
         let scene = columns(&tris);
         build_checked(&scene, &BuildConfig::default());
     }

@@ -12,7 +12,7 @@ use common::kd;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
@@ -94,7 +94,7 @@ fn secondary_ray(g: i32) -> impl Strategy<Value = Ray> {
 }
 
 fn trees(scene: &TriangleColumns) -> Vec<slimkd::tree::TreeIr> {
-    let tree = build::build(scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+    let tree = build::build(scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
     // Everything that can be hoisted is: hoisted triangles on the path of
     // nearly every context.
     let params = SlimParams {

@@ -8,7 +8,7 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::geom::Ray;
 use slimkd::scene::{self, TriangleColumns};
 use slimkd::trace;
@@ -132,5 +132,5 @@ fn deep_scene_respects_the_depth_limit() {
     let tree = build_checked(&scene, &config);
     let stats = slimkd::stats::TreeStats::of(&tree, &config.sah);
     assert!(stats.max_depth <= config.sah.depth_limit(scene.len()));
-    let _ = build::build(&scene, &config, Builder::Sweep, None).unwrap();
+    let _ = build::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
 }

@@ -6,7 +6,7 @@ mod common;
 
 use common::kd::*;
 use glam::Vec3;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, FileConfig, KdFile, Preset, WriteOptions, aligned_copy};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
@@ -30,7 +30,7 @@ fn golden_inputs() -> (TriangleColumns, TreeIr, WriteOptions) {
     config.sah.max_depth = Some(GOLDEN_DEPTH_LIMIT);
     // The file was made before splits had a price.
     config.sah.split_price = 0.0;
-    let std = build::build(&scene, &config, Builder::Sweep, None).unwrap();
+    let std = build::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
     let (tree, _) = hoist(&std, &scene, 2024, true);
     let options = WriteOptions {
         reorder: true,

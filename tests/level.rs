@@ -1,8 +1,8 @@
 //! The level builder (Wu, Zhao & Liu 2011, breadth-first) builds the same
-//! tree as the sweep and naive builders: on random grid-snapped scenes, on
+//! tree as the Wald-Havran and naive builders: on random grid-snapped scenes, on
 //! the degenerate shapes, with every small-node threshold (0 and 1 keep
-//! everything breadth-first, `usize::MAX` hands everything to the sweep
-//! builder) and tiny-node thresholds (the finisher's event-free sweep), with the memory budget forced to 0 so that every level column
+//! everything breadth-first, `usize::MAX` hands everything to the
+//! depth-first finisher) and tiny-node thresholds (the finisher's event-free sweep), with the memory budget forced to 0 so that every level column
 //! is a mapped scratch file, and with 1 and 2 threads. Scratch failures are
 //! clear errors that leave nothing behind.
 
@@ -14,7 +14,7 @@ use proptest::prelude::*;
 use slimkd::build::BuildError;
 use slimkd::build::level::{self, LevelOptions, LevelReport, NewEvents};
 use slimkd::build::sah::SahParams;
-use slimkd::build::{self as b, BuildConfig, Builder};
+use slimkd::build::{self as b, Algorithm, BuildConfig};
 use slimkd::format::{WriteOptions, write_to_vec};
 use slimkd::scene::TriangleColumns;
 use slimkd::tree::TreeIr;
@@ -41,12 +41,15 @@ fn level_build(
     level::build(scene, config, None, options).expect("the level build succeeds")
 }
 
-/// Asserts level == sweep == naive (and a valid tree) with the given
+/// Asserts level == Wald-Havran == naive (and a valid tree) with the given
 /// options; checks that the scratch directory is left empty.
 fn check_with(scene: &TriangleColumns, config: &BuildConfig, options: &LevelOptions) -> TreeIr {
     let want = build_checked(scene, config);
     let (got, report) = level_build(scene, config, options);
-    assert_eq!(got, want, "level and sweep trees differ ({options:?})");
+    assert_eq!(
+        got, want,
+        "level and Wald-Havran trees differ ({options:?})"
+    );
     if options.mem_budget == 0 && !scene.is_empty() {
         assert!(report.scratch.files > 0, "the mapped path ran");
     }
@@ -77,7 +80,7 @@ proptest! {
     #![proptest_config(cases(256))]
 
     #[test]
-    fn level_equals_sweep_and_naive(
+    fn level_equals_wald_havran_and_naive(
         tris in grid_scene(40),
         t in 0..THRESHOLDS.len(),
         budget in 0..3usize,
@@ -104,7 +107,7 @@ proptest! {
     }
 
     #[test]
-    fn level_equals_sweep_with_depth_limit_and_constants(
+    fn level_equals_wald_havran_with_depth_limit_and_constants(
         tris in grid_scene(30),
         depth in 0u32..5,
         k_t in 1.0f64..40.0,
@@ -154,7 +157,7 @@ proptest! {
     #![proptest_config(cases(256))]
 
     #[test]
-    fn level_equals_sweep_on_float_scenes(
+    fn level_equals_wald_havran_on_float_scenes(
         tris in prop::collection::vec(float_triangle(), 1..80),
         t in 0..THRESHOLDS.len(),
         tiny in 0..TINY.len(),
@@ -252,7 +255,7 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
     let config = BuildConfig::default();
-    let want = b::build(&scene, &config, Builder::Sweep, None).unwrap();
+    let want = b::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
     want.validate(&scene).unwrap();
     let dir = fresh_temp_dir("nexuiz");
     for (t, budget) in [

@@ -6,7 +6,7 @@ mod common;
 
 use common::*;
 use proptest::prelude::*;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::render::{self, Camera};
@@ -34,7 +34,7 @@ proptest! {
         ))
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         let src = TreeTracer { tree: &tree, scene: &scene };
         for rays in &packets {
             check_packets(&src, rays);
@@ -62,7 +62,7 @@ fn shipped_scene_frames_are_identical_in_every_mode() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let path = root.join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
     let views =
         render::parse_views(&std::fs::read_to_string(root.join("scenes/views.txt")).unwrap())
             .unwrap();

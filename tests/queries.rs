@@ -10,7 +10,7 @@ use common::kd;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::slim::{self, SlimParams};
@@ -102,7 +102,7 @@ proptest! {
         span in 0.0f32..3.0,
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         // Coherent and loose packets back to back: chunks of every length
         // mix octants.
         let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
@@ -125,7 +125,7 @@ proptest! {
         span in 0.5f32..3.0,
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         let params = SlimParams { tau_occu: 0.0, tau_freq: 0.0, ..SlimParams::PAPER_SMALL };
         let (slim, _) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
         let rays: Vec<Ray> = packets.iter().flatten().copied().collect();
@@ -175,7 +175,7 @@ proptest! {
         )),
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         let rays: Vec<Ray> = packets.into_iter().flatten().collect();
         check_queries(&TreeTracer { tree: &tree, scene: &scene }, &scene, &rays);
         let bytes = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap();

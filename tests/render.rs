@@ -5,7 +5,7 @@
 mod common;
 
 use common::{fresh_temp_dir, slimkd};
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::render::{self, Camera, Shading};
 use slimkd::scene;
 use slimkd::trace::{BruteForce, TreeTracer};
@@ -23,7 +23,8 @@ fn frames_match_brute_force_on_every_shipped_view() {
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
         let path = manifest(&format!("scenes/{name}.obj"));
         let (scene, _) = scene::load_obj(&path).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree =
+            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         tree.validate(&scene).unwrap();
         let tracer = TreeTracer {
             tree: &tree,
@@ -203,7 +204,7 @@ fn cli_build_json_has_the_figures() {
 fn frame_progress_ends_at_one() {
     let path = manifest("scenes/bunny_npm.obj");
     let (scene, _) = scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
     let tracer = TreeTracer {
         tree: &tree,
         scene: &scene,
@@ -270,7 +271,8 @@ fn ao_frames_match_brute_force_in_every_mode() {
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
         let path = manifest(&format!("scenes/{name}.obj"));
         let (scene, _) = scene::load_obj(&path).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree =
+            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         let options = WriteOptions {
             reorder: true,
             ..Default::default()

@@ -6,7 +6,7 @@
 mod common;
 
 use common::{dir_entries, fresh_temp_dir};
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, View};
 use slimkd::scene::{self, TriangleColumns};
@@ -41,7 +41,13 @@ fn views() -> Vec<View> {
 fn std_tree() -> &'static TreeIr {
     static TREE: OnceLock<TreeIr> = OnceLock::new();
     TREE.get_or_init(|| {
-        build::build(bunny(), &BuildConfig::default(), Builder::Sweep, None).unwrap()
+        build::build(
+            bunny(),
+            &BuildConfig::default(),
+            Algorithm::WaldHavran,
+            None,
+        )
+        .unwrap()
     })
 }
 

@@ -9,7 +9,7 @@ mod common;
 
 use common::*;
 use glam::{DVec3, Vec3};
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::geom::{Ray, intersect_ray_triangle};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{self, ClosestHit, Hit, TreeTracer};
@@ -108,7 +108,7 @@ fn scenes_at_extreme_scales_trace_like_the_reference() {
     ));
     for (name, tris) in &scenes {
         let scene = columns(tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Level, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::Level, None).unwrap();
         let src = TreeTracer {
             tree: &tree,
             scene: &scene,
@@ -169,7 +169,7 @@ fn a_box_spanning_the_f32_range_is_hit_from_inside() {
     let m = f32::MAX;
     let tris = box_mesh(Vec3::splat(-m), Vec3::splat(m));
     let scene = columns(&tris);
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Level, None).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::Level, None).unwrap();
     let src = TreeTracer {
         tree: &tree,
         scene: &scene,

@@ -27,7 +27,7 @@ use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
 use slimkd::build::sah::SahParams;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::node::fits_leaf16;
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::clip_triangle;
@@ -464,7 +464,7 @@ fn priced<R>(f: impl FnOnce() -> R) -> R {
 
 /// The standard tree (sweep builder).
 fn std_tree(scene: &TriangleColumns) -> TreeIr {
-    build::build(scene, &config(), Builder::Sweep, None).unwrap()
+    build::build(scene, &config(), Algorithm::WaldHavran, None).unwrap()
 }
 
 /// Runs the fast post-pass and checks what every result must satisfy: the

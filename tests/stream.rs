@@ -8,7 +8,7 @@ mod common;
 use common::*;
 use glam::Vec3;
 use proptest::prelude::*;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
@@ -62,7 +62,7 @@ proptest! {
         )),
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         let params = SlimParams { tau_occu: 0.0, tau_freq: 0.0, ..SlimParams::PAPER_SMALL };
         let (slim, _) = slim::slim(&tree, &scene, &BuildConfig::default(), &params);
         for t in [&tree, &slim] {

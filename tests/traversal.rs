@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use proptest::prelude::*;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::geom::Ray;
 use slimkd::trace;
 
@@ -20,7 +20,7 @@ proptest! {
         ))
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         for ray in &rays {
             let want = trace::brute_force(&scene, ray);
             let got = trace::closest_hit(&tree, &scene, ray);
@@ -38,7 +38,7 @@ proptest! {
         span in 0.0f32..4.0,
     ) {
         let scene = columns(&tris);
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         for ray in &rays {
             let ray = Ray { tmin, tmax: tmin + span, ..*ray };
             let want = trace::brute_force(&scene, &ray);
@@ -55,7 +55,7 @@ proptest! {
 fn bunny_rays_match_brute_force() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
     let b = scene.bounds();
     let mut hits = 0;
     let mut rays = Vec::new();

@@ -4,8 +4,8 @@
 //!
 //! - [`naive`]: the reference; evaluates every candidate plane by counting
 //!   triangles directly, O(N²) per node.
-//! - [`sweep`]: Wald & Havran (2006), O(N log N): events sorted once, one
-//!   sweep per axis, children inherit their event order.
+//! - [`wald_havran`]: Wald & Havran (2006), O(N log N): events sorted once,
+//!   one sweep per axis, children inherit their event order.
 //! - [`level`]: breadth-first, level by level, parallel over events (Wu,
 //!   Zhao & Liu 2011), over columns that may live in mapped scratch files;
 //!   small nodes are finished depth-first in parallel. The default.
@@ -26,7 +26,7 @@ pub mod level;
 pub mod naive;
 #[doc(hidden)] // the builders' shared cost function; its parameters are `SahParams`
 pub mod sah;
-pub mod sweep;
+pub mod wald_havran;
 
 pub use crate::progress::Progress;
 pub use sah::SahParams;
@@ -44,13 +44,13 @@ pub struct BuildConfig {
     pub sah: SahParams,
 }
 
-/// Which builder to run.
+/// Which algorithm builds the tree (all build the same one).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Builder {
+pub enum Algorithm {
     /// The O(N²) reference ([`naive::build`]).
     Naive,
-    /// The O(N log N) event sweep of Wald & Havran ([`sweep::build`]).
-    Sweep,
+    /// The O(N log N) event sweep of Wald & Havran ([`wald_havran::build`]).
+    WaldHavran,
     /// The level builder with default options (everything in RAM).
     Level,
 }
@@ -64,20 +64,20 @@ pub use crate::columns::ColumnsError as BuildError;
 ///
 /// # Errors
 ///
-/// With [`Builder::Level`], if the level builder fails (see
-/// [`BuildError`]); [`Builder::Naive`] and [`Builder::Sweep`] always
+/// With [`Algorithm::Level`], if the level builder fails (see
+/// [`BuildError`]); [`Algorithm::Naive`] and [`Algorithm::WaldHavran`] always
 /// succeed. Call [`level::build`] for a build with a report, a memory
 /// budget and scratch files.
 pub fn build(
     scene: &TriangleColumns,
     config: &BuildConfig,
-    builder: Builder,
+    algorithm: Algorithm,
     progress: Option<&Progress>,
 ) -> Result<TreeIr, BuildError> {
-    match builder {
-        Builder::Naive => Ok(naive::build(scene, config, progress)),
-        Builder::Sweep => Ok(sweep::build(scene, config, progress)),
-        Builder::Level => level::build(scene, config, progress, &level::LevelOptions::default())
+    match algorithm {
+        Algorithm::Naive => Ok(naive::build(scene, config, progress)),
+        Algorithm::WaldHavran => Ok(wald_havran::build(scene, config, progress)),
+        Algorithm::Level => level::build(scene, config, progress, &level::LevelOptions::default())
             .map(|(tree, _)| tree),
     }
 }
@@ -175,7 +175,7 @@ pub(crate) fn root_cell(union: Aabb) -> Aabb {
 }
 
 /// Appends nodes in pre-order, deciding with the SAH rules of the build
-/// which nodes are leaves (the naive and sweep builders).
+/// which nodes are leaves (the naive and Wald-Havran builders).
 struct TreeWriter<'a> {
     tree: TreeIr,
     sah: &'a SahParams,
@@ -254,5 +254,18 @@ impl<'a> TreeWriter<'a> {
         if let Node::Inner { right, .. } = &mut self.tree.nodes[inner] {
             *right = next;
         }
+    }
+}
+
+/// The unit tests' random numbers: Marsaglia's xorshift64 from `seed`
+/// (not 0), small and reproducible on every platform.
+#[cfg(test)]
+pub(crate) fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut x = seed;
+    move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
     }
 }

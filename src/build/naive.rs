@@ -12,7 +12,7 @@ use crate::tree::TreeIr;
 /// advancing `progress` as leaves are written.
 pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Progress>) -> TreeIr {
     let (bounds, refs) = root(scene);
-    let mut ctx = Ctx {
+    let mut ctx = NaiveBuilder {
         scene,
         config,
         out: TreeWriter::new(bounds, scene, config, progress),
@@ -21,13 +21,13 @@ pub fn build(scene: &TriangleColumns, config: &BuildConfig, progress: Option<&Pr
     ctx.out.tree
 }
 
-struct Ctx<'a> {
+struct NaiveBuilder<'a> {
     scene: &'a TriangleColumns,
     config: &'a BuildConfig,
     out: TreeWriter<'a>,
 }
 
-impl Ctx<'_> {
+impl NaiveBuilder<'_> {
     fn best_split(&self, refs: &[TriRef], cell: &Aabb) -> Option<Split> {
         let sa = cell.surface_area();
         if refs.is_empty() || sa <= 0.0 {

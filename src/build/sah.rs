@@ -1,5 +1,5 @@
 //! The one surface-area heuristic every builder calls (Wald & Havran 2006,
-//! §3), with the one tie-break, so that the naive, sweep and level builders
+//! §3), with the one tie-break, so that the naive, Wald-Havran and level builders
 //! can be asserted to produce the *same* tree.
 //!
 //! Cost of splitting cell `V` at plane `p` into `V_L`, `V_R` with `N_L`,
@@ -671,24 +671,9 @@ mod tests {
         // Not a flat split (across the flat axis, or in a cube): not counted.
         let cube = Aabb::new(Vec3::ZERO, Vec3::ONE);
         let never = |_: &Split| -> usize { panic!("counted a split that is not flat") };
-        assert!(!is_leaf(
-            &p,
-            Some(&split(2)),
-            n,
-            12,
-            &NO_PRICE,
-            &flat,
-            never
-        ));
-        assert!(!is_leaf(
-            &p,
-            Some(&split(0)),
-            n,
-            12,
-            &NO_PRICE,
-            &cube,
-            never
-        ));
+        for (s, cell) in [(split(2), &flat), (split(0), &cube)] {
+            assert!(!is_leaf(&p, Some(&s), n, 12, &NO_PRICE, cell, never));
+        }
         // A split that does not pay is a leaf without counting.
         assert!(is_leaf(
             &p,
@@ -750,13 +735,7 @@ mod tests {
     /// planes from a small grid (faces, flat cells) and arbitrary ones.
     #[test]
     fn axis_and_cell_pricers_are_surface_area_of_the_halves() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
+        let mut next = crate::build::xorshift(0x9E37_79B9_7F4A_7C15);
         let coord = |next: &mut dyn FnMut() -> u64| {
             if next().is_multiple_of(2) {
                 (next() % 9) as f32 * 0.25 - 1.0

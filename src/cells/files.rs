@@ -4,7 +4,7 @@
 //! on, so that no byte string makes them panic; every error names the
 //! file.
 
-use super::CellsError;
+use super::{CellMismatch, CellsError, Corruption, FileKind};
 use crate::build::SahParams;
 use crate::build::level::{Cut, CutCell};
 use crate::geom::Aabb;
@@ -18,7 +18,7 @@ const PLAN_MAGIC: [u8; 8] = *b"SLIMKPL\0";
 const CELL_MAGIC: [u8; 8] = *b"SLIMKDC\0";
 const PART_MAGIC: [u8; 8] = *b"SLIMKPT\0";
 /// 2: the SAH parameters hold the split price and its scale.
-const VERSION: u32 = 2;
+pub(super) const VERSION: u32 = 2;
 const PLAN_HEADER: usize = 8 + 4 + 4 + 8 + 8 + 5 * 8 + 4 + 4 + 8 + 8 + 24 + 3 * 8;
 const CELL_HEADER: usize = 8 + 4 + 4 + 4 + 4 + 5 * 8 + 4 + 4 + 24 + 8;
 const PART_HEADER: usize = 8 + 4 + 4 + 4 + 4 + 8 + 24 + 8 + 8;
@@ -256,7 +256,7 @@ pub fn write_part(path: &Path, cell: CellId, tree: &TreeIr) -> Result<(), CellsE
     {
         return Err(CellsError::Corrupt {
             path: path.to_path_buf(),
-            what: "a part holds a standard tree (no hoisted triangles)".into(),
+            what: Corruption::StandardTree,
         });
     }
     write_with(path, |o| {
@@ -314,7 +314,7 @@ impl<'a> In<'a> {
     fn open(
         path: &'a Path,
         magic: [u8; 8],
-        kind: &str,
+        kind: FileKind,
         header: usize,
     ) -> Result<In<'a>, CellsError> {
         let mut data = Vec::new();
@@ -323,25 +323,23 @@ impl<'a> In<'a> {
             .map_err(io_err(path))?;
         let r = In { path, data, at: 0 };
         if r.data.len() < 8 || r.data[..8] != magic {
-            return Err(r.corrupt(format!("not a {kind} file (wrong magic)")));
+            return Err(r.corrupt(Corruption::Magic { kind }));
         }
         if r.data.len() < header + 4 {
-            return Err(r.corrupt(format!(
-                "truncated {kind} file ({} bytes, the header alone is {})",
-                r.data.len(),
-                header + 4
-            )));
+            return Err(r.corrupt(Corruption::Header {
+                kind,
+                len: r.data.len(),
+                needed: header + 4,
+            }));
         }
         let version = u32::from_le_bytes(r.data[8..12].try_into().expect("4 bytes"));
         if version != VERSION {
-            return Err(r.corrupt(format!(
-                "{kind} file version {version}, this slimkd reads version {VERSION}"
-            )));
+            return Err(r.corrupt(Corruption::Version { kind, version }));
         }
         Ok(In { at: 16, ..r })
     }
 
-    fn corrupt(&self, what: String) -> CellsError {
+    fn corrupt(&self, what: Corruption) -> CellsError {
         CellsError::Corrupt {
             path: self.path.to_path_buf(),
             what,
@@ -350,21 +348,23 @@ impl<'a> In<'a> {
 
     /// Checks that the file is `expect` bytes long (from the header's
     /// counts) and that its checksum holds; returns its identity.
-    fn check(&self, kind: &str, expect: Option<u64>) -> Result<CellId, CellsError> {
+    fn check(&self, kind: FileKind, expect: Option<u64>) -> Result<CellId, CellsError> {
         let len = self.data.len() as u64;
         if expect != Some(len) {
             return Err(self.corrupt(match expect {
-                Some(e) => {
-                    format!("truncated or overlong {kind} file ({len} bytes, its counts say {e})")
-                }
-                None => format!("corrupt {kind} file (impossible counts)"),
+                Some(expected) => Corruption::Length {
+                    kind,
+                    len,
+                    expected,
+                },
+                None => Corruption::Counts { kind },
             }));
         }
         let (body, tail) = self.data.split_at(self.data.len() - 4);
         let stored = u32::from_le_bytes(tail.try_into().expect("4 bytes"));
         let crc = crc32fast::hash(body);
         if crc != stored {
-            return Err(self.corrupt(format!("corrupt {kind} file (checksum mismatch)")));
+            return Err(self.corrupt(Corruption::Checksum { kind }));
         }
         Ok(CellId { crc, len })
     }
@@ -405,7 +405,7 @@ impl<'a> In<'a> {
         let price_ok =
             p.split_price.is_finite() && p.split_price >= 0.0 && p.price_scale.is_none_or(positive);
         if !(costs_ok && lambda_ok && price_ok) {
-            return Err(self.corrupt("corrupt SAH parameters".into()));
+            return Err(self.corrupt(Corruption::SahParams));
         }
         Ok(p)
     }
@@ -431,7 +431,7 @@ impl<'a> In<'a> {
             } else {
                 let pos = f32::from_bits(w[1]);
                 if w[0] > 2 || !pos.is_finite() {
-                    return Err(self.corrupt(format!("corrupt node {}", nodes.len())));
+                    return Err(self.corrupt(Corruption::Node(nodes.len())));
                 }
                 Node::Inner {
                     axis: w[0] as u8,
@@ -442,24 +442,23 @@ impl<'a> In<'a> {
             });
         }
         let leaf_tris: Vec<TriId> = (0..t).map(|_| TriId(self.u32())).collect();
-        let bad = |what: &str, i: usize| self.corrupt(format!("{what} at node {i}"));
         // Pre-order: the nodes are visited in index order, each leaf's
         // list follows the one before.
         let (mut visited, mut listed) = (0usize, 0u64);
         let mut stack = vec![(0usize, 0u32)];
         while let Some((i, depth)) = stack.pop() {
             if i != visited || i >= n {
-                return Err(bad("nodes not in pre-order", visited));
+                return Err(self.corrupt(Corruption::PreOrder(visited)));
             }
             if depth > max_depth {
-                return Err(bad("too deep", i));
+                return Err(self.corrupt(Corruption::TooDeep(i)));
             }
             visited += 1;
             match nodes[i] {
                 Node::Inner { right, .. } => {
                     let r = right.0 as usize;
                     if r <= i + 1 || r >= n {
-                        return Err(bad("right child out of place", i));
+                        return Err(self.corrupt(Corruption::RightChild(i)));
                     }
                     stack.push((r, depth + 1));
                     stack.push((i + 1, depth + 1));
@@ -467,18 +466,18 @@ impl<'a> In<'a> {
                 Node::Leaf { start, count } => {
                     let end = u64::from(start) + u64::from(count);
                     if u64::from(start) != listed || end > t as u64 {
-                        return Err(bad("leaf list out of place", i));
+                        return Err(self.corrupt(Corruption::LeafList(i)));
                     }
                     let list = &leaf_tris[start as usize..end as usize];
                     if list.windows(2).any(|w| w[0] >= w[1]) {
-                        return Err(bad("leaf list not ascending", i));
+                        return Err(self.corrupt(Corruption::LeafOrder(i)));
                     }
                     listed = end;
                 }
             }
         }
         if visited != n || listed != t as u64 {
-            return Err(self.corrupt("nodes or leaf entries outside the tree".into()));
+            return Err(self.corrupt(Corruption::OutsideTree));
         }
         Ok(TreeIr {
             bounds,
@@ -495,18 +494,18 @@ fn finite_box(b: &Aabb) -> bool {
 /// The identity of a cell file that reads back whole (length and
 /// checksum), without parsing it.
 pub fn cell_id(path: &Path) -> Result<CellId, CellsError> {
-    let mut r = In::open(path, CELL_MAGIC, "cell", CELL_HEADER)?;
+    let mut r = In::open(path, CELL_MAGIC, FileKind::Cell, CELL_HEADER)?;
     r.at = CELL_HEADER - 8;
     let n = r.u64();
     let expect = n
         .checked_mul(CELL_REF)
         .and_then(|b| b.checked_add(CELL_HEADER as u64 + 4));
-    r.check("cell", expect)
+    r.check(FileKind::Cell, expect)
 }
 
 /// Reads a cell file; returns it with its identity.
 pub fn read_cell(path: &Path) -> Result<(CellInput, CellId), CellsError> {
-    let mut r = In::open(path, CELL_MAGIC, "cell", CELL_HEADER)?;
+    let mut r = In::open(path, CELL_MAGIC, FileKind::Cell, CELL_HEADER)?;
     let index = r.u32();
     let n_cells = r.u32();
     let sah = r.sah();
@@ -517,25 +516,28 @@ pub fn read_cell(path: &Path) -> Result<(CellInput, CellId), CellsError> {
     let expect = n
         .checked_mul(CELL_REF)
         .and_then(|b| b.checked_add(CELL_HEADER as u64 + 4));
-    let id = r.check("cell", expect)?;
+    let id = r.check(FileKind::Cell, expect)?;
     let sah = sah?;
     if index >= n_cells {
-        return Err(r.corrupt(format!("cell {index} of {n_cells}")));
+        return Err(r.corrupt(Corruption::CellIndex { index, n_cells }));
     }
     if depth > depth_limit || depth_limit > MAX_DEPTH {
-        return Err(r.corrupt(format!("depth {depth} under the limit {depth_limit}")));
+        return Err(r.corrupt(Corruption::Depth {
+            depth,
+            limit: depth_limit,
+        }));
     }
     if !finite_box(&cell) {
-        return Err(r.corrupt("corrupt cell box".into()));
+        return Err(r.corrupt(Corruption::CellBox));
     }
     let n = n as usize;
     let tris: Vec<u32> = (0..n).map(|_| r.u32()).collect();
     if tris.windows(2).any(|w| w[0] >= w[1]) {
-        return Err(r.corrupt("triangle ids not ascending".into()));
+        return Err(r.corrupt(Corruption::TriangleOrder));
     }
     let boxes: Vec<Aabb> = (0..n).map(|_| r.aabb()).collect();
     if let Some(k) = boxes.iter().position(|b| !finite_box(b)) {
-        return Err(r.corrupt(format!("corrupt box of reference {k}")));
+        return Err(r.corrupt(Corruption::RefBox(k)));
     }
     let corners: Vec<[Vec3; 3]> = (0..n)
         .map(|_| {
@@ -546,7 +548,7 @@ pub fn read_cell(path: &Path) -> Result<(CellInput, CellId), CellsError> {
         })
         .collect();
     let scene = TriangleColumns::from_triangles(&corners)
-        .map_err(|e| r.corrupt(format!("invalid triangles: {e}")))?;
+        .map_err(|e| r.corrupt(Corruption::Triangles(e)))?;
     Ok((
         CellInput {
             index,
@@ -566,7 +568,7 @@ pub fn read_cell(path: &Path) -> Result<(CellInput, CellId), CellsError> {
 /// Reads a part and checks that it was built from the cell with identity
 /// `cell`.
 pub fn read_part(path: &Path, cell: CellId) -> Result<TreeIr, CellsError> {
-    let mut r = In::open(path, PART_MAGIC, "part", PART_HEADER)?;
+    let mut r = In::open(path, PART_MAGIC, FileKind::Part, PART_HEADER)?;
     let id = CellId {
         crc: r.u32(),
         len: {
@@ -580,22 +582,22 @@ pub fn read_part(path: &Path, cell: CellId) -> Result<TreeIr, CellsError> {
         .checked_mul(12)
         .and_then(|b| b.checked_add(t.checked_mul(4)?))
         .and_then(|b| b.checked_add(PART_HEADER as u64 + 4));
-    r.check("part", expect)?;
+    r.check(FileKind::Part, expect)?;
     if id != cell {
         return Err(CellsError::Mismatch {
             path: path.to_path_buf(),
-            what: "a part of another cell file (its cell's checksum differs)".into(),
+            what: CellMismatch::PartOfAnotherCell,
         });
     }
     if n == 0 || n > u64::from(u32::MAX) || t > u64::from(u32::MAX) || !finite_box(&bounds) {
-        return Err(r.corrupt("corrupt part header".into()));
+        return Err(r.corrupt(Corruption::PartHeader));
     }
     r.tree(bounds, n as usize, t as usize, MAX_DEPTH)
 }
 
 /// Reads a plan.
 pub fn read_plan(path: &Path) -> Result<Plan, CellsError> {
-    let mut r = In::open(path, PLAN_MAGIC, "plan", PLAN_HEADER)?;
+    let mut r = In::open(path, PLAN_MAGIC, FileKind::Plan, PLAN_HEADER)?;
     let scene_hash = r.u64();
     let n_tris = r.u64();
     let sah = r.sah();
@@ -610,13 +612,13 @@ pub fn read_plan(path: &Path) -> Result<Plan, CellsError> {
         .and_then(|b| b.checked_add(t.checked_mul(4)?))
         .and_then(|b| b.checked_add(c.checked_mul(PLAN_CELL)?))
         .and_then(|b| b.checked_add(PLAN_HEADER as u64 + 4));
-    r.check("plan", expect)?;
+    r.check(FileKind::Plan, expect)?;
     let sah = sah?;
     if n == 0 || n > u64::from(u32::MAX) || t > u64::from(u32::MAX) || c > u64::from(max_cells) {
-        return Err(r.corrupt("corrupt plan header".into()));
+        return Err(r.corrupt(Corruption::PlanHeader));
     }
     if depth_limit > MAX_DEPTH || !finite_box(&bounds) {
-        return Err(r.corrupt("corrupt plan header".into()));
+        return Err(r.corrupt(Corruption::PlanHeader));
     }
     let top = r.tree(bounds, n as usize, t as usize, depth_limit)?;
     let mut cells = Vec::with_capacity(c as usize);
@@ -633,12 +635,12 @@ pub fn read_plan(path: &Path) -> Result<Plan, CellsError> {
             Some(Node::Leaf { count: 0, .. })
         );
         if !after_last || !empty_leaf {
-            return Err(r.corrupt(format!("cell {k} at a node that is no empty leaf")));
+            return Err(r.corrupt(Corruption::CellNode(k)));
         }
         cells.push(PlanCell { node, refs, id });
     }
     if top.leaf_tris.iter().any(|t| u64::from(t.0) >= n_tris) {
-        return Err(r.corrupt("a triangle out of range".into()));
+        return Err(r.corrupt(Corruption::PlanTriangle));
     }
     Ok(Plan {
         scene_hash,

@@ -49,15 +49,16 @@ pub use files::{
 
 use crate::build::level::{self, CutCell, LevelOptions, TopTree};
 use crate::build::{BuildConfig, BuildError, SahParams};
-use crate::scene::TriangleColumns;
+use crate::scene::{InvalidColumns, TriangleColumns};
 use crate::tree::{Node, NodeId, PreOrderSink, TreeIr, TriId};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
 /// Why a step of a build in cells failed; every variant names its file.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum CellsError {
     /// Reading or writing a file failed.
+    #[error("{}: {source}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
@@ -65,36 +66,199 @@ pub enum CellsError {
         source: std::io::Error,
     },
     /// A plan, cell or part file is not one, or is corrupt or truncated.
+    #[error("{}: {what}", path.display())]
     Corrupt {
         /// The file.
         path: PathBuf,
         /// What is wrong with it.
-        what: String,
+        what: Corruption,
     },
     /// A file that reads back whole does not belong here (a part of
     /// another cell, a plan of another scene).
+    #[error("{}: {what}", path.display())]
     Mismatch {
         /// The file.
         path: PathBuf,
         /// What does not match.
-        what: String,
+        what: CellMismatch,
     },
     /// The level builder failed (its columns).
+    #[error("{0}")]
     Build(BuildError),
 }
 
-impl fmt::Display for CellsError {
+/// The three files of a build in cells, as their errors name them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FileKind {
+    /// The plan (`plan.kdplan`).
+    Plan,
+    /// A cell's input.
+    Cell,
+    /// A cell's built subtree.
+    Part,
+}
+
+impl fmt::Display for FileKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            CellsError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-            CellsError::Corrupt { path, what } => write!(f, "{}: {what}", path.display()),
-            CellsError::Mismatch { path, what } => write!(f, "{}: {what}", path.display()),
-            CellsError::Build(e) => write!(f, "{e}"),
-        }
+        f.write_str(match self {
+            FileKind::Plan => "plan",
+            FileKind::Cell => "cell",
+            FileKind::Part => "part",
+        })
     }
 }
 
-impl std::error::Error for CellsError {}
+/// What is wrong with a plan, cell or part file ([`CellsError::Corrupt`]).
+#[derive(Debug, thiserror::Error)]
+pub enum Corruption {
+    /// The file does not start with its kind's magic.
+    #[error("not a {kind} file (wrong magic)")]
+    Magic {
+        /// The kind of file expected.
+        kind: FileKind,
+    },
+    /// The file is shorter than its header and checksum.
+    #[error("truncated {kind} file ({len} bytes, the header alone is {needed})")]
+    Header {
+        /// The kind of file.
+        kind: FileKind,
+        /// Its length.
+        len: usize,
+        /// The header's and the checksum's bytes.
+        needed: usize,
+    },
+    /// A format version this slimkd does not read.
+    #[error(
+        "{kind} file version {version}, this slimkd reads version {}",
+        files::VERSION
+    )]
+    Version {
+        /// The kind of file.
+        kind: FileKind,
+        /// The version the file states.
+        version: u32,
+    },
+    /// The file's length is not the one its counts give.
+    #[error("truncated or overlong {kind} file ({len} bytes, its counts say {expected})")]
+    Length {
+        /// The kind of file.
+        kind: FileKind,
+        /// Its length.
+        len: u64,
+        /// The length its counts give.
+        expected: u64,
+    },
+    /// The header's counts give no length that fits in 64 bits.
+    #[error("corrupt {kind} file (impossible counts)")]
+    Counts {
+        /// The kind of file.
+        kind: FileKind,
+    },
+    /// The stored checksum is not the contents'.
+    #[error("corrupt {kind} file (checksum mismatch)")]
+    Checksum {
+        /// The kind of file.
+        kind: FileKind,
+    },
+    /// The SAH parameters are out of range.
+    #[error("corrupt SAH parameters")]
+    SahParams,
+    /// A node's words are no node.
+    #[error("corrupt node {0}")]
+    Node(usize),
+    /// The nodes are not in pre-order.
+    #[error("nodes not in pre-order at node {0}")]
+    PreOrder(usize),
+    /// A node lies deeper than the depth limit.
+    #[error("too deep at node {0}")]
+    TooDeep(usize),
+    /// An inner node's right child is not after its left subtree.
+    #[error("right child out of place at node {0}")]
+    RightChild(usize),
+    /// A leaf's list does not follow the previous leaf's.
+    #[error("leaf list out of place at node {0}")]
+    LeafList(usize),
+    /// A leaf's triangles are not ascending.
+    #[error("leaf list not ascending at node {0}")]
+    LeafOrder(usize),
+    /// Nodes or leaf entries that the tree does not reach.
+    #[error("nodes or leaf entries outside the tree")]
+    OutsideTree,
+    /// A cell's index is not below the plan's cell count.
+    #[error("cell {index} of {n_cells}")]
+    CellIndex {
+        /// The cell's index.
+        index: u32,
+        /// The plan's cell count.
+        n_cells: u32,
+    },
+    /// A cell's depth exceeds the depth limit, or the limit the format's.
+    #[error("depth {depth} under the limit {limit}")]
+    Depth {
+        /// The cell's depth.
+        depth: u32,
+        /// The depth limit.
+        limit: u32,
+    },
+    /// A cell's box is not finite.
+    #[error("corrupt cell box")]
+    CellBox,
+    /// A cell's triangle ids are not ascending.
+    #[error("triangle ids not ascending")]
+    TriangleOrder,
+    /// A reference's box is not finite.
+    #[error("corrupt box of reference {0}")]
+    RefBox(usize),
+    /// A cell's triangles are no scene.
+    #[error("invalid triangles: {0}")]
+    Triangles(InvalidColumns),
+    /// A part's header is out of range.
+    #[error("corrupt part header")]
+    PartHeader,
+    /// A plan's header is out of range.
+    #[error("corrupt plan header")]
+    PlanHeader,
+    /// A plan's cell stands at a node that is not an empty leaf.
+    #[error("cell {0} at a node that is no empty leaf")]
+    CellNode(usize),
+    /// A plan's top tree names a triangle beyond the scene.
+    #[error("a triangle out of range")]
+    PlanTriangle,
+    /// A part names a triangle beyond the scene.
+    #[error("triangle {tri} out of range (the scene has {n_tris})")]
+    PartTriangle {
+        /// The triangle.
+        tri: u32,
+        /// The scene's triangle count.
+        n_tris: u64,
+    },
+    /// A part to write holds a standard tree, not a slim one.
+    #[error("a part holds a standard tree (no hoisted triangles)")]
+    StandardTree,
+}
+
+/// How a file that reads back whole does not belong
+/// ([`CellsError::Mismatch`]).
+#[derive(Debug, thiserror::Error)]
+pub enum CellMismatch {
+    /// A part built from another cell file.
+    #[error("a part of another cell file (its cell's checksum differs)")]
+    PartOfAnotherCell,
+    /// A cell file that is not the plan's cell of its index.
+    #[error("not cell {index} of the plan {} (plan again: slimkd build --cells)", plan.display())]
+    NotPlannedCell {
+        /// The cell's index.
+        index: usize,
+        /// The plan.
+        plan: PathBuf,
+    },
+    /// A plan made for another scene.
+    #[error("the plan of another scene than {} (its triangles or geometry hash differ)", scene.display())]
+    AnotherScene {
+        /// The scene given.
+        scene: PathBuf,
+    },
+}
 
 impl From<BuildError> for CellsError {
     fn from(e: BuildError) -> CellsError {
@@ -416,10 +580,10 @@ pub fn read_planned_cell(dir: &Path, plan: &Plan, i: usize) -> Result<CellInput,
     if id != plan.cells[i].id || input.index as usize != i {
         return Err(CellsError::Mismatch {
             path,
-            what: format!(
-                "not cell {i} of the plan {} (plan again: slimkd build --cells)",
-                plan_path(dir).display()
-            ),
+            what: CellMismatch::NotPlannedCell {
+                index: i,
+                plan: plan_path(dir),
+            },
         });
     }
     Ok(input)
@@ -454,11 +618,58 @@ fn read_checked_part(dir: &Path, plan: &Plan, i: usize) -> Result<TreeIr, CellsE
     {
         return Err(CellsError::Corrupt {
             path,
-            what: format!(
-                "triangle {} out of range (the scene has {})",
-                t.0, plan.n_tris
-            ),
+            what: Corruption::PartTriangle {
+                tri: t.0,
+                n_tris: plan.n_tris,
+            },
         });
     }
     Ok(tree)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_messages() {
+        let corrupt = |what| CellsError::Corrupt {
+            path: PathBuf::from("/w/cell-0.kdcell"),
+            what,
+        };
+        let cases = [
+            (
+                corrupt(Corruption::Version {
+                    kind: FileKind::Cell,
+                    version: 1,
+                }),
+                "/w/cell-0.kdcell: cell file version 1, this slimkd reads version 2",
+            ),
+            (
+                corrupt(Corruption::Length {
+                    kind: FileKind::Plan,
+                    len: 10,
+                    expected: 12,
+                }),
+                "/w/cell-0.kdcell: truncated or overlong plan file (10 bytes, its counts say 12)",
+            ),
+            (
+                corrupt(Corruption::LeafOrder(7)),
+                "/w/cell-0.kdcell: leaf list not ascending at node 7",
+            ),
+            (
+                CellsError::Mismatch {
+                    path: PathBuf::from("/w/cell-3.kdcell"),
+                    what: CellMismatch::NotPlannedCell {
+                        index: 3,
+                        plan: PathBuf::from("/w/plan.kdplan"),
+                    },
+                },
+                "/w/cell-3.kdcell: not cell 3 of the plan /w/plan.kdplan (plan again: slimkd build --cells)",
+            ),
+        ];
+        for (e, want) in cases {
+            assert_eq!(e.to_string(), want);
+        }
+    }
 }

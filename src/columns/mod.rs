@@ -66,12 +66,17 @@ impl Default for ScratchConfig {
 }
 
 /// Why a column could not be made.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum ColumnsError {
     /// A large allocation of the builder (the tree it assembles) did not
     /// fit in memory.
+    #[error("{0}")]
     OutOfMemory(crate::sys::OutOfMemory),
     /// The scratch directory does not exist or is not a directory.
+    #[error(
+        "scratch directory {}: {source} (it must be an existing, writable directory)",
+        path.display()
+    )]
     NoDir {
         /// The directory asked for.
         path: PathBuf,
@@ -80,6 +85,7 @@ pub enum ColumnsError {
     },
     /// A scratch file could not be created, sized or mapped (an
     /// unwritable directory, for example).
+    #[error("scratch file {}: cannot {op}: {source}", path.display())]
     File {
         /// The scratch file.
         path: PathBuf,
@@ -89,6 +95,10 @@ pub enum ColumnsError {
         source: io::Error,
     },
     /// The disk holding the scratch directory is full.
+    #[error(
+        "scratch file {}: no space left for {bytes} bytes (free some disk or choose another scratch directory)",
+        path.display()
+    )]
     NoSpace {
         /// The scratch file that did not fit.
         path: PathBuf,
@@ -97,6 +107,10 @@ pub enum ColumnsError {
     },
     /// The scratch files would exceed the scratch limit
     /// ([`LevelOptions::scratch_limit`](crate::build::level::LevelOptions::scratch_limit)).
+    #[error(
+        "scratch directory {}: the scratch limit of {limit} bytes would be exceeded ({requested} bytes requested)",
+        path.display()
+    )]
     Limit {
         /// The scratch directory.
         path: PathBuf,
@@ -106,6 +120,7 @@ pub enum ColumnsError {
         requested: u64,
     },
     /// A count does not fit the builder's index width.
+    #[error("too many {what}: at most {limit} are supported")]
     Capacity {
         /// What was counted (references, events, nodes).
         what: &'static str,
@@ -113,63 +128,16 @@ pub enum ColumnsError {
         limit: u64,
     },
     /// Memory could not be mapped (out of memory, or of mappings).
+    #[error(
+        "out of memory: cannot map {bytes} bytes for a column: {source} (a smaller \
+         --mem-budget, e.g. --mem-budget 64M, keeps the builder's columns in scratch files)"
+    )]
     Memory {
         /// The size of the mapping.
         bytes: u64,
         /// What `mmap` said.
         source: io::Error,
     },
-}
-
-impl fmt::Display for ColumnsError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            ColumnsError::NoDir { path, source } => write!(
-                f,
-                "scratch directory {}: {source} (it must be an existing, writable directory)",
-                path.display()
-            ),
-            ColumnsError::File { path, op, source } => {
-                write!(f, "scratch file {}: cannot {op}: {source}", path.display())
-            }
-            ColumnsError::NoSpace { path, bytes } => write!(
-                f,
-                "scratch file {}: no space left for {bytes} bytes (free some disk or choose another scratch directory)",
-                path.display()
-            ),
-            ColumnsError::Limit {
-                path,
-                limit,
-                requested,
-            } => write!(
-                f,
-                "scratch directory {}: the scratch limit of {limit} bytes would be exceeded ({requested} bytes requested)",
-                path.display()
-            ),
-            ColumnsError::Capacity { what, limit } => {
-                write!(f, "too many {what}: at most {limit} are supported")
-            }
-            ColumnsError::OutOfMemory(e) => write!(f, "{e}"),
-            ColumnsError::Memory { bytes, source } => {
-                write!(
-                    f,
-                    "out of memory: cannot map {bytes} bytes for a column: {source} (a smaller \
-                     --mem-budget, e.g. --mem-budget 64M, keeps the builder's columns in scratch files)"
-                )
-            }
-        }
-    }
-}
-
-impl std::error::Error for ColumnsError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            ColumnsError::NoDir { source, .. }
-            | ColumnsError::File { source, .. }
-            | ColumnsError::Memory { source, .. } => Some(source),
-            _ => None,
-        }
-    }
 }
 
 /// Byte counts of the level builder's columns (RAM and scratch files),

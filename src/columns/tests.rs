@@ -10,15 +10,23 @@ fn entries(d: &Path) -> usize {
     std::fs::read_dir(d).unwrap().count()
 }
 
+/// A scratch in `dir` that keeps `mem_budget` bytes of columns in RAM.
+fn scratch(
+    mem_budget: u64,
+    dir: &Path,
+    scratch_limit: Option<u64>,
+) -> Result<Scratch, ColumnsError> {
+    Scratch::new(ScratchConfig {
+        mem_budget,
+        dir: dir.to_path_buf(),
+        scratch_limit,
+    })
+}
+
 #[test]
 fn ram_then_file_above_the_budget() {
     let d = dir("budget");
-    let s = Scratch::new(ScratchConfig {
-        mem_budget: 64,
-        dir: d.clone(),
-        scratch_limit: None,
-    })
-    .unwrap();
+    let s = scratch(64, &d, None).unwrap();
     let mut a = s.column::<u32>("a", 16).unwrap();
     let mut b = s.column::<u64>("b", 1000).unwrap();
     assert!(!a.is_mapped());
@@ -89,12 +97,7 @@ fn overwrite_columns_reuse_without_zeroing() {
 #[test]
 fn the_pool_stays_within_the_budget() {
     let mib = 1usize << 20;
-    let s = Scratch::new(ScratchConfig {
-        mem_budget: 3 * mib as u64,
-        dir: std::env::temp_dir(),
-        scratch_limit: None,
-    })
-    .unwrap();
+    let s = scratch(3 * mib as u64, &std::env::temp_dir(), None).unwrap();
     let a = s.column::<u8>("a", 2 * mib).unwrap();
     let b = s.column::<u8>("b", mib).unwrap();
     assert!(!a.is_mapped() && !b.is_mapped());
@@ -124,27 +127,60 @@ fn the_pool_stays_within_the_budget() {
 #[test]
 fn missing_dir_is_an_error_naming_it() {
     let d = std::env::temp_dir().join("slimkd-no-such-dir/deeper");
-    let e = Scratch::new(ScratchConfig {
-        mem_budget: 0,
-        dir: d.clone(),
-        scratch_limit: None,
-    })
-    .unwrap_err();
+    let e = scratch(0, &d, None).unwrap_err();
     assert!(e.to_string().contains(&*d.to_string_lossy()), "{e}");
 }
 
 #[test]
 fn scratch_limit_is_enforced() {
     let d = dir("limit");
-    let s = Scratch::new(ScratchConfig {
-        mem_budget: 0,
-        dir: d.clone(),
-        scratch_limit: Some(100),
-    })
-    .unwrap();
+    let s = scratch(0, &d, Some(100)).unwrap();
     let _a = s.column::<u8>("a", 60).unwrap();
     let e = s.column::<u8>("b", 60).unwrap_err();
     assert!(matches!(e, ColumnsError::Limit { .. }), "{e}");
     assert_eq!(entries(&d), 0);
     std::fs::remove_dir_all(d).unwrap();
+}
+
+#[test]
+fn error_messages() {
+    let path = PathBuf::from("/s/x");
+    let io = || io::Error::from(io::ErrorKind::NotFound);
+    let cases: [(ColumnsError, &str); 4] = [
+        (
+            ColumnsError::File {
+                path: path.clone(),
+                op: "map",
+                source: io(),
+            },
+            "scratch file /s/x: cannot map: entity not found",
+        ),
+        (
+            ColumnsError::Limit {
+                path: path.clone(),
+                limit: 100,
+                requested: 120,
+            },
+            "scratch directory /s/x: the scratch limit of 100 bytes would be exceeded (120 bytes requested)",
+        ),
+        (
+            ColumnsError::Memory {
+                bytes: 64,
+                source: io(),
+            },
+            "out of memory: cannot map 64 bytes for a column: entity not found (a smaller \
+             --mem-budget, e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
+        ),
+        (
+            ColumnsError::OutOfMemory(crate::sys::OutOfMemory {
+                what: "the tree",
+                bytes: 3 << 19,
+            }),
+            "out of memory: the tree (1.5 MiB) does not fit (a smaller --mem-budget, \
+             e.g. --mem-budget 64M, keeps the builder's columns in scratch files)",
+        ),
+    ];
+    for (e, want) in cases {
+        assert_eq!(e.to_string(), want);
+    }
 }

@@ -502,7 +502,7 @@ fn write_streamed<T, E: From<FormatError>>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{self, BuildConfig, Builder};
+    use crate::build::{self, Algorithm, BuildConfig};
     use crate::format::write_to_vec;
     use glam::Vec3;
 
@@ -518,7 +518,8 @@ mod tests {
             })
             .collect();
         let scene = TriangleColumns::from_triangles(&tris).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree =
+            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         let dir = std::env::temp_dir().join(format!("slimkd-stream-unit-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();

@@ -869,7 +869,7 @@ pub fn write_file(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{self, BuildConfig, Builder};
+    use crate::build::{self, Algorithm, BuildConfig};
     use glam::Vec3;
 
     /// Windows of a few words send many words out before they are set;
@@ -884,7 +884,8 @@ mod tests {
             })
             .collect();
         let scene = TriangleColumns::from_triangles(&tris).unwrap();
-        let tree = build::build(&scene, &BuildConfig::default(), Builder::Sweep, None).unwrap();
+        let tree =
+            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
         assert!(tree.nodes.len() > 100);
         for reorder in [false, true] {
             let options = WriteOptions {

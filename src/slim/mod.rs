@@ -126,7 +126,7 @@ pub use oracle::{above, occupancy_weight};
 pub use params::{HoistRule, SlimParams, SlimPhases, SlimReport};
 
 use crate::build::level::SubtreeBuilder;
-use crate::build::{BuildConfig, TriRef, sweep};
+use crate::build::{BuildConfig, TriRef, wald_havran};
 use crate::geom::{Aabb, clip_triangle};
 use crate::progress::Progress;
 use crate::scene::TriangleColumns;
@@ -162,7 +162,7 @@ pub fn rebuild(
     (config.sah.price_scale).get_or_insert_with(|| {
         crate::build::sah::price_scale(&crate::build::root_cell(scene.bounds()), scene.len())
     });
-    sweep::build_subtree(scene, &config, refs, *cell, depth, None)
+    wald_havran::build_subtree(scene, &config, refs, *cell, depth, None)
 }
 
 /// Applies Algorithm 1 to a standard tree.
@@ -368,7 +368,7 @@ pub(crate) fn huge_over_grid() -> TriangleColumns {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{self, Builder};
+    use crate::build::{self, Algorithm};
     use std::collections::BTreeSet;
 
     /// The end of the subtree of node `i` in pre-order.
@@ -397,7 +397,7 @@ mod tests {
             huge_over_grid(),
             TriangleColumns::from_triangles(&tris).unwrap(),
         ] {
-            let std_tree = build::build(&scene, &config, Builder::Sweep, None).unwrap();
+            let std_tree = build::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
             let model = ByteModel::new(&scene, false);
             let mut builder = SubtreeBuilder::new(&scene, &config);
             let (mut stops, mut rebuilt) = (0, 0);
@@ -457,7 +457,7 @@ mod tests {
         // small triangles and takes more nodes), and the tree never grows.
         let scene = huge_over_grid();
         let config = BuildConfig::default();
-        let std_tree = build::build(&scene, &config, Builder::Sweep, None).unwrap();
+        let std_tree = build::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
         let paper = SlimParams::SMALL.with_rule(HoistRule::Paper);
         let (slim_tree, report) = slim(&std_tree, &scene, &config, &paper);
         slim_tree.validate(&scene).unwrap();

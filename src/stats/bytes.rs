@@ -148,7 +148,7 @@ impl ByteSplit {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{self, BuildConfig, Builder};
+    use crate::build::{self, Algorithm, BuildConfig};
     use crate::format::{self, WriteOptions};
     use crate::slim::{self, SlimParams};
 
@@ -156,7 +156,7 @@ mod tests {
     fn split_adds_up_to_the_tree_bytes() {
         let scene = slim::huge_over_grid();
         let config = BuildConfig::default();
-        let std_tree = build::build(&scene, &config, Builder::Sweep, None).unwrap();
+        let std_tree = build::build(&scene, &config, Algorithm::WaldHavran, None).unwrap();
         let (slim_tree, _) = slim::slim(&std_tree, &scene, &config, &SlimParams::SMALL);
         for tree in [&std_tree, &slim_tree] {
             let bytes = format::write_to_vec(tree, &scene, &WriteOptions::default()).unwrap();

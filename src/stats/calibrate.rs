@@ -236,7 +236,7 @@ pub fn measure_scene(
         let mut config = BuildConfig::default();
         config.sah.k_t = k_t;
         config.sah.k_i = options.k_i;
-        let tree = build::build(scene, &config, build::Builder::Level, None)
+        let tree = build::build(scene, &config, build::Algorithm::Level, None)
             .map_err(|e: BuildError| format!("{name}: the build with K_T {k_t}: {e}"))?;
         let bytes = format::write_to_vec(
             &tree,

@@ -6,7 +6,7 @@
 use super::columns;
 use glam::Vec3;
 use proptest::prelude::*;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::node::{self, NodeWord};
 use slimkd::format::{self, KdFile, Section, WriteOptions, aligned_copy};
 use slimkd::geom::{Aabb, Ray, clip_triangle};
@@ -144,7 +144,7 @@ pub fn read(bytes: &[u8]) -> KdFile<format::AlignedBytes> {
 }
 
 pub fn std_tree(scene: &TriangleColumns) -> TreeIr {
-    build::build(scene, &BuildConfig::default(), Builder::Sweep, None).unwrap()
+    build::build(scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap()
 }
 
 // ---------------------------------------------------------------------

@@ -9,7 +9,7 @@ pub mod kd;
 use glam::Vec3;
 use proptest::prelude::*;
 use slimkd::build::level::LevelOptions;
-use slimkd::build::{self, BuildConfig, Builder};
+use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
@@ -55,28 +55,28 @@ pub fn columns(tris: &[[Vec3; 3]]) -> TriangleColumns {
     TriangleColumns::from_triangles(tris).expect("finite test triangles")
 }
 
-/// Builds with every builder (naive, sweep and level), asserts they
+/// Builds with every builder (naive, Wald-Havran and level), asserts they
 /// produce the same tree and that it is valid; slims it with the `fast`
 /// preset (a valid tree too) and writes both trees to `.kd` bytes that
 /// read back, verify and hold the tree's nodes. Returns the standard tree.
 pub fn build_checked(scene: &TriangleColumns, config: &BuildConfig) -> TreeIr {
-    let sweep = build::build(scene, config, Builder::Sweep, None).unwrap();
-    let naive = build::build(scene, config, Builder::Naive, None).unwrap();
-    assert_eq!(sweep, naive, "sweep and naive trees differ");
-    if let Err(e) = sweep.validate(scene) {
-        panic!("invalid tree: {e}\n{sweep:?}");
+    let wald_havran = build::build(scene, config, Algorithm::WaldHavran, None).unwrap();
+    let naive = build::build(scene, config, Algorithm::Naive, None).unwrap();
+    assert_eq!(wald_havran, naive, "Wald-Havran and naive trees differ");
+    if let Err(e) = wald_havran.validate(scene) {
+        panic!("invalid tree: {e}\n{wald_havran:?}");
     }
     let (level, _) = build::level::build(scene, config, None, &LevelOptions::default())
         .expect("the level build succeeds");
-    assert_eq!(level, sweep, "level and sweep trees differ");
-    let (slim, _) = slim::slim(&sweep, scene, config, &SlimParams::FAST);
+    assert_eq!(level, wald_havran, "level and Wald-Havran trees differ");
+    let (slim, _) = slim::slim(&wald_havran, scene, config, &SlimParams::FAST);
     if let Err(e) = slim.validate(scene) {
         panic!("invalid slim tree: {e}\n{slim:?}");
     }
-    for tree in [&sweep, &slim] {
+    for tree in [&wald_havran, &slim] {
         assert_round_trip(tree, scene);
     }
-    sweep
+    wald_havran
 }
 
 /// Writes `tree` to `.kd` bytes and reads them back: the file is valid,

@@ -3,7 +3,7 @@
 //! summary and JSON, and the peak memory of the command.
 
 use crate::*;
-use slimkd::build::{self, BuildConfig, Builder, level};
+use slimkd::build::{self, Algorithm, BuildConfig, level};
 use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
 use slimkd::pipeline::{self, FiguresJson};
 use slimkd::progress::Progress;
@@ -121,11 +121,11 @@ pub(crate) fn build_tree(
                 Ok((tree, Some(report)))
             }
             BuilderArg::Sweep => Ok((
-                build::build(scene, &config, Builder::Sweep, Some(&progress))?,
+                build::build(scene, &config, Algorithm::WaldHavran, Some(&progress))?,
                 None,
             )),
             BuilderArg::Naive => Ok((
-                build::build(scene, &config, Builder::Naive, Some(&progress))?,
+                build::build(scene, &config, Algorithm::Naive, Some(&progress))?,
                 None,
             )),
         },

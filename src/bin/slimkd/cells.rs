@@ -3,7 +3,7 @@
 
 use crate::*;
 use slimkd::build::{BuildConfig, SahParams, level};
-use slimkd::cells::{self, CellsError, Plan};
+use slimkd::cells::{self, CellMismatch, CellsError, Plan};
 use slimkd::format::SceneTag;
 use slimkd::progress::Progress;
 use std::path::{Path, PathBuf};
@@ -251,10 +251,9 @@ pub(crate) fn cmd_stitch(
         {
             return Err(CellsError::Mismatch {
                 path: plan_path,
-                what: format!(
-                    "the plan of another scene than {} (its triangles or geometry hash differ)",
-                    scene.display()
-                ),
+                what: CellMismatch::AnotherScene {
+                    scene: scene.to_path_buf(),
+                },
             }
             .into());
         }

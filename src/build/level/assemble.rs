@@ -6,7 +6,7 @@
 //! the [`SubStore`] of those subtrees. Produces the nodes in depth-first
 //! pre-order with the leaf lists concatenated in the same order, which is
 //! the order every builder emits (see [`crate::tree`]), so the result
-//! compares equal to the sweep builder's tree.
+//! compares equal to the Wald-Havran builder's tree.
 //!
 //! **Memory.** The depth-first subtrees are most of the tree, so they are
 //! never held twice. They are stored packed (12 bytes a node instead of a
@@ -31,7 +31,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What became of one node of a level.
 #[derive(Clone, Copy, Debug)]
-pub enum Rec {
+pub enum NodeRecord {
     /// Not decided yet (only while building).
     Open,
     Inner {
@@ -258,17 +258,21 @@ impl SubStore {
 }
 
 /// The tree, in pre-order from record 0, and the leaves that stand for
-/// cells (`Rec::Cell`) with their cell numbers, in pre-order; consumes the
+/// cells (`NodeRecord::Cell`) with their cell numbers, in pre-order; consumes the
 /// subtrees. Its two columns are reserved whole up front, so a tree that
 /// does not fit in memory is an error naming them.
 #[allow(clippy::type_complexity)]
 pub fn assemble(
     bounds: crate::geom::Aabb,
-    recs: &[Rec],
+    recs: &[NodeRecord],
     tris: &[TriId],
     subs: SubStore,
 ) -> Result<(TreeIr, Vec<(NodeId, u32)>), ColumnsError> {
-    let n_nodes = recs.iter().filter(|r| !matches!(r, Rec::Sub(_))).count() + subs.nodes;
+    let n_nodes = recs
+        .iter()
+        .filter(|r| !matches!(r, NodeRecord::Sub(_)))
+        .count()
+        + subs.nodes;
     let n_tris = tris.len() + subs.tris;
     let mut nodes = Vec::new();
     let mut leaf_tris = Vec::new();
@@ -288,11 +292,11 @@ pub fn assemble(
 /// Hands the tree to `sink` in pre-order from record 0, consuming the
 /// subtrees as it goes (each chunk unmapped once read, so the build's
 /// memory shrinks while the sink takes the tree); returns the pre-order
-/// positions of the leaves that stand for cells (`Rec::Cell`, given to the
+/// positions of the leaves that stand for cells (`NodeRecord::Cell`, given to the
 /// sink as empty leaves) with their cell numbers.
 pub fn assemble_into(
     bounds: crate::geom::Aabb,
-    recs: &[Rec],
+    recs: &[NodeRecord],
     tris: &[TriId],
     mut subs: SubStore,
     sink: &mut impl PreOrderSink,
@@ -305,8 +309,8 @@ pub fn assemble_into(
     let mut stack = vec![0u32];
     while let Some(r) = stack.pop() {
         match recs[r as usize] {
-            Rec::Open => unreachable!("every record is decided before assembly"),
-            Rec::Inner {
+            NodeRecord::Open => unreachable!("every record is decided before assembly"),
+            NodeRecord::Inner {
                 axis,
                 pos,
                 left,
@@ -317,16 +321,16 @@ pub fn assemble_into(
                 stack.push(right);
                 stack.push(left);
             }
-            Rec::Leaf { start, count: n } => {
+            NodeRecord::Leaf { start, count: n } => {
                 sink.leaf(&tris[start..start + n as usize])?;
                 count += 1;
             }
-            Rec::Cell(k) => {
+            NodeRecord::Cell(k) => {
                 cells.push((NodeId(count as u32), k));
                 sink.leaf(&[])?;
                 count += 1;
             }
-            Rec::Sub(depth) => {
+            NodeRecord::Sub(depth) => {
                 let (rec, packed, sub_tris) = subs.levels[depth as usize]
                     .pop()
                     .expect("each small node has its subtree");

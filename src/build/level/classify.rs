@@ -3,14 +3,15 @@
 //! children, and the child references written into the next level's
 //! columns at places found by prefix counts.
 //!
-//! A reference's placement is a code of three bits ([`is_clipped`],
-//! [`side_of`], [`goes_to`] read it); [`classify_ref`] is the one
+//! A reference's placement is a code of three bits
+//! ([`super::placement`]); [`classify_ref`] is the one
 //! classification the level passes and the depth-first finisher share, so
 //! they cannot classify differently.
 
-use super::events::{Box6, n_events, to_aabb, to_box};
+use super::events::{PackedBox, n_events, to_aabb, to_box};
 use super::pieces::{Piece, carries};
-use super::{LNode, Level};
+use super::placement::{CLIPPED, DROPPED, TO_LEFT, TO_RIGHT};
+use super::{Level, LevelNode};
 use crate::build::sah::Split;
 use crate::build::{Placement, TriRef, classify, clip_straddler};
 use crate::columns::ScatterSlice;
@@ -45,36 +46,6 @@ impl Add for SideCounts {
     }
 }
 
-/// Where a reference of a split node goes: bit 0 left, bit 1 right, bit 2
-/// clipped (a straddler; its boxes are in the classify pass's list).
-const TO_LEFT: u8 = 1;
-const TO_RIGHT: u8 = 2;
-const CLIPPED: u8 = 4;
-
-/// Whether a placement code is a straddler's (clipped; its boxes are in
-/// the classify pass's list).
-#[inline]
-pub(super) fn is_clipped(code: u8) -> bool {
-    code & CLIPPED != 0
-}
-
-/// The side (0 left, 1 right) of an unclipped reference's placement code.
-#[inline]
-pub(super) fn side_of(code: u8) -> usize {
-    usize::from(code == TO_RIGHT)
-}
-
-/// Whether the reference of placement code `code` goes to `side` (0 left,
-/// 1 right), clipped or not.
-#[inline]
-pub(super) fn goes_to(code: u8, side: usize) -> bool {
-    if !is_clipped(code) {
-        side_of(code) == side
-    } else {
-        code & (1 << side) != 0
-    }
-}
-
 /// A straddler's clipped boxes in the left and right child.
 type ChildBoxes = (Option<Aabb>, Option<Aabb>);
 
@@ -86,7 +57,7 @@ type ChildBoxes = (Option<Aabb>, Option<Aabb>);
 pub(super) fn classify_ref(
     scene: &TriangleColumns,
     tri: u32,
-    b: &Box6,
+    b: &PackedBox,
     split: &Split,
     lc: &Aabb,
     rc: &Aabb,
@@ -130,21 +101,6 @@ pub(super) fn classify_ref(
     }
 }
 
-/// `new_idx` of a clipped straddler, whose events are not inherited. A
-/// one-sided reference's entry is its index in the next level (below
-/// [`MAX_REFS`](super::events::MAX_REFS), so bit 31 is free) with bit 31
-/// set when it goes right.
-pub(super) const DROPPED: u32 = u32::MAX;
-
-/// The partition slot of a placement code: 0 left, 1 right, 2 dropped (a
-/// clipped straddler, whose events are made anew).
-pub(super) const SLOT: [usize; 8] = {
-    let mut t = [2; 8];
-    t[TO_LEFT as usize] = 0;
-    t[TO_RIGHT as usize] = 1;
-    t
-};
-
 /// What the classify pass found in one piece.
 pub(super) struct Classified {
     /// Per node of the piece.
@@ -165,7 +121,7 @@ pub(super) fn classify_pass(
 ) -> Vec<Classified> {
     let place = ScatterSlice::new(place);
     // Sliced once: a column's `Deref` matches on where it lives.
-    let (tris, bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
+    let (tris, bounds): (&[u32], &[PackedBox]) = (&l.tri, &l.bounds);
     rpieces
         .par_iter()
         .map(|p| {
@@ -223,16 +179,16 @@ pub(super) fn write_children(
     rpieces: &[Piece],
     classified: &[Classified],
     rcarry: &[SideCounts],
-    next: &[LNode],
+    next: &[LevelNode],
     tri: &mut [u32],
-    boxes: &mut [Box6],
+    boxes: &mut [PackedBox],
     new_idx: &mut [u32],
 ) -> Vec<u64> {
     let tri = ScatterSlice::new(tri);
     let boxes = ScatterSlice::new(boxes);
     let new_idx = ScatterSlice::new(new_idx);
     // Sliced once: a column's `Deref` matches on where it lives.
-    let (l_tri, l_bounds): (&[u32], &[Box6]) = (&l.tri, &l.bounds);
+    let (l_tri, l_bounds): (&[u32], &[PackedBox]) = (&l.tri, &l.bounds);
     let copies: Vec<Vec<u64>> = rpieces
         .par_iter()
         .zip(classified.par_iter())

@@ -1,7 +1,7 @@
-//! Depth-first finishing of small nodes: the sweep builder's algorithm
-//! (Wald & Havran 2006, §4; [`crate::build::sweep`]) on the level
+//! Depth-first finishing of small nodes: the Wald-Havran builder's algorithm
+//! (Wald & Havran 2006, §4; [`crate::build::wald_havran`]) on the level
 //! builder's flat encoding, without a heap allocation per node. It
-//! follows the sweep builder rather than the paper's small-node stage
+//! follows the Wald-Havran builder rather than the paper's small-node stage
 //! (Wu et al. §4.3), so that the tree stays the same.
 //!
 //! Consumes one small node of a level: its references (ascending by
@@ -9,8 +9,8 @@
 //! depth and progress weight. Produces the node's subtree as nodes and
 //! leaf lists of its own (indices from 0), borrowed from the finisher
 //! until its next node, equal to
-//! what [`crate::build::sweep::build_subtree`] builds for the same node: the
-//! same sweep ([`super::sweep::sweep_events`], pricing through
+//! what [`crate::build::wald_havran::build_subtree`] builds for the same node: the
+//! same sweep ([`super::best_split::sweep_events`], pricing through
 //! [`crate::build::sah`]), the same [`classify`] and [`clip_straddler`],
 //! children inheriting their events by stable partition with the clipped
 //! references' events sorted and merged in.
@@ -31,9 +31,10 @@
 //! one after the other, and popped.
 
 use super::NewEvents;
-use super::classify::{DROPPED, SideCounts, classify_ref, goes_to, is_clipped, side_of};
-use super::events::{Box6, ev_ref, push_events, to_aabb, to_box, with_ref};
-use super::sweep::{Alone, sweep_events};
+use super::best_split::{Alone, sweep_events};
+use super::classify::{SideCounts, classify_ref};
+use super::events::{PackedBox, ev_ref, push_events, to_aabb, to_box, with_ref};
+use super::placement::{DROPPED, goes_to, is_clipped, side_of};
 use super::tiny::{self, MAX_TINY};
 use crate::build::sah::{self, LeafRule, SahParams, Split};
 use crate::build::{Placement, Progress, TriRef, classify, clip_straddler};
@@ -53,7 +54,7 @@ pub struct Finisher<'a> {
     /// pushing a node's children writes into memory that is already there
     /// instead of resizing (and zero-filling) for every node.
     tri: Vec<u32>,
-    boxes: Vec<Box6>,
+    boxes: Vec<PackedBox>,
     ref_top: usize,
     /// Event stacks, one per axis, used like the reference stacks; an
     /// event's reference is its index relative to the first reference of
@@ -83,7 +84,7 @@ pub struct Finisher<'a> {
     /// A tiny node's right child's references while its left child's are
     /// written.
     right_tri: Vec<u32>,
-    right_boxes: Vec<Box6>,
+    right_boxes: Vec<PackedBox>,
     /// A lower bound on the bytes the subtree being built takes in the
     /// file ([`pending_bytes`], [`leaf_bytes`]), kept while `byte_limit` is
     /// set: the finished leaves' and inner nodes' bytes plus the pending
@@ -172,7 +173,7 @@ impl<'a> Finisher<'a> {
     pub fn build(
         &mut self,
         tri: &[u32],
-        boxes: &[Box6],
+        boxes: &[PackedBox],
         ev: [&[u64]; 3],
         ref_base: u32,
         cell: Aabb,
@@ -625,7 +626,7 @@ fn grow<T: Copy + Default>(v: &mut Vec<T>, len: usize) {
 }
 
 /// How many of `boxes` straddle `split`'s plane ([`sah::is_leaf`]).
-pub(super) fn straddlers(boxes: &[Box6], split: &Split) -> usize {
+pub(super) fn straddlers(boxes: &[PackedBox], split: &Split) -> usize {
     let k = split.axis as usize;
     boxes
         .iter()

@@ -1,5 +1,5 @@
 //! The level builder's event encoding: one `u64` per event, whose integer
-//! order is the sweep order of [`crate::build::sweep::Event::cmp_order`].
+//! order is the sweep order of [`crate::build::wald_havran::Event::cmp_order`].
 //!
 //! | bits  | field |
 //! |-------|-------|
@@ -23,11 +23,11 @@
 //! ([`NewEvents::merge`]). And the root's first sort
 //! ([`radix_sort_by_position_and_kind`]).
 
-use super::classify::{DROPPED, SLOT};
-use super::pieces::{PIECE, Pair, Piece, carries, pieces};
-use super::{LNode, Level, NewEvents};
+use super::pieces::{PIECE, Pair, Piece, element_carries, pieces};
+use super::placement::{DROPPED, SLOT};
+use super::{Level, LevelNode, NewEvents};
 use crate::build::sah::Split;
-use crate::build::sweep::EventKind;
+use crate::build::wald_havran::EventKind;
 use crate::columns::{Column, ScatterSlice};
 use crate::geom::Aabb;
 use glam::Vec3;
@@ -39,15 +39,15 @@ pub const REF_MASK: u64 = (1 << 30) - 1;
 
 /// A reference's box: `min` x, y, z then `max` x, y, z (a `Pod` column
 /// element; `Aabb` itself is not `Pod`).
-pub type Box6 = [f32; 6];
+pub type PackedBox = [f32; 6];
 
 #[inline]
-pub fn to_box(b: &Aabb) -> Box6 {
+pub fn to_box(b: &Aabb) -> PackedBox {
     [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
 }
 
 #[inline]
-pub fn to_aabb(b: &Box6) -> Aabb {
+pub fn to_aabb(b: &PackedBox) -> Aabb {
     Aabb::new(Vec3::new(b[0], b[1], b[2]), Vec3::new(b[3], b[4], b[5]))
 }
 
@@ -108,13 +108,13 @@ pub fn kind_of(e: u64) -> EventKind {
 /// How many events a box has on `axis`: one planar event when it is flat
 /// there, else a start and an end.
 #[inline]
-pub fn n_events(b: &Box6, axis: usize) -> usize {
+pub fn n_events(b: &PackedBox, axis: usize) -> usize {
     if b[axis] == b[axis + 3] { 1 } else { 2 }
 }
 
 /// Appends the events of reference `r` with box `b` on `axis`.
 #[inline]
-pub fn push_events(b: &Box6, axis: usize, r: u32, out: &mut Vec<u64>) {
+pub fn push_events(b: &PackedBox, axis: usize, r: u32, out: &mut Vec<u64>) {
     let (ev, n) = events_of(b, axis, r);
     out.push(ev[0]);
     if n == 2 {
@@ -126,7 +126,7 @@ pub fn push_events(b: &Box6, axis: usize, r: u32, out: &mut Vec<u64>) {
 /// first `n` of the array ([`n_events`]), a planar event when the box is
 /// flat there, else a start and an end.
 #[inline]
-pub fn events_of(b: &Box6, axis: usize, r: u32) -> ([u64; 2], usize) {
+pub fn events_of(b: &PackedBox, axis: usize, r: u32) -> ([u64; 2], usize) {
     let (lo, hi) = (b[axis], b[axis + 3]);
     if lo == hi {
         ([event(lo, EventKind::Planar, r), 0], 1)
@@ -148,7 +148,7 @@ pub(super) fn partition_events(
     splits: &[(usize, Split)],
     place: &[u8],
     new_idx: &[u32],
-    next: &[LNode],
+    next: &[LevelNode],
     ev: &mut [Column<'_, u64>; 3],
 ) {
     let [e0, e1, e2] = ev;
@@ -166,22 +166,14 @@ pub(super) fn partition_events(
             .collect();
         let src: &[u64] = &l.ev[axis];
         let ps = pieces(&segs, PIECE, |_| true);
-        let counts: Vec<Pair> = ps
-            .par_iter()
-            .map(|p| match &p.part {
-                // A node's last part: no carry needs its counts.
-                Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
-                    // Counted by slot, without a branch on the side.
-                    let mut c = [0usize; 3];
-                    for &e in &src[r.clone()] {
-                        c[SLOT[usize::from(place[ev_ref(e) as usize])]] += 1;
-                    }
-                    Pair([c[0], c[1]])
-                }
-                _ => Pair::default(),
-            })
-            .collect();
-        let carry = carries(&ps, &counts);
+        // Counted by slot, without a branch on the side.
+        let carry = element_carries(
+            &ps,
+            &segs,
+            src,
+            |e| SLOT[usize::from(place[ev_ref(e) as usize])],
+            |c| Pair([c[0], c[1]]),
+        );
         tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
         segs_by_axis.push(segs);
     }
@@ -225,8 +217,8 @@ pub(super) fn partition_events(
 /// into the child's segments, behind the inherited events.
 pub(super) fn merge_new_events(
     mut copies: Vec<u64>,
-    boxes: &[Box6],
-    next: &[LNode],
+    boxes: &[PackedBox],
+    next: &[LevelNode],
     ev: &mut [Column<'_, u64>; 3],
     mode: NewEvents,
 ) {
@@ -466,12 +458,10 @@ mod tests {
 
     #[test]
     fn radix_sort_sorts_like_a_comparison_sort() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = crate::build::xorshift(0x9E37_79B9_7F4A_7C15);
         let mut v = Vec::new();
         for r in 0..5000u64 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
+            let x = next();
             // Few distinct positions, so kinds and references decide ties.
             v.push((x % 97) << 35 | ((x >> 20) % 3) << 30 | r);
         }
@@ -484,13 +474,11 @@ mod tests {
 
     #[test]
     fn parallel_radix_pass_equals_the_serial_one() {
-        let mut x = 0x2545_F491_4F6C_DD1Du64;
+        let mut next = crate::build::xorshift(0x2545_F491_4F6C_DD1D);
         let n = 3 * RADIX_CHUNK + 12_345;
         let v: Vec<u64> = (0..n as u64)
             .map(|r| {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
+                let x = next();
                 // Few distinct digits in the top bits, so that stability
                 // decides the order of most events.
                 (x % 5000) << 35 | ((x >> 20) % 3) << 30 | r
@@ -521,13 +509,7 @@ mod tests {
 
     #[test]
     fn bucket_merge_equals_merge_back() {
-        let mut x = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            x
-        };
+        let mut next = crate::build::xorshift(0x9E37_79B9_7F4A_7C15);
         for case in 0..500 {
             let (h, m) = ((next() % 200) as usize, (next() % 12) as usize);
             let range = 1 + next() % if case % 2 == 0 { 8 } else { 1000 };

@@ -2,7 +2,7 @@
 //! Construction on GPU" (HPG 2011), on CPU cores with rayon.
 //!
 //! Consumes a scene, the [`BuildConfig`] and [`LevelOptions`]. Produces the
-//! standard tree as a [`TreeIr`] **equal** to [`super::sweep::build`]'s (the
+//! standard tree as a [`TreeIr`] **equal** to [`super::wald_havran::build`]'s (the
 //! same splits, the same leaves, the same order; see [`super`] for the one
 //! definition every builder follows) and a [`LevelReport`] with per-phase
 //! times and memory figures. The tree does not depend on the number of
@@ -13,12 +13,12 @@
 //! **One level** is the open nodes at one depth, stored as flat columns
 //! (`crate::columns`: in RAM below `mem_budget`, in mapped scratch files
 //! above it): each node's references (triangle id and clipped box,
-//! ascending by triangle) and, per axis, its events sorted as in the sweep
-//! builder (`events`). One call of `Builder::level` turns level `d`
+//! ascending by triangle) and, per axis, its events sorted as in the
+//! Wald-Havran builder (`events`). One call of `LevelBuilder::level` turns level `d`
 //! into level `d + 1` (the paper's §4, Figure 2):
 //!
 //! 1. **Small nodes** (fewer than `small_threshold` references) are handed
-//!    to the depth-first builder (`dfs`: the sweep builder's algorithm
+//!    to the depth-first builder (`finish`, `dfs`: the Wald-Havran builder's algorithm
 //!    on the same flat encoding, without an allocation per node), in
 //!    parallel across nodes (the paper's "small node stage", §4.3, which
 //!    there uses a different algorithm; here it is the same SAH, so the
@@ -39,15 +39,15 @@
 //!    best kept by `Split::keep_best`, whose total order makes the
 //!    reduction over pieces independent of their order. **Not in the
 //!    paper:** a plane whose cost provably exceeds the best so far is not
-//!    priced (`sweep::Pricer`); and a node at the depth limit is not swept, since
+//!    priced (`best_split::Pricer`); and a node at the depth limit is not swept, since
 //!    `sah::is_leaf` makes it a leaf whatever its best split.
 //! 3. **Leaves** (`sah::is_leaf`) stream out: their triangle lists are
 //!    appended to the leaf list at once.
-//! 4. **Classify and clip**: references go left, right or both
-//!    ([`super::classify`]); straddlers are clipped to each child
+//! 4. **Classify and clip** (`children`, `classify`): references go left,
+//!    right or both ([`super::classify`]); straddlers are clipped to each child
 //!    ([`super::clip_straddler`],
 //!    perfect splits). Prefix counts place each child's references.
-//! 5. **Child events**: inherited events keep their order through a stable
+//! 5. **Child events** (`children`, `events`): inherited events keep their order through a stable
 //!    parallel partition, with their reference renumbered; the events of
 //!    clipped references are sorted per child and merged in (sort + merge,
 //!    in place from the back of the child's segment, moving long runs of
@@ -80,7 +80,7 @@
 //! ([`LevelOptions::small_threshold_for_budget`]: 49.7 M triangles under
 //! 2 GiB wrote 66.6 GB of scratch at 2048 references, 44.4 GB at 65536),
 //! and a level in scratch is cut into groups of nodes that fit in RAM,
-//! each built to the end on its own (`Builder::levels`: 14.1 GB; 231 s at
+//! each built to the end on its own (`LevelBuilder::levels`: 14.1 GB; 231 s at
 //! 2048 references without groups, 177–182 s with). The breadth-first
 //! records and leaf lists stay in RAM until the tree is assembled; the
 //! depth-first subtrees, packed (12 bytes a node) in one stream per level
@@ -93,15 +93,21 @@
 //! sink (the streamed file writer), so the tree need not exist whole.
 
 mod assemble;
+mod best_split;
+mod children;
 mod classify;
+mod cut;
 mod dfs;
 mod events;
+mod finish;
 mod options;
 mod pieces;
+mod placement;
 mod report;
-mod sweep;
 mod tiny;
 
+pub use self::cut::{Cut, CutCell, TopTree, build_node, build_top};
+pub(crate) use self::finish::SubtreeBuilder;
 pub use self::options::{
     DEFAULT_SMALL_THRESHOLD, DEFAULT_TINY_THRESHOLD, FINISHER_BYTES_PER_REF, LevelOptions,
     LevelStatus, MAX_BUDGET_SMALL_THRESHOLD, NewEvents,
@@ -110,22 +116,20 @@ pub use self::report::{LevelReport, Phases};
 pub use crate::columns::ScratchStats;
 pub use crate::sys::{cpu_seconds, rss};
 
-use self::assemble::{Rec, SubStore, SubStream, assemble, assemble_into};
-use self::classify::{Classified, SideCounts, classify_pass, piece_carries, write_children};
-use self::dfs::Finisher;
+use self::assemble::{NodeRecord, SubStore, SubStream, assemble, assemble_into};
+use self::best_split::best_splits;
 use self::events::{
-    Box6, MAX_REFS, events_of, merge_new_events, n_events, partition_events, push_events,
-    radix_sort_by_position_and_kind, to_aabb, to_box,
+    MAX_REFS, PackedBox, events_of, n_events, radix_sort_by_position_and_kind, to_aabb, to_box,
 };
-use self::pieces::{PIECE, Piece, pieces};
-use self::sweep::best_splits;
+use self::finish::Finish;
+use self::pieces::PIECE;
 use super::sah::{self, LeafRule, Split};
 use super::{BuildConfig, Progress, root_cell};
 use crate::columns::{Column, ColumnsError, Scratch, ScratchConfig};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::sys::lap;
-use crate::tree::{Node, NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
+use crate::tree::{NodeId, PreOrderSink, SinkStop, TreeIr, TriId};
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -171,83 +175,6 @@ pub fn build_into(
     Ok(fed.then_some(report))
 }
 
-/// How [`build_top`] cuts the top of the tree into cells.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Cut {
-    /// At most this many cells (at least 1).
-    pub max_cells: usize,
-    /// An open node of at most this many references becomes a cell; a
-    /// larger one is split further while the cell count allows.
-    pub max_refs: usize,
-    /// Open nodes with fewer references are finished in the top tree
-    /// (depth-first, as [`build`] finishes its small nodes), not cut.
-    pub min_refs: usize,
-}
-
-/// An open node cut off the top of the tree: all that the build of its
-/// subtree needs ([`build_node`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct CutCell {
-    /// The node's cell.
-    pub cell: Aabb,
-    /// The node's depth (root = 0).
-    pub depth: u32,
-    /// Its references: triangle ids, ascending.
-    pub tris: Vec<u32>,
-    /// Each reference's box (the triangle clipped to the cells above),
-    /// inside `cell`.
-    pub boxes: Vec<Aabb>,
-}
-
-/// The top of a tree cut into cells ([`build_top`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct TopTree {
-    /// The tree above the cells; each cell is an empty leaf here.
-    pub tree: TreeIr,
-    /// The cells in pre-order of the tree, each with the node that stands
-    /// for it in `tree`.
-    pub cells: Vec<(NodeId, CutCell)>,
-}
-
-/// Builds the top of the tree breadth-first, as [`build`] does, but cuts
-/// open nodes off as cells by the rule of `cut`: at each level, the open
-/// nodes of `cut.min_refs` to `cut.max_refs` references become cells; of
-/// the larger ones, the largest are split as long as the cells made so
-/// far plus the open nodes stay within `cut.max_cells` (each split adds
-/// at most one node to that count), and the rest become cells too. So
-/// there are at most `cut.max_cells` cells, and a cell exceeds
-/// `cut.max_refs` only where the count forces it. Replacing each cell's
-/// leaf by [`build_node`]'s subtree of it gives [`build`]'s tree.
-pub fn build_top(
-    scene: &TriangleColumns,
-    config: &BuildConfig,
-    progress: Option<&Progress>,
-    options: &LevelOptions,
-    cut: Cut,
-) -> Result<(TopTree, LevelReport), ColumnsError> {
-    assert!(cut.max_cells >= 1, "at least one cell");
-    let (tree, cells, report) = run(scene, config, progress, options, None, Some(cut), assemble)?;
-    Ok((TopTree { tree, cells }, report))
-}
-
-/// Builds the subtree of one cell of [`build_top`] breadth-first (and its
-/// small nodes depth-first), as [`build`] builds it within the whole tree.
-/// `scene` holds at least the triangles `node.tris` names (a cell's
-/// triangles alone, renumbered in the same order, do); `config.sah` must
-/// give the whole scene's depth limit (`max_depth: Some(limit)`), since
-/// the limit of `scene` alone may differ. The result's `bounds` is
-/// `node.cell`.
-pub fn build_node(
-    scene: &TriangleColumns,
-    config: &BuildConfig,
-    progress: Option<&Progress>,
-    options: &LevelOptions,
-    node: &CutCell,
-) -> Result<(TreeIr, LevelReport), ColumnsError> {
-    let (tree, _, report) = run(scene, config, progress, options, Some(node), None, assemble)?;
-    Ok((tree, report))
-}
-
 /// The build from the scene's root, or from `start`; cut into cells by
 /// `cut` if given; the result made by `out` (from the bounds, records,
 /// breadth-first leaf lists and subtrees: [`assemble`] or a sink) with the
@@ -260,7 +187,12 @@ fn run<T>(
     options: &LevelOptions,
     start: Option<&CutCell>,
     cut: Option<Cut>,
-    out: impl FnOnce(Aabb, &[Rec], &[TriId], SubStore) -> Result<(T, Vec<(NodeId, u32)>), ColumnsError>,
+    out: impl FnOnce(
+        Aabb,
+        &[NodeRecord],
+        &[TriId],
+        SubStore,
+    ) -> Result<(T, Vec<(NodeId, u32)>), ColumnsError>,
 ) -> Result<(T, Vec<(NodeId, CutCell)>, LevelReport), ColumnsError> {
     let small_threshold = cut.map_or(options.small_threshold, |c| c.min_refs);
     // The finishers' working memory comes out of the budget first.
@@ -273,7 +205,7 @@ fn run<T>(
     })?;
     let start_rss = rss();
     let start_cpu = cpu_seconds();
-    let mut b = Builder {
+    let mut b = LevelBuilder {
         scene,
         config,
         progress,
@@ -283,7 +215,7 @@ fn run<T>(
         rule: config.sah.leaf_rule(scene.len(), || Aabb::EMPTY),
         small_threshold,
         cut: cut.map(|rule| (rule, Vec::new())),
-        recs: vec![Rec::Open],
+        recs: vec![NodeRecord::Open],
         leaf_tris: Vec::new(),
         // Under a budget the subtrees, most of the tree, are scratch files
         // too: held in anonymous memory they would grow past any budget.
@@ -344,7 +276,7 @@ fn run<T>(
 
 /// One node of a level.
 #[derive(Clone, Copy, Debug)]
-struct LNode {
+struct LevelNode {
     cell: Aabb,
     /// References `refs .. refs + n` of the level's columns.
     refs: usize,
@@ -367,27 +299,27 @@ struct LNode {
 struct Level<'s> {
     /// The depth of every node of the level (root = 0).
     depth: u32,
-    nodes: Vec<LNode>,
+    nodes: Vec<LevelNode>,
     tri: Column<'s, u32>,
-    bounds: Column<'s, Box6>,
+    bounds: Column<'s, PackedBox>,
     ev: [Column<'s, u64>; 3],
 }
 
-struct Builder<'a> {
+struct LevelBuilder<'a> {
     scene: &'a TriangleColumns,
     config: &'a BuildConfig,
     progress: Option<&'a Progress>,
     options: &'a LevelOptions,
     scratch: &'a Scratch,
     /// The leaf rule; its price scale is the root's, set once the root
-    /// cell is known ([`Builder::root`]) unless the configuration gives it.
+    /// cell is known ([`LevelBuilder::root`]) unless the configuration gives it.
     rule: LeafRule,
     /// Open nodes with fewer references are finished depth-first.
     small_threshold: usize,
     /// The rule of a cut into cells, and the cells cut so far.
     cut: Option<(Cut, Vec<CutCell>)>,
     /// One per node, in the order nodes were opened; record 0 is the root.
-    recs: Vec<Rec>,
+    recs: Vec<NodeRecord>,
     /// The triangle lists of the breadth-first leaves.
     leaf_tris: Vec<TriId>,
     /// The subtrees finished depth-first.
@@ -395,161 +327,7 @@ struct Builder<'a> {
     report: LevelReport,
 }
 
-/// What finishing small nodes needs of the builder (copied out, so that it
-/// runs alongside the passes that change the builder).
-struct Finish<'a> {
-    scene: &'a TriangleColumns,
-    params: sah::SahParams,
-    rule: LeafRule,
-    progress: Option<&'a Progress>,
-    chunk_words: usize,
-    chunk_dir: Option<Arc<std::path::Path>>,
-    mode: NewEvents,
-    tiny: usize,
-}
-
-impl Finish<'_> {
-    /// Finishes the small nodes depth-first, in parallel across nodes.
-    /// Their subtrees are packed into runs, in the level's node order:
-    /// each fold of rayon's covers a run of consecutive nodes, returned
-    /// with the index in `small` of its first node.
-    fn runs(
-        &self,
-        l: &Level<'_>,
-        small: &[usize],
-        depth: u32,
-    ) -> Vec<(usize, Result<SubStream, ColumnsError>)> {
-        small
-            .par_iter()
-            .enumerate()
-            .fold(
-                || {
-                    (
-                        usize::MAX,
-                        Finisher::new(self.scene, &self.params, self.rule, self.progress)
-                            .with_new_events(self.mode)
-                            .with_tiny(self.tiny),
-                        Ok(SubStream::new(self.chunk_words, self.chunk_dir.clone())),
-                    )
-                },
-                |(first, mut fin, out), (k, &j)| {
-                    let out = out.and_then(|mut out| {
-                        let nd = &l.nodes[j];
-                        let ev = [0, 1, 2].map(|k| &l.ev[k][nd.ev[k]..nd.ev[k] + nd.nev[k]]);
-                        let (nodes, leaf_tris) = fin.build(
-                            &l.tri[nd.refs..nd.refs + nd.n],
-                            &l.bounds[nd.refs..nd.refs + nd.n],
-                            ev,
-                            nd.refs as u32,
-                            nd.cell,
-                            depth,
-                            nd.weight,
-                        );
-                        out.push(nd.rec, nodes, leaf_tris)?;
-                        Ok(out)
-                    });
-                    (first.min(k), fin, out)
-                },
-            )
-            .map(|(first, _, out)| (first, out))
-            .filter(|(first, _)| *first != usize::MAX)
-            .collect()
-    }
-}
-
-/// Builds subtrees of single nodes depth-first, with the finisher the
-/// level builder uses for its small nodes (`dfs`, no heap allocation per
-/// node): the subtree is the one [`super::sweep::build_subtree`] builds for
-/// the same references, cell and depth. The slim post-pass rebuilds its
-/// subtrees with it. One per worker; its scratch is reused across builds.
-pub(crate) struct SubtreeBuilder<'a> {
-    finisher: Finisher<'a>,
-    tri: Vec<u32>,
-    boxes: Vec<Box6>,
-    ev: [Vec<u64>; 3],
-}
-
-impl<'a> SubtreeBuilder<'a> {
-    pub fn new(scene: &'a TriangleColumns, config: &'a BuildConfig) -> SubtreeBuilder<'a> {
-        // The scene's bounds are its root cell ([`root_cell`]); the slim pass
-        // gives the price scale in `config`, so that workers skip this pass.
-        let rule = config
-            .sah
-            .leaf_rule(scene.len(), || root_cell(scene.bounds()));
-        SubtreeBuilder {
-            finisher: Finisher::new(scene, &config.sah, rule, None)
-                .with_tiny(DEFAULT_TINY_THRESHOLD),
-            tri: Vec::new(),
-            boxes: Vec::new(),
-            ev: Default::default(),
-        }
-    }
-
-    /// The subtree of a node at `depth` with cell `cell` and the triangle
-    /// references `refs` (ascending ids, boxes inside `cell`, fewer than
-    /// 2³⁰), under the depth limit of the whole scene: its nodes and leaf
-    /// lists in pre-order (the [`TreeIr`] of bounds `cell`), borrowed until
-    /// the next build, so that the slim pass copies out only the subtrees
-    /// it keeps. `None` if the build stopped because the subtree takes at
-    /// least `byte_limit` bytes in the file ([`Finisher::with_byte_limit`];
-    /// `u64::MAX`: never).
-    pub fn build(
-        &mut self,
-        refs: impl IntoIterator<Item = (TriId, Aabb)>,
-        cell: Aabb,
-        depth: u32,
-        byte_limit: u64,
-    ) -> Option<(&[Node], &[TriId])> {
-        self.tri.clear();
-        self.boxes.clear();
-        for (t, b) in refs {
-            debug_assert!(self.tri.last().is_none_or(|&last| last < t.0));
-            self.tri.push(t.0);
-            self.boxes.push(to_box(&b));
-        }
-        assert!(self.tri.len() < MAX_REFS, "too many references");
-        // The finisher sweeps a node of at most the tiny threshold without
-        // events, so they are made only for a larger one (98 % of the slim
-        // pass's rebuilds on dieselpower are tiny).
-        let tiny = self.tri.len() <= DEFAULT_TINY_THRESHOLD.min(tiny::MAX_TINY);
-        for (axis, ev) in self.ev.iter_mut().enumerate() {
-            ev.clear();
-            if tiny {
-                continue;
-            }
-            for (r, b) in self.boxes.iter().enumerate() {
-                push_events(b, axis, r as u32, ev);
-            }
-            ev.sort_unstable();
-        }
-        let ev = [0, 1, 2].map(|k| self.ev[k].as_slice());
-        let finisher = self.finisher.with_byte_limit(byte_limit);
-        finisher.build(&self.tri, &self.boxes, ev, 0, cell, depth, Progress::TOTAL);
-        if finisher.stopped() {
-            return None;
-        }
-        Some(finisher.output())
-    }
-}
-
-/// The children of a level's split nodes after step 4, for step 5.
-struct Children<'s> {
-    /// The next level's nodes: per split node, left then right.
-    nodes: Vec<LNode>,
-    /// The next level's events per axis.
-    ev_len: [usize; 3],
-    tri: Column<'s, u32>,
-    bounds: Column<'s, Box6>,
-    /// Per reference of the level: its placement code.
-    place: Column<'s, u8>,
-    /// Per reference of the level: its index in the next level and side,
-    /// or [`classify::DROPPED`] (see [`write_children`]).
-    new_idx: Column<'s, u32>,
-    /// The clipped copies, `(child node << 32) | new reference`.
-    copies: Vec<u64>,
-}
-
-impl<'a> Builder<'a> {
+impl<'a> LevelBuilder<'a> {
     fn sample_rss(&mut self) {
         let (anon, file) = rss();
         self.report.peak_rss_anon_bytes = self.report.peak_rss_anon_bytes.max(anon);
@@ -576,7 +354,9 @@ impl<'a> Builder<'a> {
         let n = scene.len();
         Self::capacity(n)?;
         let mut tri = self.scratch.column_for_overwrite::<u32>("tri", n)?;
-        let mut boxes = self.scratch.column_for_overwrite::<Box6>("bounds", n)?;
+        let mut boxes = self
+            .scratch
+            .column_for_overwrite::<PackedBox>("bounds", n)?;
         tri.par_iter_mut()
             .zip(boxes.par_iter_mut())
             .enumerate()
@@ -598,7 +378,9 @@ impl<'a> Builder<'a> {
         let n = node.tris.len();
         Self::capacity(n)?;
         let mut tri = self.scratch.column_for_overwrite::<u32>("tri", n)?;
-        let mut boxes = self.scratch.column_for_overwrite::<Box6>("bounds", n)?;
+        let mut boxes = self
+            .scratch
+            .column_for_overwrite::<PackedBox>("bounds", n)?;
         tri.copy_from_slice(&node.tris);
         for (b, a) in boxes.iter_mut().zip(&node.boxes) {
             *b = to_box(a);
@@ -611,7 +393,7 @@ impl<'a> Builder<'a> {
     fn first_level(
         &mut self,
         tri: Column<'a, u32>,
-        boxes: Column<'a, Box6>,
+        boxes: Column<'a, PackedBox>,
         cell: Aabb,
         depth: u32,
     ) -> Result<Level<'a>, ColumnsError> {
@@ -645,7 +427,7 @@ impl<'a> Builder<'a> {
             })
             .collect();
         let ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
-        let node = LNode {
+        let node = LevelNode {
             cell,
             refs: 0,
             n,
@@ -665,7 +447,7 @@ impl<'a> Builder<'a> {
 
     /// Processes `first` and the levels below it until no node is left
     /// open. A level that went to scratch files is cut into groups of
-    /// consecutive nodes that fit in RAM ([`Builder::groups`]), and each
+    /// consecutive nodes that fit in RAM ([`LevelBuilder::groups`]), and each
     /// group's levels run to the end, one group after another, left to
     /// right. So under a budget only the top levels, whose nodes are too
     /// large, go through scratch (49.7 M triangles under 2 GiB: the level
@@ -694,7 +476,7 @@ impl<'a> Builder<'a> {
         Ok(())
     }
 
-    /// The groups of a level worth building apart ([`Builder::levels`]):
+    /// The groups of a level worth building apart ([`LevelBuilder::levels`]):
     /// `None` unless some of the level's columns are scratch files, it has
     /// more than one node, some node that is not finished depth-first,
     /// and more bytes than a group may hold (a third of the columns'
@@ -715,8 +497,8 @@ impl<'a> Builder<'a> {
             return None;
         }
         let max = budget / 3;
-        let bytes = |nd: &LNode| {
-            (nd.n * (size_of::<u32>() + size_of::<Box6>())
+        let bytes = |nd: &LevelNode| {
+            (nd.n * (size_of::<u32>() + size_of::<PackedBox>())
                 + nd.nev.iter().sum::<usize>() * size_of::<u64>()) as u64
         };
         let mut groups = Vec::new();
@@ -752,7 +534,7 @@ impl<'a> Builder<'a> {
             .column_for_overwrite::<u32>("tri", refs.len())?;
         let mut bounds = self
             .scratch
-            .column_for_overwrite::<Box6>("bounds", refs.len())?;
+            .column_for_overwrite::<PackedBox>("bounds", refs.len())?;
         tri.par_chunks_mut(PIECE)
             .zip(l.tri[refs.clone()].par_chunks(PIECE))
             .for_each(|(d, s)| d.copy_from_slice(s));
@@ -776,7 +558,7 @@ impl<'a> Builder<'a> {
         }
         let nodes = nodes
             .iter()
-            .map(|nd| LNode {
+            .map(|nd| LevelNode {
                 refs: nd.refs - refs.start,
                 ev: [0, 1, 2].map(|k| nd.ev[k] - first.ev[k]),
                 ..*nd
@@ -866,7 +648,7 @@ impl<'a> Builder<'a> {
                 continue;
             }
             let nd = &l.nodes[j];
-            self.recs[nd.rec as usize] = Rec::Cell(cells.len() as u32);
+            self.recs[nd.rec as usize] = NodeRecord::Cell(cells.len() as u32);
             cells.push(CutCell {
                 cell: nd.cell,
                 depth,
@@ -944,7 +726,7 @@ impl<'a> Builder<'a> {
                 let start = self.leaf_tris.len();
                 self.leaf_tris
                     .extend(l.tri[nd.refs..nd.refs + nd.n].iter().map(|&t| TriId(t)));
-                self.recs[nd.rec as usize] = Rec::Leaf {
+                self.recs[nd.rec as usize] = NodeRecord::Leaf {
                     start,
                     count: nd.n as u32,
                 };
@@ -957,150 +739,6 @@ impl<'a> Builder<'a> {
             }
         }
         splits
-    }
-
-    /// Step 4: classifies the split nodes' references and clips the
-    /// straddlers, opens the children (per split node, left then right)
-    /// and writes their references into the next level's columns.
-    fn children(
-        &mut self,
-        l: &Level<'a>,
-        splits: &[(usize, Split)],
-    ) -> Result<Children<'a>, ColumnsError> {
-        let rsegs: Vec<(usize, usize)> = splits
-            .iter()
-            .map(|&(j, _)| (l.nodes[j].refs, l.nodes[j].n))
-            .collect();
-        let rpieces = pieces(&rsegs, PIECE, |_| true);
-        let mut place = self
-            .scratch
-            .column_for_overwrite::<u8>("place", l.tri.len())?;
-        let classified = classify_pass(self.scene, l, splits, &rsegs, &rpieces, &mut place);
-        self.report.clipped += classified
-            .iter()
-            .map(|c| c.clipped.len() as u64)
-            .sum::<u64>();
-
-        let rcarry = piece_carries(&rpieces, &classified);
-        let (next_nodes, refs_at, ev_at) = self.open_children(l, splits, &rpieces, &classified);
-        Self::capacity(refs_at)?;
-        let mut tri = self.scratch.column_for_overwrite::<u32>("tri", refs_at)?;
-        let mut boxes = self
-            .scratch
-            .column_for_overwrite::<Box6>("bounds", refs_at)?;
-        let mut new_idx = self
-            .scratch
-            .column_for_overwrite::<u32>("new-idx", l.tri.len())?;
-        let copies = write_children(
-            l,
-            &place,
-            &rsegs,
-            &rpieces,
-            &classified,
-            &rcarry,
-            &next_nodes,
-            &mut tri,
-            &mut boxes,
-            &mut new_idx,
-        );
-        Ok(Children {
-            nodes: next_nodes,
-            ev_len: ev_at,
-            tri,
-            bounds: boxes,
-            place,
-            new_idx,
-            copies,
-        })
-    }
-
-    /// The children of the split nodes as the next level's nodes (per
-    /// split node, left then right), their records opened and their
-    /// reference and event ranges laid out in order; returns them with the
-    /// next level's reference and per-axis event counts.
-    fn open_children(
-        &mut self,
-        l: &Level<'a>,
-        splits: &[(usize, Split)],
-        rpieces: &[Piece],
-        classified: &[Classified],
-    ) -> (Vec<LNode>, usize, [usize; 3]) {
-        let mut totals = vec![SideCounts::default(); splits.len()];
-        for (p, c) in rpieces.iter().zip(classified) {
-            for (k, si) in p.nodes.clone().enumerate() {
-                totals[si] = totals[si] + c.counts[k];
-            }
-        }
-        let mut next_nodes = Vec::with_capacity(2 * splits.len());
-        let (mut refs_at, mut ev_at) = (0usize, [0usize; 3]);
-        for (si, &(j, split)) in splits.iter().enumerate() {
-            let nd = &l.nodes[j];
-            let t = &totals[si];
-            let (lc, rc) = nd.cell.split(split.axis as usize, split.pos);
-            let (wl, wr) = Progress::share(nd.weight, t.n[0], t.n[1]);
-            let left = self.recs.len() as u32;
-            self.recs[nd.rec as usize] = Rec::Inner {
-                axis: split.axis,
-                pos: split.pos,
-                left,
-                right: left + 1,
-            };
-            for (side, (cell, weight)) in [(lc, wl), (rc, wr)].into_iter().enumerate() {
-                let nev = [0, 1, 2].map(|k| t.inherited[side][k] + t.new[side][k]);
-                next_nodes.push(LNode {
-                    cell,
-                    refs: refs_at,
-                    n: t.n[side],
-                    ev: ev_at,
-                    nev,
-                    weight,
-                    rec: self.recs.len() as u32,
-                });
-                self.recs.push(Rec::Open);
-                refs_at += t.n[side];
-                for k in 0..3 {
-                    ev_at[k] += nev[k];
-                }
-            }
-        }
-        (next_nodes, refs_at, ev_at)
-    }
-
-    /// Step 5: the children's event lists (the inherited events
-    /// partitioned, the clipped copies' events sorted and merged in);
-    /// returns the next level.
-    fn child_events(
-        &self,
-        l: &Level<'a>,
-        splits: &[(usize, Split)],
-        children: Children<'a>,
-        depth: u32,
-    ) -> Result<Level<'a>, ColumnsError> {
-        let Children {
-            nodes,
-            ev_len,
-            tri,
-            bounds,
-            place,
-            new_idx,
-            copies,
-        } = children;
-        let mut ev = Vec::with_capacity(3);
-        for &len in &ev_len {
-            ev.push(self.scratch.column_for_overwrite::<u64>("ev", len)?);
-        }
-        let mut ev: [Column<'a, u64>; 3] = ev.try_into().expect("three axes");
-        partition_events(l, splits, &place, &new_idx, &nodes, &mut ev);
-        drop(place);
-        drop(new_idx);
-        merge_new_events(copies, &bounds, &nodes, &mut ev, self.options.new_events);
-        Ok(Level {
-            depth: depth + 1,
-            nodes,
-            tri,
-            bounds,
-            ev,
-        })
     }
 
     /// Files the subtrees of a level's small nodes ([`Finish::runs`]) into
@@ -1122,7 +760,7 @@ impl<'a> Builder<'a> {
         }
         assert_eq!(next, small.len());
         for &j in small {
-            self.recs[l.nodes[j].rec as usize] = Rec::Sub(depth);
+            self.recs[l.nodes[j].rec as usize] = NodeRecord::Sub(depth);
         }
         self.report.small_nodes += small.len() as u64;
         Ok(())

@@ -12,6 +12,7 @@
 //! element. The cut points depend on the data alone, never on the thread
 //! count.
 
+use rayon::prelude::*;
 use std::ops::{Add, Range};
 
 /// Elements per work piece: large enough that a piece's fixed costs vanish,
@@ -136,6 +137,33 @@ pub fn carries<C: Copy + Default + std::ops::Add<Output = C>>(
         prev = p.part.as_ref().map(|_| (p.nodes.start, carry + c));
     }
     out
+}
+
+/// The carries of an element pass ([`carries`]) whose counts come from
+/// the elements themselves: each element `e` of a part counts in bin
+/// `bin(e)` of three and `pair` makes the pass's pair of the three bins.
+/// A node's last part is not counted, since no carry needs it.
+pub fn element_carries(
+    ps: &[Piece],
+    segs: &[(usize, usize)],
+    src: &[u64],
+    bin: impl Fn(u64) -> usize + Sync,
+    pair: impl Fn([usize; 3]) -> Pair + Sync,
+) -> Vec<Pair> {
+    let counts: Vec<Pair> = ps
+        .par_iter()
+        .map(|p| match &p.part {
+            Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
+                let mut c = [0usize; 3];
+                for &e in &src[r.clone()] {
+                    c[bin(e)] += 1;
+                }
+                pair(c)
+            }
+            _ => Pair::default(),
+        })
+        .collect();
+    carries(ps, &counts)
 }
 
 #[cfg(test)]

@@ -44,7 +44,7 @@ pub struct LevelReport {
     /// once a group).
     pub levels: u32,
     /// Groups of a level in scratch files built apart, in RAM where they
-    /// fit (`Builder::levels`).
+    /// fit (`LevelBuilder::levels`).
     pub groups: u64,
     /// Nodes decided breadth-first (inner nodes and leaves).
     pub bfs_nodes: u64,

@@ -4,7 +4,7 @@
 //!
 //! A node's candidate planes on an axis are the positions of its events:
 //! the `min` and `max` of every reference's box there. The sweep
-//! ([`super::sweep::sweep_events`]) walks them in sorted order, keeping running
+//! ([`super::best_split::sweep_events`]) walks them in sorted order, keeping running
 //! counts; the counts at plane `p` are, by definition,
 //!
 //! - `N_L(p)`: references whose box starts before `p` (`min < p`),
@@ -43,7 +43,7 @@
 //! (at most [`MAX_TINY`]), and builds no events for children that are
 //! tiny.
 
-use super::events::Box6;
+use super::events::PackedBox;
 use crate::build::sah::{self, SahParams, Side, Split};
 use crate::geom::Aabb;
 use crate::simd::SimdLevel;
@@ -131,7 +131,7 @@ pub fn best_split(
     params: &SahParams,
     cell: &Aabb,
     sa: f64,
-    boxes: &[Box6],
+    boxes: &[PackedBox],
     which: Boxes,
     scratch: &mut Scratch,
     best: &mut Option<Split>,
@@ -159,7 +159,7 @@ struct TinyNode<'a> {
     params: &'a SahParams,
     cell: &'a Aabb,
     sa: f64,
-    boxes: &'a [Box6],
+    boxes: &'a [PackedBox],
     which: Boxes,
 }
 
@@ -185,7 +185,7 @@ fn best_split_lanes(node: &TinyNode<'_>, scratch: &mut Scratch, best: &mut Optio
 /// Fills the scratch's candidates and counts of one axis, after those of
 /// the axes before it.
 #[inline(always)]
-fn count_axis(cell: &Aabb, boxes: &[Box6], axis: usize, scratch: &mut Scratch) {
+fn count_axis(cell: &Aabb, boxes: &[PackedBox], axis: usize, scratch: &mut Scratch) {
     let n = boxes.len();
     let Scratch {
         lo,
@@ -403,7 +403,7 @@ mod tests {
 
     /// Boxes on a coarse grid inside `cell`, so that planes coincide, boxes
     /// are flat and lie on the cell's faces often.
-    fn grid_boxes(cell: &Aabb, raw: &[[u8; 6]]) -> Vec<Box6> {
+    fn grid_boxes(cell: &Aabb, raw: &[[u8; 6]]) -> Vec<PackedBox> {
         raw.iter()
             .map(|r| {
                 let mut b = [0f32; 6];
@@ -423,7 +423,7 @@ mod tests {
 
     /// The best split by the definition: every candidate plane counted one
     /// reference at a time and priced by `split_cost`.
-    fn reference(params: &SahParams, cell: &Aabb, boxes: &[Box6]) -> Option<Split> {
+    fn reference(params: &SahParams, cell: &Aabb, boxes: &[PackedBox]) -> Option<Split> {
         let sa = cell.surface_area();
         let mut best = None;
         for axis in 0..3 {

@@ -385,7 +385,7 @@ fn sweep_scene(
                 ));
                 let start = Instant::now();
                 let tree = pool
-                    .install(|| build::build(scene, &config, Builder::Level, None))
+                    .install(|| build::build(scene, &config, Algorithm::Level, None))
                     .map_err(|source| ReportError::Build {
                         scene: name.to_string(),
                         source,

@@ -57,7 +57,7 @@ pub use run::{run, run_with_progress};
 pub use tables::duplication;
 
 use super::plot::{self, LabelledPoint, LinePanel, LineSeries, ScatterSeries};
-use crate::build::{self, BuildConfig, Builder};
+use crate::build::{self, Algorithm, BuildConfig};
 use crate::format::{
     self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
     WriteOptions,

@@ -201,7 +201,7 @@ pub fn run_with_progress(
         // build; the slim passes run on the same pool.
         let std_tree = pools
             .all
-            .install(|| build::build(scene, &config, Builder::Level, None))
+            .install(|| build::build(scene, &config, Algorithm::Level, None))
             .map_err(|source| ReportError::Build {
                 scene: name.clone(),
                 source,

@@ -11,14 +11,14 @@
 
 use super::Level;
 use super::events::{ev_key, ev_kind, key_pos};
-use super::pieces::{PIECE, Pair, Piece, carries, pieces};
+use super::pieces::{PIECE, Pair, Piece, element_carries, pieces};
 use crate::build::sah::{self, PlaneCounts, SahParams, Split};
 use crate::geom::Aabb;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The best split of each of the `big` nodes (`None` for an empty node
-/// or a flat cell, as in the sweep builder).
+/// or a flat cell, as in the Wald-Havran builder).
 pub(super) fn best_splits(
     sah: &SahParams,
     depth_limit: u32,
@@ -47,22 +47,10 @@ pub(super) fn best_splits(
         // A run of equal positions is priced as one plane, so it must
         // not be cut.
         let ps = pieces(&segs, PIECE, |i| ev_key(ev[i]) != ev_key(ev[i - 1]));
-        // Counts of (starts + planars, ends + planars) in each part
-        // (but a node's last, which no carry needs).
-        let counts: Vec<Pair> = ps
-            .par_iter()
-            .map(|p| match &p.part {
-                Some(r) if r.end != segs[p.nodes.start].0 + segs[p.nodes.start].1 => {
-                    let mut c = [0usize; 3];
-                    for &e in &ev[r.clone()] {
-                        c[ev_kind(e)] += 1;
-                    }
-                    Pair([c[2] + c[1], c[0] + c[1]])
-                }
-                _ => Pair::default(),
-            })
-            .collect();
-        let carry = carries(&ps, &counts);
+        // Carried counts of (starts + planars, ends + planars).
+        let carry = element_carries(&ps, &segs, ev, ev_kind, |c| {
+            Pair([c[2] + c[1], c[0] + c[1]])
+        });
         // Piece node indices refer to `valid`.
         tasks.extend(ps.into_iter().zip(carry).map(|(p, c)| (axis, p, c)));
     }
@@ -114,7 +102,7 @@ pub(super) fn best_splits(
 
 /// Sweeps one node's sorted events (all of them, or one piece starting with
 /// `n_l` references left and `n_r` right of its first plane) and keeps the
-/// best plane: the sweep of [`crate::build::sweep::sweep_axis`], with carried
+/// best plane: the sweep of [`crate::build::wald_havran::sweep_axis`], with carried
 /// counts.
 ///
 /// Every plane that could win is priced by [`sah::split_cost`]. A plane is

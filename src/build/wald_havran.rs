@@ -163,7 +163,7 @@ pub(crate) fn build_subtree(
     if place.len() < scene.len() {
         place.resize(scene.len(), Placement::Left);
     }
-    let mut ctx = Ctx {
+    let mut ctx = WaldHavranBuilder {
         scene,
         config,
         out: TreeWriter::new(cell, scene, config, progress),
@@ -178,7 +178,7 @@ thread_local! {
     static PLACE: std::cell::RefCell<Vec<Placement>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
-struct Ctx<'a> {
+struct WaldHavranBuilder<'a> {
     scene: &'a TriangleColumns,
     config: &'a BuildConfig,
     out: TreeWriter<'a>,
@@ -187,7 +187,7 @@ struct Ctx<'a> {
     place: Vec<Placement>,
 }
 
-impl Ctx<'_> {
+impl WaldHavranBuilder<'_> {
     fn node(
         &mut self,
         refs: Vec<TriRef>,
