@@ -122,6 +122,15 @@ fn check_vertex_indices(triangles: &[[u32; 3]], n_vertices: u64) -> Result<(), F
 
 /// The file's first 8 bytes (PNG-style: a high byte, the name, CR LF, ^Z).
 pub const MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
+// The scene layer tells a tree file by these bytes without naming this
+// module (it lies below it).
+const _: () = {
+    let mut i = 0;
+    while i < MAGIC.len() {
+        assert!(MAGIC[i] == crate::scene::KD_MAGIC[i]);
+        i += 1;
+    }
+};
 /// The format version this build writes and reads.
 pub const VERSION: u32 = 2;
 /// Written in the machine's byte order; reads back equal only on a little-endian reader.
