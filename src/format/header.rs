@@ -3,7 +3,8 @@
 //! so that every byte offset of a header field is written down once, here.
 
 use super::{
-    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_SIZE, MAGIC, SECTION_ALIGN, Section, VERSION,
+    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_SIZE, MAGIC, SECTION_ALIGN, Section,
+    SectionError, VERSION,
 };
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
@@ -616,26 +617,27 @@ impl Header {
         let mut end_prev = HEADER_SIZE as u64;
         for s in Section::ALL {
             let SectionEntry { offset, len, .. } = self.sections[s as usize];
-            let bad = |message: String| FormatError::Section {
+            let bad = |problem: SectionError| FormatError::Section {
                 section: s.name(),
-                message,
+                problem,
             };
             let expected = self
                 .counts
                 .elements(s, self.reordered)
                 .checked_mul(s.elem_size());
             if Some(len) != expected {
-                return Err(bad(format!("{len} bytes do not match the header's count")));
+                return Err(bad(SectionError::Length(len)));
             }
             let want = end_prev.next_multiple_of(SECTION_ALIGN as u64);
             if offset != want {
-                return Err(bad(format!(
-                    "offset {offset} misplaced (expected {want}: 64-aligned, right after the previous section)"
-                )));
+                return Err(bad(SectionError::Misplaced {
+                    offset,
+                    expected: want,
+                }));
             }
             let end = offset
                 .checked_add(len)
-                .ok_or_else(|| bad("offset overflows".into()))?;
+                .ok_or_else(|| bad(SectionError::Overflow))?;
             if end > file_len {
                 return Err(FormatError::Truncated {
                     needed: end,

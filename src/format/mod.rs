@@ -237,12 +237,12 @@ pub enum FormatError {
     #[error("bad header: {0}")]
     Header(HeaderError),
     /// A section's placement or size.
-    #[error("section {section}: {message}")]
+    #[error("section {section}: {problem}")]
     Section {
         /// The section.
         section: &'static str,
         /// What is wrong.
-        message: String,
+        problem: SectionError,
     },
     /// A node word that is malformed or points outside the file.
     #[error("node {index}: {message}")]
@@ -274,7 +274,56 @@ pub enum FormatError {
     },
     /// The tree does not fit the format (e.g. more than 2^29 nodes).
     #[error("tree too large for the format: {0}")]
-    TooLarge(String),
+    TooLarge(Limit),
+}
+
+/// What is wrong with a section's placement, size or padding
+/// ([`FormatError::Section`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum SectionError {
+    /// A byte length that is not the header's count times the element size.
+    #[error("{0} bytes do not match the header's count")]
+    Length(u64),
+    /// Not at the first multiple of 64 after the previous section.
+    #[error(
+        "offset {offset} misplaced (expected {expected}: 64-aligned, right after the previous section)"
+    )]
+    Misplaced {
+        /// The offset in the section table.
+        offset: u64,
+        /// Where the section must start.
+        expected: u64,
+    },
+    /// Offset plus length past 2^64.
+    #[error("offset overflows")]
+    Overflow,
+    /// A non-zero byte between the section's end and the next section
+    /// (or the end of the file).
+    #[error("non-zero padding after the section")]
+    Padding,
+}
+
+/// Which limit of the format a tree is over ([`FormatError::TooLarge`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum Limit {
+    /// More node words than the 29-bit slot field addresses.
+    #[error("more than 2^29 node words (the 29-bit slot field)")]
+    NodeWords,
+    /// A node deeper than [`MAX_DEPTH`](crate::tree::MAX_DEPTH).
+    #[error("a node deeper than {}", crate::tree::MAX_DEPTH)]
+    Depth,
+    /// A leaf of this many triangles, over [`node::MAX_LEAF32`].
+    #[error("a leaf with {0} triangles (at most 2^27 - 1)")]
+    Leaf(u64),
+    /// More idx16 entries than 32-bit positions address.
+    #[error("idx16 over 2^32 entries")]
+    Idx16Entries,
+    /// More idx32 entries than 32-bit positions address.
+    #[error("idx32 over 2^32 entries")]
+    Idx32Entries,
+    /// More triangles or vertices than 32-bit ids number.
+    #[error("more than 2^32 triangles or vertices")]
+    TrianglesOrVertices,
 }
 
 /// The message of [`FormatError::Version`]: an older version says to

@@ -10,7 +10,7 @@
 
 use super::header::{Header, section_crc};
 use super::node::{self, NodeWord};
-use super::{FileConfig, FormatError, Section, TreeFigures};
+use super::{FileConfig, FormatError, Section, SectionError, TreeFigures};
 use crate::geom::Aabb;
 use glam::Vec3;
 use std::ops::Range;
@@ -490,7 +490,7 @@ fn check_padding(b: &[u8], ranges: &[Range<usize>; 6], file_end: u64) -> Result<
         if b[ranges[s as usize].end..pad_end].iter().any(|&x| x != 0) {
             return Err(FormatError::Section {
                 section: s.name(),
-                message: "non-zero padding after the section".into(),
+                problem: SectionError::Padding,
             });
         }
     }

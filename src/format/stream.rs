@@ -12,9 +12,9 @@
 use super::node::{self, MAX_LEAF32, MAX_NODES};
 use super::write::{
     Entries, SectionSink, WINDOW, Words, WriteOptions, check_scene, finish_kd, flush_to, leaf_word,
-    renumbering,
+    new_id, renumbering,
 };
-use super::{FormatError, HEADER_SIZE, HeaderError, Section, TreeFigures};
+use super::{FormatError, HEADER_SIZE, HeaderError, Limit, Section, TreeFigures};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, PreOrderSink, SinkStop, TriId};
@@ -189,14 +189,12 @@ impl StreamWriter<'_> {
     }
 
     fn new_id(&self, t: TriId) -> u32 {
-        self.inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize])
+        new_id(self.inverse.as_deref(), t)
     }
 
     fn push_word(&mut self, word: u64) -> Result<(), FormatError> {
         if self.words.len() as u64 >= MAX_NODES {
-            return Err(FormatError::TooLarge(
-                "more than 2^29 node words (the 29-bit slot field)".into(),
-            ));
+            return Err(FormatError::TooLarge(Limit::NodeWords));
         }
         self.words.push(word)
     }
@@ -220,9 +218,7 @@ impl StreamWriter<'_> {
                 .ok_or_else(|| Self::bad_node(i, "a node after the whole tree".into()))?
         };
         if p.depth > MAX_DEPTH {
-            return Err(FormatError::TooLarge(format!(
-                "a node deeper than {MAX_DEPTH}"
-            )));
+            return Err(FormatError::TooLarge(Limit::Depth));
         }
         self.max_depth = self.max_depth.max(p.depth);
         match p.parent {
@@ -305,10 +301,7 @@ impl StreamWriter<'_> {
         // Checked before the list is read: a leaf this large is always in
         // 4-byte mode, whose count field has 27 bits.
         if tris.len() > MAX_LEAF32 as usize {
-            return Err(FormatError::TooLarge(format!(
-                "a leaf with {} triangles (at most 2^27 - 1)",
-                tris.len()
-            )));
+            return Err(FormatError::TooLarge(Limit::Leaf(tris.len() as u64)));
         }
         if let Some(&t) = tris.iter().find(|t| t.0 as usize >= self.scene.len()) {
             return Err(self.bad_tri(i, t));
@@ -316,18 +309,14 @@ impl StreamWriter<'_> {
         if self.place(i, tris.is_empty())?.is_none() {
             return Ok(());
         }
-        self.figures.leaves += 1;
-        let mut ids = std::mem::take(&mut self.ids);
-        ids.clear();
-        ids.extend(tris.iter().map(|&t| self.new_id(t)));
-        ids.sort_unstable();
+        let inverse = self.inverse.as_deref();
         let word = leaf_word(
-            &ids,
+            &mut self.ids,
+            tris.iter().map(|&t| new_id(inverse, t)),
             &mut self.idx32,
             &mut self.idx16,
-            &mut self.figures.one_leaves,
+            &mut self.figures,
         );
-        self.ids = ids;
         self.push_word(word?)
     }
 }

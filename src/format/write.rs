@@ -2,10 +2,10 @@
 
 use super::header::{Header, HeaderError, SectionEntry, is_finite_box};
 use super::node::{self, MAX_LEAF32, MAX_NODES};
-use super::{FileConfig, FormatError, HEADER_SIZE, SECTION_ALIGN, Section, TreeFigures};
+use super::{FileConfig, FormatError, HEADER_SIZE, Limit, SECTION_ALIGN, Section, TreeFigures};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
-use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId, WalkFault};
+use crate::tree::{Node, TreeIr, TriId, WalkFault};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
 
@@ -99,6 +99,12 @@ pub(super) fn renumbering(
     (perm, inverse)
 }
 
+/// The new id of triangle `t` under `inverse` (old id to new; `None`:
+/// not renumbered).
+pub(super) fn new_id(inverse: Option<&[u32]>, t: TriId) -> u32 {
+    inverse.map_or(t.0, |inv| inv[t.0 as usize])
+}
+
 /// The `flush` of [`Words`] that writes each window of node words to
 /// `out` (little-endian), through a buffer of `window` words.
 pub(super) fn flush_to<'a>(
@@ -140,7 +146,7 @@ struct Place {
 /// empty children without a word, one-triangle leaves in their word) and
 /// the index arrays. Refuses, rather than writing a file the reader would
 /// reject, a tree that does not fit the format (too many nodes, a leaf over
-/// [`MAX_LEAF32`] triangles, deeper than [`MAX_DEPTH`]) or that is
+/// [`MAX_LEAF32`] triangles, deeper than [`MAX_DEPTH`](crate::tree::MAX_DEPTH)) or that is
 /// malformed (a child or leaf list out of range, a node reached twice, an
 /// axis over 2, a split that is not finite or lies outside its node's cell,
 /// a triangle id of `n_tris` or more).
@@ -156,7 +162,6 @@ fn layout(
         figures: TreeFigures::default(),
         max_depth: 0,
     };
-    let too_large = |what: &str| FormatError::TooLarge(what.to_string());
     let bad_node = |i: usize, message: String| FormatError::Node {
         index: i as u64,
         message,
@@ -175,7 +180,7 @@ fn layout(
             bad_node(node, format!("a child outside the {n_nodes} nodes"))
         }
         WalkFault::ReachedTwice { node } => bad_node(node, "reached twice (not a tree)".into()),
-        WalkFault::TooDeep { .. } => too_large(&format!("a node deeper than {MAX_DEPTH}")),
+        WalkFault::TooDeep { .. } => FormatError::TooLarge(Limit::Depth),
     };
     let is_empty_leaf = |i: usize| matches!(tree.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
     let mut ids = Vec::new();
@@ -201,9 +206,7 @@ fn layout(
             return Ok(None);
         }
         if slot as u64 >= MAX_NODES {
-            return Err(too_large(
-                "more than 2^29 node words (the 29-bit slot field)",
-            ));
+            return Err(FormatError::TooLarge(Limit::NodeWords));
         }
         match node {
             Node::Inner {
@@ -257,9 +260,7 @@ fn layout(
                 // Checked before the list is read: a leaf this large is
                 // always in 4-byte mode, whose count field has 27 bits.
                 if count > MAX_LEAF32 {
-                    return Err(too_large(&format!(
-                        "a leaf with {count} triangles (at most 2^27 - 1)"
-                    )));
+                    return Err(FormatError::TooLarge(Limit::Leaf(u64::from(count))));
                 }
                 let list = tree
                     .leaf_tris
@@ -276,15 +277,12 @@ fn layout(
                 if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
                     return Err(bad_tri(i, t));
                 }
-                out.figures.leaves += 1;
-                ids.clear();
-                ids.extend(list.iter().map(|&t| new_id(t)));
-                ids.sort_unstable();
                 let word = leaf_word(
-                    &ids,
+                    &mut ids,
+                    list.iter().map(|&t| new_id(t)),
                     &mut out.idx32,
                     &mut out.idx16,
-                    &mut out.figures.one_leaves,
+                    &mut out.figures,
                 )?;
                 words.push(word)?;
                 Ok(None)
@@ -293,9 +291,7 @@ fn layout(
     })?;
     out.figures.words = words.len() as u64;
     if out.figures.words > MAX_NODES {
-        return Err(too_large(
-            "more than 2^29 node words (the 29-bit slot field)",
-        ));
+        return Err(FormatError::TooLarge(Limit::NodeWords));
     }
     Ok(out)
 }
@@ -329,19 +325,24 @@ impl Entries for Vec<u16> {
     }
 }
 
-/// The word of a leaf with the (new, ascending) triangle ids `ids`: one
-/// triangle in the word, an empty leaf, or a list appended to `idx16`
-/// when it fits 2-byte mode, else to `idx32`; `one` counts the leaves of
-/// one triangle.
+/// The word of a leaf of the triangles `tris` (new ids, sorted into
+/// `ids`, a buffer kept from leaf to leaf): one triangle in the word, an
+/// empty leaf, or a list appended to `idx16` when it fits 2-byte mode,
+/// else to `idx32`; `figures` counts the leaf (and the leaves of one
+/// triangle).
 pub(super) fn leaf_word(
-    ids: &[u32],
+    ids: &mut Vec<u32>,
+    tris: impl Iterator<Item = u32>,
     idx32: &mut impl Entries,
     idx16: &mut impl Entries,
-    one: &mut u64,
+    figures: &mut TreeFigures,
 ) -> Result<u64, FormatError> {
-    let too_large = |what: &str| FormatError::TooLarge(what.to_string());
+    figures.leaves += 1;
+    ids.clear();
+    ids.extend(tris);
+    ids.sort_unstable();
     Ok(if let [t] = ids[..] {
-        *one += 1;
+        figures.one_leaves += 1;
         node::encode_leaf1(t)
     } else if ids.is_empty() {
         // The one form of an empty leaf with a word.
@@ -349,12 +350,12 @@ pub(super) fn leaf_word(
     } else if node::fits_leaf16(ids.len(), ids.iter().copied()) {
         let upper = ids.first().map_or(0, |&t| t >> 16);
         let first =
-            u32::try_from(idx16.count()).map_err(|_| too_large("idx16 over 2^32 entries"))?;
+            u32::try_from(idx16.count()).map_err(|_| FormatError::TooLarge(Limit::Idx16Entries))?;
         idx16.put(ids)?;
         node::encode_leaf16(ids.len() as u32, upper as u16, first)
     } else {
         let first =
-            u32::try_from(idx32.count()).map_err(|_| too_large("idx32 over 2^32 entries"))?;
+            u32::try_from(idx32.count()).map_err(|_| FormatError::TooLarge(Limit::Idx32Entries))?;
         idx32.put(ids)?;
         node::encode_leaf32(ids.len() as u32, first)
     })
@@ -366,9 +367,7 @@ pub(super) fn check_scene(b: Aabb, scene: &TriangleColumns) -> Result<(), Format
         return Err(HeaderError::Bounds.into());
     }
     if scene.len() > u32::MAX as usize || scene.positions().len() > u32::MAX as usize {
-        return Err(FormatError::TooLarge(
-            "more than 2^32 triangles or vertices".into(),
-        ));
+        return Err(FormatError::TooLarge(Limit::TrianglesOrVertices));
     }
     if let Some(p) = scene.positions().iter().position(|p| !p.is_finite()) {
         return Err(FormatError::Index {
@@ -469,7 +468,7 @@ fn write_kd<W: Read + Write + Seek>(
 
     // The node section.
     let (lay, late) = {
-        let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
+        let new_id = |t: TriId| new_id(inverse.as_deref(), t);
         let mut flush = flush_to(out, io, window);
         let mut words = Words::new(window, &mut flush);
         let lay = layout(tree, n_tris, &new_id, &mut words)?;
