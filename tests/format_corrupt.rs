@@ -39,7 +39,7 @@ enum Outcome {
 fn is_contents_error(e: &FormatError) -> bool {
     match e {
         FormatError::Node { .. } | FormatError::Index { .. } => true,
-        FormatError::Header(m) => m.contains("do not match the nodes"),
+        FormatError::Header(m) => m.to_string().contains("do not match the nodes"),
         _ => false,
     }
 }
@@ -898,7 +898,9 @@ fn corrupt_targeted_edits() {
                 set_u64(b, H_IMPLICIT_EMPTY, f.implicit_empty + 2);
                 fix_header_crc(b);
             },
-            Is(|e| matches!(e, FormatError::Header(m) if m.contains("do not match the nodes"))),
+            Is(
+                |e| matches!(e, FormatError::Header(m) if m.to_string().contains("do not match the nodes")),
+            ),
         );
         add(
             "a type I node counted as type II",

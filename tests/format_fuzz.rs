@@ -1458,9 +1458,11 @@ fn reserved_header_bytes_and_section_words_must_be_zero() {
         let reserved = !(356..364).contains(&at) && !(380..384).contains(&at);
         match open(&b) {
             Err(FormatError::Header(m)) if reserved => {
-                assert!(m.contains("reserved"), "byte {at}: {m}")
+                assert!(m.to_string().contains("reserved"), "byte {at}: {m}")
             }
-            Err(FormatError::Header(m)) => assert!(m.contains("CRC-32"), "byte {at}: {m}"),
+            Err(FormatError::Header(m)) => {
+                assert!(m.to_string().contains("CRC-32"), "byte {at}: {m}")
+            }
             Err(e) => panic!("byte {at}: wrong error {e}"),
             Ok(_) => panic!("byte {at}: a non-zero reserved byte was accepted"),
         }
@@ -1471,7 +1473,10 @@ fn reserved_header_bytes_and_section_words_must_be_zero() {
             b[at] ^= 1 << bit;
             match open(&b) {
                 Err(FormatError::Header(m)) => {
-                    assert!(m.contains("node counts"), "byte {at} bit {bit}: {m}")
+                    assert!(
+                        m.to_string().contains("node counts"),
+                        "byte {at} bit {bit}: {m}"
+                    )
                 }
                 Err(e) => panic!("byte {at} bit {bit}: wrong error {e}"),
                 Ok(_) => panic!("byte {at} bit {bit}: a wrong count was accepted"),

@@ -90,18 +90,18 @@
 //! file written without one reads as having no tag: its name falls back to
 //! the file's stem where a name is needed (views).
 
+mod header;
 pub mod node;
 mod read;
 mod stream;
+mod validate;
 mod write;
 
-pub use read::{AlignedBytes, Check, KdFile, LeafIndices, Mapped, TreeFigures, aligned_copy};
+pub use header::{FileConfig, HeaderError, Preset, SCENE_NAME_LEN, SceneTag, TreeFigures};
+pub use read::{AlignedBytes, Check, KdFile, LeafIndices, Mapped, aligned_copy};
 pub use stream::{StreamWriter, write_file_streamed};
-pub use write::{
-    FileConfig, Preset, SCENE_NAME_LEN, SceneTag, WriteOptions, write_file, write_to_vec,
-};
+pub use write::{WriteOptions, write_file, write_to_vec};
 
-use std::fmt;
 use std::path::PathBuf;
 
 /// Refuses a triangle with a vertex index of `n_vertices` or more: the
@@ -122,6 +122,15 @@ fn check_vertex_indices(triangles: &[[u32; 3]], n_vertices: u64) -> Result<(), F
 
 /// The file's first 8 bytes (PNG-style: a high byte, the name, CR LF, ^Z).
 pub const MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
+// The scene layer tells a tree file by these bytes without naming this
+// module (it lies below it).
+const _: () = {
+    let mut i = 0;
+    while i < MAGIC.len() {
+        assert!(MAGIC[i] == crate::scene::KD_MAGIC[i]);
+        i += 1;
+    }
+};
 /// The format version this build writes and reads.
 pub const VERSION: u32 = 2;
 /// Written in the machine's byte order; reads back equal only on a little-endian reader.
@@ -179,46 +188,12 @@ impl Section {
     }
 }
 
-pub(crate) const SECTION_TABLE: usize = 192;
-pub(crate) const SECTION_ENTRY: usize = 24;
-pub(crate) const HEADER_CRC: usize = 336;
-/// Where the header's scene tag lies: the geometry hash (u64), then the
-/// name ([`SCENE_NAME_LEN`] bytes).
-pub(crate) const SCENE_HASH_AT: usize = 160;
-pub(crate) const SCENE_NAME_AT: usize = 168;
-/// Where the header counts the empty leaves that take no word (u64) and
-/// the one-triangle leaves (u64), after its checksummed part.
-pub(crate) const IMPLICIT_EMPTY_AT: usize = 340;
-pub(crate) const ONE_LEAVES_AT: usize = 348;
-pub(crate) const SPLIT_PRICE_AT: usize = 356;
-pub(crate) const RESERVED_AT: usize = 364;
-pub(crate) const TAIL_CRC: usize = 380;
-
-/// Whether the header's tail (bytes 356..380, after the checksummed part
-/// and the two counts, which are checked against the nodes) matches its
-/// CRC-32 at [`TAIL_CRC`]. Files written before the tail held the split
-/// price have zero there and in the whole tail: those pass. Otherwise the
-/// stored CRC must be the computed one, so a changed split price cannot go
-/// unnoticed.
-pub(crate) fn tail_crc_ok(header: &[u8]) -> bool {
-    let stored = u32::from_le_bytes(header[TAIL_CRC..TAIL_CRC + 4].try_into().unwrap());
-    let legacy = stored == 0 && header[SPLIT_PRICE_AT..TAIL_CRC].iter().all(|&x| x == 0);
-    legacy || stored == crc32fast::hash(&header[SPLIT_PRICE_AT..TAIL_CRC])
-}
-
-// The header table must fit before the header checksum.
-const _: () = assert!(SECTION_TABLE + 6 * SECTION_ENTRY == HEADER_CRC);
-const _: () = assert!(HEADER_CRC + 4 <= HEADER_SIZE && HEADER_SIZE.is_multiple_of(SECTION_ALIGN));
-const _: () = assert!(std::mem::size_of::<u64>() == 8);
-// The scene tag fills the bytes between the bounds and the section table.
-const _: () = assert!(SCENE_HASH_AT == 136 + 24 && SCENE_NAME_AT == SCENE_HASH_AT + 8);
-const _: () = assert!(SCENE_NAME_AT + SCENE_NAME_LEN == SECTION_TABLE);
-
 /// Why a file could not be written or opened. Every variant says what is
 /// wrong; `Io` names the file.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum FormatError {
     /// Reading or writing the file failed.
+    #[error("{}: {source}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
@@ -226,6 +201,7 @@ pub enum FormatError {
         source: std::io::Error,
     },
     /// Shorter than the header or than a section it announces.
+    #[error("truncated file: needs {needed} bytes, has {got}")]
     Truncated {
         /// Bytes the file needs.
         needed: u64,
@@ -233,8 +209,10 @@ pub enum FormatError {
         got: u64,
     },
     /// Not a `.kd` file (the first 8 bytes are not [`MAGIC`]).
+    #[error("not a slimkd .kd file (bad magic)")]
     BadMagic,
     /// A format version this build does not read.
+    #[error("{}", version_message(*expected, *got))]
     Version {
         /// The version this build reads.
         expected: u32,
@@ -242,10 +220,13 @@ pub enum FormatError {
         got: u32,
     },
     /// Written on a machine of the other byte order.
+    #[error("the file's byte order does not match this machine")]
     Endianness,
     /// The byte source is not 8-byte aligned (mmap always is).
+    #[error("the byte buffer is not 8-byte aligned")]
     Misaligned,
     /// The header's CRC-32 does not match its bytes.
+    #[error("header checksum mismatch (stored {expected:#010x}, computed {got:#010x})")]
     HeaderChecksum {
         /// The CRC-32 stored in the file.
         expected: u32,
@@ -253,15 +234,18 @@ pub enum FormatError {
         got: u32,
     },
     /// A header field out of range.
-    Header(String),
+    #[error("bad header: {0}")]
+    Header(HeaderError),
     /// A section's placement or size.
+    #[error("section {section}: {problem}")]
     Section {
         /// The section.
         section: &'static str,
         /// What is wrong.
-        message: String,
+        problem: SectionError,
     },
     /// A node word that is malformed or points outside the file.
+    #[error("node {index}: {message}")]
     Node {
         /// The node's slot.
         index: u64,
@@ -269,6 +253,7 @@ pub enum FormatError {
         message: String,
     },
     /// A section's CRC-32 does not match the section table's.
+    #[error("section {section}: checksum mismatch (stored {expected:#010x}, computed {got:#010x})")]
     ChecksumMismatch {
         /// The section.
         section: &'static str,
@@ -278,6 +263,7 @@ pub enum FormatError {
         got: u32,
     },
     /// An index or vertex reference out of range.
+    #[error("section {section}, entry {position}: {message}")]
     Index {
         /// The section.
         section: &'static str,
@@ -287,64 +273,116 @@ pub enum FormatError {
         message: String,
     },
     /// The tree does not fit the format (e.g. more than 2^29 nodes).
-    TooLarge(String),
+    #[error("tree too large for the format: {0}")]
+    TooLarge(Limit),
 }
 
-impl fmt::Display for FormatError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            FormatError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-            FormatError::Truncated { needed, got } => {
-                write!(f, "truncated file: needs {needed} bytes, has {got}")
-            }
-            FormatError::BadMagic => write!(f, "not a slimkd .kd file (bad magic)"),
-            FormatError::Version { expected, got } if got < expected => write!(
-                f,
-                "format version {got}, which this build no longer reads (it reads {expected}): \
-                 rebuild the tree with `slimkd build`"
-            ),
-            FormatError::Version { expected, got } => {
-                write!(
-                    f,
-                    "unsupported format version {got} (this build reads {expected})"
-                )
-            }
-            FormatError::Endianness => {
-                write!(f, "the file's byte order does not match this machine")
-            }
-            FormatError::Misaligned => write!(f, "the byte buffer is not 8-byte aligned"),
-            FormatError::HeaderChecksum { expected, got } => {
-                write!(
-                    f,
-                    "header checksum mismatch (stored {expected:#010x}, computed {got:#010x})"
-                )
-            }
-            FormatError::Header(m) => write!(f, "bad header: {m}"),
-            FormatError::Section { section, message } => write!(f, "section {section}: {message}"),
-            FormatError::Node { index, message } => write!(f, "node {index}: {message}"),
-            FormatError::ChecksumMismatch {
-                section,
-                expected,
-                got,
-            } => write!(
-                f,
-                "section {section}: checksum mismatch (stored {expected:#010x}, computed {got:#010x})"
-            ),
-            FormatError::Index {
-                section,
-                position,
-                message,
-            } => write!(f, "section {section}, entry {position}: {message}"),
-            FormatError::TooLarge(m) => write!(f, "tree too large for the format: {m}"),
-        }
+/// What is wrong with a section's placement, size or padding
+/// ([`FormatError::Section`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum SectionError {
+    /// A byte length that is not the header's count times the element size.
+    #[error("{0} bytes do not match the header's count")]
+    Length(u64),
+    /// Not at the first multiple of 64 after the previous section.
+    #[error(
+        "offset {offset} misplaced (expected {expected}: 64-aligned, right after the previous section)"
+    )]
+    Misplaced {
+        /// The offset in the section table.
+        offset: u64,
+        /// Where the section must start.
+        expected: u64,
+    },
+    /// Offset plus length past 2^64.
+    #[error("offset overflows")]
+    Overflow,
+    /// A non-zero byte between the section's end and the next section
+    /// (or the end of the file).
+    #[error("non-zero padding after the section")]
+    Padding,
+}
+
+/// Which limit of the format a tree is over ([`FormatError::TooLarge`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum Limit {
+    /// More node words than the 29-bit slot field addresses.
+    #[error("more than 2^29 node words (the 29-bit slot field)")]
+    NodeWords,
+    /// A node deeper than [`MAX_DEPTH`](crate::tree::MAX_DEPTH).
+    #[error("a node deeper than {}", crate::tree::MAX_DEPTH)]
+    Depth,
+    /// A leaf of this many triangles, over [`node::MAX_LEAF32`].
+    #[error("a leaf with {0} triangles (at most 2^27 - 1)")]
+    Leaf(u64),
+    /// More idx16 entries than 32-bit positions address.
+    #[error("idx16 over 2^32 entries")]
+    Idx16Entries,
+    /// More idx32 entries than 32-bit positions address.
+    #[error("idx32 over 2^32 entries")]
+    Idx32Entries,
+    /// More triangles or vertices than 32-bit ids number.
+    #[error("more than 2^32 triangles or vertices")]
+    TrianglesOrVertices,
+}
+
+/// The message of [`FormatError::Version`]: an older version says to
+/// rebuild the file.
+fn version_message(expected: u32, got: u32) -> String {
+    if got < expected {
+        format!(
+            "format version {got}, which this build no longer reads (it reads {expected}): \
+             rebuild the tree with `slimkd build`"
+        )
+    } else {
+        format!("unsupported format version {got} (this build reads {expected})")
     }
 }
 
-impl std::error::Error for FormatError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            FormatError::Io { source, .. } => Some(source),
-            _ => None,
-        }
+/// What the writers' unit tests share: a small scene and its tree, and
+/// the bytes [`write_to_vec`] makes of them, which every other way of
+/// writing them must give.
+#[cfg(test)]
+mod testing {
+    use super::{WriteOptions, write_to_vec};
+    use crate::build::{self, Algorithm, BuildConfig};
+    use crate::scene::TriangleColumns;
+    use crate::tree::TreeIr;
+    use glam::Vec3;
+
+    /// `n` small triangles `[p, p + a·x, p + b·y]`, `p = (i % 20, i / rows,
+    /// i % 7)`, and their tree (the sweep builder's).
+    pub(super) fn grid_tree(
+        n: usize,
+        rows: usize,
+        (a, b): (f32, f32),
+    ) -> (TriangleColumns, TreeIr) {
+        let tris: Vec<[Vec3; 3]> = (0..n)
+            .map(|i| {
+                let p = Vec3::new((i % 20) as f32, (i / rows) as f32, (i % 7) as f32);
+                [p, p + Vec3::X * a, p + Vec3::Y * b]
+            })
+            .collect();
+        let scene = TriangleColumns::from_triangles(&tris).unwrap();
+        let tree =
+            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        (scene, tree)
+    }
+
+    /// The options without and with `reorder`, each with the bytes
+    /// [`write_to_vec`] writes under them.
+    pub(super) fn whole_files(
+        scene: &TriangleColumns,
+        tree: &TreeIr,
+    ) -> Vec<(WriteOptions, Vec<u8>)> {
+        [false, true]
+            .map(|reorder| {
+                let options = WriteOptions {
+                    reorder,
+                    ..WriteOptions::default()
+                };
+                (options, write_to_vec(tree, scene, &options).unwrap())
+            })
+            .into()
     }
 }

@@ -11,9 +11,10 @@
 
 use super::node::{self, MAX_LEAF32, MAX_NODES};
 use super::write::{
-    Counts, Entries, SectionSink, WINDOW, Words, WriteOptions, check_scene, finish_kd, leaf_word,
+    Entries, SectionSink, WINDOW, Words, WriteOptions, check_scene, finish_kd, flush_to, leaf_word,
+    new_id, renumbering,
 };
-use super::{FormatError, HEADER_SIZE, Section};
+use super::{FormatError, HEADER_SIZE, HeaderError, Limit, Section, TreeFigures};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, PreOrderSink, SinkStop, TriId};
@@ -157,7 +158,9 @@ pub struct StreamWriter<'f> {
     /// has a word only if the sibling is an empty leaf too (then the
     /// sibling has none).
     deferred: bool,
-    counts: Counts,
+    /// The node counts (as the header counts them) so far.
+    figures: TreeFigures,
+    max_depth: u32,
     ids: Vec<u32>,
     error: Option<FormatError>,
 }
@@ -186,14 +189,12 @@ impl StreamWriter<'_> {
     }
 
     fn new_id(&self, t: TriId) -> u32 {
-        self.inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize])
+        new_id(self.inverse.as_deref(), t)
     }
 
     fn push_word(&mut self, word: u64) -> Result<(), FormatError> {
         if self.words.len() as u64 >= MAX_NODES {
-            return Err(FormatError::TooLarge(
-                "more than 2^29 node words (the 29-bit slot field)".into(),
-            ));
+            return Err(FormatError::TooLarge(Limit::NodeWords));
         }
         self.words.push(word)
     }
@@ -205,7 +206,7 @@ impl StreamWriter<'_> {
         let p = if i == 0 {
             let cell = self
                 .bounds
-                .ok_or_else(|| FormatError::Header("a node before the tree's bounds".into()))?;
+                .ok_or_else(|| FormatError::from(HeaderError::NodeBeforeBounds))?;
             Pending {
                 cell,
                 depth: 0,
@@ -217,15 +218,13 @@ impl StreamWriter<'_> {
                 .ok_or_else(|| Self::bad_node(i, "a node after the whole tree".into()))?
         };
         if p.depth > MAX_DEPTH {
-            return Err(FormatError::TooLarge(format!(
-                "a node deeper than {MAX_DEPTH}"
-            )));
+            return Err(FormatError::TooLarge(Limit::Depth));
         }
-        self.counts.max_depth = self.counts.max_depth.max(p.depth);
+        self.max_depth = self.max_depth.max(p.depth);
         match p.parent {
             // A left child: if empty, its word waits for its sibling.
             None if i > 0 && empty => {
-                self.counts.n_leaves += 1;
+                self.figures.leaves += 1;
                 self.deferred = true;
                 return Ok(None);
             }
@@ -236,14 +235,14 @@ impl StreamWriter<'_> {
                         // Both children empty: the left one keeps a word.
                         self.push_word(node::encode_leaf32(0, 0))?;
                     } else {
-                        self.counts.n_implicit_empty += 1;
+                        self.figures.implicit_empty += 1;
                     }
                 }
                 let field = if empty { 0 } else { self.words.len() as u64 };
                 self.words.set(parent, word | field << 3);
                 if empty {
-                    self.counts.n_leaves += 1;
-                    self.counts.n_implicit_empty += 1;
+                    self.figures.leaves += 1;
+                    self.figures.implicit_empty += 1;
                     return Ok(None);
                 }
             }
@@ -277,10 +276,10 @@ impl StreamWriter<'_> {
                 if t.0 as usize >= self.scene.len() {
                     return Err(self.bad_tri(i, t));
                 }
-                self.counts.n_t_inner += 1;
+                self.figures.t_inner += 1;
                 self.push_word(node::encode_tref(self.new_id(t)))?;
             }
-            None => self.counts.n_inner += 1,
+            None => self.figures.inner += 1,
         }
         let (left, right) = p.cell.split(k, pos);
         self.stack.push(Pending {
@@ -302,10 +301,7 @@ impl StreamWriter<'_> {
         // Checked before the list is read: a leaf this large is always in
         // 4-byte mode, whose count field has 27 bits.
         if tris.len() > MAX_LEAF32 as usize {
-            return Err(FormatError::TooLarge(format!(
-                "a leaf with {} triangles (at most 2^27 - 1)",
-                tris.len()
-            )));
+            return Err(FormatError::TooLarge(Limit::Leaf(tris.len() as u64)));
         }
         if let Some(&t) = tris.iter().find(|t| t.0 as usize >= self.scene.len()) {
             return Err(self.bad_tri(i, t));
@@ -313,18 +309,14 @@ impl StreamWriter<'_> {
         if self.place(i, tris.is_empty())?.is_none() {
             return Ok(());
         }
-        self.counts.n_leaves += 1;
-        let mut ids = std::mem::take(&mut self.ids);
-        ids.clear();
-        ids.extend(tris.iter().map(|&t| self.new_id(t)));
-        ids.sort_unstable();
+        let inverse = self.inverse.as_deref();
         let word = leaf_word(
-            &ids,
+            &mut self.ids,
+            tris.iter().map(|&t| new_id(inverse, t)),
             &mut self.idx32,
             &mut self.idx16,
-            &mut self.counts.n_one_leaves,
+            &mut self.figures,
         );
-        self.ids = ids;
         self.push_word(word?)
     }
 }
@@ -332,7 +324,7 @@ impl StreamWriter<'_> {
 impl PreOrderSink for StreamWriter<'_> {
     fn bounds(&mut self, bounds: Aabb) -> Result<(), SinkStop> {
         let r = if self.bounds.is_some() {
-            Err(FormatError::Header("the tree's bounds given twice".into()))
+            Err(HeaderError::BoundsTwice.into())
         } else {
             self.bounds = Some(bounds);
             check_scene(bounds, self.scene)
@@ -406,48 +398,21 @@ fn write_streamed<T, E: From<FormatError>>(
     spill_cap: usize,
     produce: impl FnOnce(&mut StreamWriter<'_>) -> Result<T, E>,
 ) -> Result<T, E> {
-    let perm: Option<Vec<u32>> = options.reorder.then(|| scene.morton_order());
-    let inverse = perm.as_ref().map(|p| {
-        let mut inv = vec![0u32; p.len()];
-        for (new, &old) in p.iter().enumerate() {
-            inv[old as usize] = new as u32;
-        }
-        inv
-    });
+    let (perm, inverse) = renumbering(scene, options);
     f.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
-    let mut bytes = Vec::with_capacity(8 * window);
-    let mut flush = |ws: &[u64]| {
-        bytes.clear();
-        bytes.extend(ws.iter().flat_map(|w| w.to_le_bytes()));
-        f.write_all(&bytes).map_err(io)
-    };
+    let mut flush = flush_to(f, io, window);
     let mut w = StreamWriter {
         scene,
         inverse,
-        words: Words {
-            window,
-            base: 0,
-            buf: Vec::with_capacity(window),
-            late: Vec::new(),
-            flush: &mut flush,
-        },
+        words: Words::new(window, &mut flush),
         idx32: Spill::new(4, dir, spill_cap),
         idx16: Spill::new(2, dir, spill_cap),
         bounds: None,
         stack: Vec::new(),
         count: 0,
         deferred: false,
-        counts: Counts {
-            n_words: 0,
-            n_inner: 0,
-            n_t_inner: 0,
-            n_leaves: 0,
-            n_implicit_empty: 0,
-            n_one_leaves: 0,
-            max_depth: 0,
-            n_idx32: 0,
-            n_idx16: 0,
-        },
+        figures: TreeFigures::default(),
+        max_depth: 0,
         ids: Vec::new(),
         error: None,
     };
@@ -466,16 +431,19 @@ fn write_streamed<T, E: From<FormatError>>(
         words,
         mut idx32,
         mut idx16,
-        mut counts,
+        mut figures,
+        max_depth,
         bounds,
         inverse,
         ..
     } = w;
     drop(inverse);
-    counts.n_words = words.len() as u64;
-    counts.n_idx32 = idx32.entries;
-    counts.n_idx16 = idx16.entries;
+    figures.words = words.len() as u64;
+    figures.idx32 = idx32.entries;
+    figures.idx16 = idx16.entries;
     let late = words.finish()?;
+    // The windows are out: `f` is free for the rest of the file.
+    drop(flush);
     let bounds = bounds.expect("a whole tree came after its bounds");
     let mut put_idx = |section: Section, sink: &mut SectionSink<'_, File>| {
         let spill = if section == Section::Idx32 {
@@ -488,7 +456,8 @@ fn write_streamed<T, E: From<FormatError>>(
     finish_kd(
         f,
         late,
-        &counts,
+        figures,
+        max_depth,
         &mut put_idx,
         scene,
         perm.as_deref(),
@@ -502,33 +471,19 @@ fn write_streamed<T, E: From<FormatError>>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{self, Algorithm, BuildConfig};
-    use crate::format::write_to_vec;
-    use glam::Vec3;
+    use crate::format::testing::{grid_tree, whole_files};
 
     /// Node windows of a few words and index buffers of a few bytes (so
     /// both index arrays go through their files) give the bytes of
     /// `write_to_vec`, and no index file is left in the directory.
     #[test]
     fn small_windows_and_spilled_index_arrays_give_the_same_bytes() {
-        let tris: Vec<[Vec3; 3]> = (0..600)
-            .map(|i| {
-                let p = Vec3::new((i % 20) as f32, (i / 30) as f32, (i % 7) as f32);
-                [p, p + Vec3::X * 1.5, p + Vec3::Y * 2.5]
-            })
-            .collect();
-        let scene = TriangleColumns::from_triangles(&tris).unwrap();
-        let tree =
-            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        let (scene, tree) = grid_tree(600, 30, (1.5, 2.5));
         let dir = std::env::temp_dir().join(format!("slimkd-stream-unit-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        for reorder in [false, true] {
-            let options = WriteOptions {
-                reorder,
-                ..WriteOptions::default()
-            };
-            let whole = write_to_vec(&tree, &scene, &options).unwrap();
+        for (options, whole) in whole_files(&scene, &tree) {
+            let reorder = options.reorder;
             for (window, cap) in [(1, 1), (3, 6), (64, 64), (WINDOW, SPILL_BUF)] {
                 let path = dir.join("out.kd");
                 let mut f = std::fs::OpenOptions::new()

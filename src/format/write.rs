@@ -1,178 +1,13 @@
 //! Writing a tree and its geometry as a `.kd` file (layout in [`super`]).
 
+use super::header::{Header, HeaderError, SectionEntry, is_finite_box};
 use super::node::{self, MAX_LEAF32, MAX_NODES};
-use super::{
-    ENDIAN_CHECK, FLAG_REORDERED, FormatError, HEADER_CRC, HEADER_SIZE, MAGIC, SCENE_HASH_AT,
-    SCENE_NAME_AT, SECTION_ALIGN, SECTION_ENTRY, SECTION_TABLE, Section, VERSION,
-};
+use super::{FileConfig, FormatError, HEADER_SIZE, Limit, SECTION_ALIGN, Section, TreeFigures};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
-use crate::tree::{MAX_DEPTH, Node, TreeIr, TriId, WalkFault};
+use crate::tree::{Node, TreeIr, TriId, WalkFault};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
-
-/// The build preset recorded in the header.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Preset {
-    /// No hoisting.
-    Std = 0,
-    /// The `fast` slim preset.
-    Fast = 1,
-    /// The `small` slim preset.
-    Small = 2,
-    /// Hoisting with thresholds of the caller's choice.
-    Custom = 3,
-}
-
-impl Preset {
-    /// The preset of a header value.
-    pub fn from_u32(v: u32) -> Option<Preset> {
-        [Preset::Std, Preset::Fast, Preset::Small, Preset::Custom]
-            .get(v as usize)
-            .copied()
-    }
-
-    /// The preset's name, as the CLI spells it.
-    pub fn name(self) -> &'static str {
-        ["std", "fast", "small", "custom"][self as usize]
-    }
-}
-
-/// Bytes of the header's scene-name field.
-pub const SCENE_NAME_LEN: usize = 24;
-
-/// The scene a file was built from, as its header records it: the scene's
-/// name (what a views file calls it, so that a renamed file keeps its
-/// views) and a hash of its geometry (to tell whether two files, or a file
-/// and a scene, hold the same triangles). The default records neither.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SceneTag {
-    /// UTF-8, padded with zero bytes; all zero when not recorded.
-    name: [u8; SCENE_NAME_LEN],
-    /// [`SceneTag::geometry_hash_of`] of the scene; 0 when not recorded.
-    pub geometry_hash: u64,
-}
-
-impl SceneTag {
-    /// The tag of `scene` under `name`. A name that does not fit the field
-    /// (over [`SCENE_NAME_LEN`] bytes) or holds a zero byte is not
-    /// recorded, rather than cut to a name no views file uses.
-    pub fn new(name: &str, scene: &TriangleColumns) -> SceneTag {
-        let mut tag = SceneTag {
-            geometry_hash: SceneTag::geometry_hash_of(scene),
-            ..SceneTag::default()
-        };
-        if name.len() <= SCENE_NAME_LEN && !name.as_bytes().contains(&0) {
-            tag.name[..name.len()].copy_from_slice(name.as_bytes());
-        }
-        tag
-    }
-
-    /// The recorded name, if any.
-    pub fn name(&self) -> Option<&str> {
-        let len = self
-            .name
-            .iter()
-            .position(|&b| b == 0)
-            .unwrap_or(SCENE_NAME_LEN);
-        // Both constructors hold the field to UTF-8.
-        std::str::from_utf8(&self.name[..len])
-            .ok()
-            .filter(|n| !n.is_empty())
-    }
-
-    /// The geometry hash: the CRC-32 of the vertex positions (x, y, z as
-    /// little-endian `f32`, in input order) in the high 32 bits, the CRC-32
-    /// of the triangles' vertex indices (little-endian `u32`, in input
-    /// order) in the low 32 bits. It does not depend on the tree or on the
-    /// file's triangle numbering.
-    pub fn geometry_hash_of(scene: &TriangleColumns) -> u64 {
-        let mut pos = crc32fast::Hasher::new();
-        for p in scene.positions() {
-            for v in [p.x, p.y, p.z] {
-                pos.update(&v.to_le_bytes());
-            }
-        }
-        let mut idx = crc32fast::Hasher::new();
-        for t in scene.indices() {
-            for v in t {
-                idx.update(&v.to_le_bytes());
-            }
-        }
-        (u64::from(pos.finalize()) << 32) | u64::from(idx.finalize())
-    }
-
-    /// Reads the tag from its header bytes; an error unless the name is
-    /// UTF-8 followed by zero bytes only.
-    pub(crate) fn from_header(header: &[u8]) -> Result<SceneTag, FormatError> {
-        let mut name = [0u8; SCENE_NAME_LEN];
-        name.copy_from_slice(&header[SCENE_NAME_AT..SCENE_NAME_AT + SCENE_NAME_LEN]);
-        let len = name.iter().position(|&b| b == 0).unwrap_or(SCENE_NAME_LEN);
-        if name[len..].iter().any(|&b| b != 0) || std::str::from_utf8(&name[..len]).is_err() {
-            return Err(FormatError::Header(format!(
-                "the scene name (bytes {SCENE_NAME_AT}..{}) is not UTF-8 padded with zero bytes",
-                SCENE_NAME_AT + SCENE_NAME_LEN
-            )));
-        }
-        let hash = u64::from_le_bytes(
-            header[SCENE_HASH_AT..SCENE_HASH_AT + 8]
-                .try_into()
-                .expect("8 bytes"),
-        );
-        Ok(SceneTag {
-            name,
-            geometry_hash: hash,
-        })
-    }
-
-    fn put(&self, header: &mut [u8]) {
-        put_u64(header, SCENE_HASH_AT, self.geometry_hash);
-        header[SCENE_NAME_AT..SCENE_NAME_AT + SCENE_NAME_LEN].copy_from_slice(&self.name);
-    }
-}
-
-/// The build configuration recorded in the header (for the record only:
-/// traversal does not depend on it), and the scene's tag.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FileConfig {
-    /// SAH cost of a traversal step.
-    pub k_t: f64,
-    /// SAH cost of a triangle test.
-    pub k_i: f64,
-    /// The SAH's bonus factor for cutting off empty space.
-    pub lambda_empty: f64,
-    /// The depth limit the build used.
-    pub depth_limit: u32,
-    /// The SAH's split price `μ` (0: none).
-    pub split_price: f64,
-    /// The slim preset, or `Std`.
-    pub preset: Preset,
-    /// The hoisting occupancy threshold (0 for `Std`).
-    pub tau_occu: f32,
-    /// The hoisting frequency threshold (0 for `Std`).
-    pub tau_freq: f32,
-    /// The most hoisted triangles on a root path (0 for `Std`).
-    pub max_t2rn: u32,
-    /// The scene the tree was built for.
-    pub scene: SceneTag,
-}
-
-impl Default for FileConfig {
-    fn default() -> Self {
-        FileConfig {
-            k_t: 15.0,
-            k_i: 20.0,
-            lambda_empty: 0.8,
-            depth_limit: 0,
-            split_price: 0.0,
-            preset: Preset::Std,
-            tau_occu: 0.0,
-            tau_freq: 0.0,
-            max_t2rn: 0,
-            scene: SceneTag::default(),
-        }
-    }
-}
 
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 /// How [`write_file`] writes a tree.
@@ -203,7 +38,21 @@ pub(super) struct Words<'f> {
     pub(super) flush: &'f mut dyn FnMut(&[u64]) -> Result<(), FormatError>,
 }
 
-impl Words<'_> {
+impl<'f> Words<'f> {
+    /// No words yet; `flush` takes each window as it fills.
+    pub(super) fn new(
+        window: usize,
+        flush: &'f mut dyn FnMut(&[u64]) -> Result<(), FormatError>,
+    ) -> Words<'f> {
+        Words {
+            window,
+            base: 0,
+            buf: Vec::with_capacity(window),
+            late: Vec::new(),
+            flush,
+        }
+    }
+
     pub(super) fn len(&self) -> usize {
         self.base + self.buf.len()
     }
@@ -232,18 +81,52 @@ impl Words<'_> {
     }
 }
 
+/// The triangles' new numbering with `options.reorder` (else `None`):
+/// the Morton order of the scene (new id to old) and its inverse (old id
+/// to new).
+pub(super) fn renumbering(
+    scene: &TriangleColumns,
+    options: &WriteOptions,
+) -> (Option<Vec<u32>>, Option<Vec<u32>>) {
+    let perm: Option<Vec<u32>> = options.reorder.then(|| scene.morton_order());
+    let inverse = perm.as_ref().map(|p| {
+        let mut inv = vec![0u32; p.len()];
+        for (new, &old) in p.iter().enumerate() {
+            inv[old as usize] = new as u32;
+        }
+        inv
+    });
+    (perm, inverse)
+}
+
+/// The new id of triangle `t` under `inverse` (old id to new; `None`:
+/// not renumbered).
+pub(super) fn new_id(inverse: Option<&[u32]>, t: TriId) -> u32 {
+    inverse.map_or(t.0, |inv| inv[t.0 as usize])
+}
+
+/// The `flush` of [`Words`] that writes each window of node words to
+/// `out` (little-endian), through a buffer of `window` words.
+pub(super) fn flush_to<'a>(
+    out: &'a mut impl Write,
+    io: &'a dyn Fn(std::io::Error) -> FormatError,
+    window: usize,
+) -> impl FnMut(&[u64]) -> Result<(), FormatError> + 'a {
+    let mut bytes = Vec::with_capacity(8 * window);
+    move |ws: &[u64]| {
+        bytes.clear();
+        bytes.extend(ws.iter().flat_map(|w| w.to_le_bytes()));
+        out.write_all(&bytes).map_err(io)
+    }
+}
+
 /// What the layout pass produces besides the node words.
 struct Layout {
-    n_words: u64,
     idx32: Vec<u32>,
     idx16: Vec<u16>,
-    n_inner: u64,
-    n_t_inner: u64,
-    n_leaves: u64,
-    /// Empty leaves that take no word.
-    n_implicit_empty: u64,
-    /// Leaves of one triangle (held in their word).
-    n_one_leaves: u64,
+    /// The node counts (`words`, `inner`, `t_inner`, `leaves`,
+    /// `implicit_empty`, `one_leaves`; the others are filled in later).
+    figures: TreeFigures,
     max_depth: u32,
 }
 
@@ -263,7 +146,7 @@ struct Place {
 /// empty children without a word, one-triangle leaves in their word) and
 /// the index arrays. Refuses, rather than writing a file the reader would
 /// reject, a tree that does not fit the format (too many nodes, a leaf over
-/// [`MAX_LEAF32`] triangles, deeper than [`MAX_DEPTH`]) or that is
+/// [`MAX_LEAF32`] triangles, deeper than [`MAX_DEPTH`](crate::tree::MAX_DEPTH)) or that is
 /// malformed (a child or leaf list out of range, a node reached twice, an
 /// axis over 2, a split that is not finite or lies outside its node's cell,
 /// a triangle id of `n_tris` or more).
@@ -274,17 +157,11 @@ fn layout(
     words: &mut Words<'_>,
 ) -> Result<Layout, FormatError> {
     let mut out = Layout {
-        n_words: 0,
         idx32: Vec::new(),
         idx16: Vec::new(),
-        n_inner: 0,
-        n_t_inner: 0,
-        n_leaves: 0,
-        n_implicit_empty: 0,
-        n_one_leaves: 0,
+        figures: TreeFigures::default(),
         max_depth: 0,
     };
-    let too_large = |what: &str| FormatError::TooLarge(what.to_string());
     let bad_node = |i: usize, message: String| FormatError::Node {
         index: i as u64,
         message,
@@ -303,7 +180,7 @@ fn layout(
             bad_node(node, format!("a child outside the {n_nodes} nodes"))
         }
         WalkFault::ReachedTwice { node } => bad_node(node, "reached twice (not a tree)".into()),
-        WalkFault::TooDeep { .. } => too_large(&format!("a node deeper than {MAX_DEPTH}")),
+        WalkFault::TooDeep { .. } => FormatError::TooLarge(Limit::Depth),
     };
     let is_empty_leaf = |i: usize| matches!(tree.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
     let mut ids = Vec::new();
@@ -324,14 +201,12 @@ fn layout(
             words.set(parent, word | field << 3);
         }
         if !has_word {
-            out.n_leaves += 1;
-            out.n_implicit_empty += 1;
+            out.figures.leaves += 1;
+            out.figures.implicit_empty += 1;
             return Ok(None);
         }
         if slot as u64 >= MAX_NODES {
-            return Err(too_large(
-                "more than 2^29 node words (the 29-bit slot field)",
-            ));
+            return Err(FormatError::TooLarge(Limit::NodeWords));
         }
         match node {
             Node::Inner {
@@ -362,10 +237,10 @@ fn layout(
                         if t.0 as usize >= n_tris {
                             return Err(bad_tri(i, t));
                         }
-                        out.n_t_inner += 1;
+                        out.figures.t_inner += 1;
                         words.push(node::encode_tref(new_id(t)))?;
                     }
-                    None => out.n_inner += 1,
+                    None => out.figures.inner += 1,
                 }
                 let (left, right_cell) = cell.split(k, pos);
                 Ok(Some((
@@ -385,9 +260,7 @@ fn layout(
                 // Checked before the list is read: a leaf this large is
                 // always in 4-byte mode, whose count field has 27 bits.
                 if count > MAX_LEAF32 {
-                    return Err(too_large(&format!(
-                        "a leaf with {count} triangles (at most 2^27 - 1)"
-                    )));
+                    return Err(FormatError::TooLarge(Limit::Leaf(u64::from(count))));
                 }
                 let list = tree
                     .leaf_tris
@@ -404,21 +277,21 @@ fn layout(
                 if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
                     return Err(bad_tri(i, t));
                 }
-                out.n_leaves += 1;
-                ids.clear();
-                ids.extend(list.iter().map(|&t| new_id(t)));
-                ids.sort_unstable();
-                let word = leaf_word(&ids, &mut out.idx32, &mut out.idx16, &mut out.n_one_leaves)?;
+                let word = leaf_word(
+                    &mut ids,
+                    list.iter().map(|&t| new_id(t)),
+                    &mut out.idx32,
+                    &mut out.idx16,
+                    &mut out.figures,
+                )?;
                 words.push(word)?;
                 Ok(None)
             }
         }
     })?;
-    out.n_words = words.len() as u64;
-    if out.n_words > MAX_NODES {
-        return Err(too_large(
-            "more than 2^29 node words (the 29-bit slot field)",
-        ));
+    out.figures.words = words.len() as u64;
+    if out.figures.words > MAX_NODES {
+        return Err(FormatError::TooLarge(Limit::NodeWords));
     }
     Ok(out)
 }
@@ -452,19 +325,24 @@ impl Entries for Vec<u16> {
     }
 }
 
-/// The word of a leaf with the (new, ascending) triangle ids `ids`: one
-/// triangle in the word, an empty leaf, or a list appended to `idx16`
-/// when it fits 2-byte mode, else to `idx32`; `one` counts the leaves of
-/// one triangle.
+/// The word of a leaf of the triangles `tris` (new ids, sorted into
+/// `ids`, a buffer kept from leaf to leaf): one triangle in the word, an
+/// empty leaf, or a list appended to `idx16` when it fits 2-byte mode,
+/// else to `idx32`; `figures` counts the leaf (and the leaves of one
+/// triangle).
 pub(super) fn leaf_word(
-    ids: &[u32],
+    ids: &mut Vec<u32>,
+    tris: impl Iterator<Item = u32>,
     idx32: &mut impl Entries,
     idx16: &mut impl Entries,
-    one: &mut u64,
+    figures: &mut TreeFigures,
 ) -> Result<u64, FormatError> {
-    let too_large = |what: &str| FormatError::TooLarge(what.to_string());
+    figures.leaves += 1;
+    ids.clear();
+    ids.extend(tris);
+    ids.sort_unstable();
     Ok(if let [t] = ids[..] {
-        *one += 1;
+        figures.one_leaves += 1;
         node::encode_leaf1(t)
     } else if ids.is_empty() {
         // The one form of an empty leaf with a word.
@@ -472,36 +350,24 @@ pub(super) fn leaf_word(
     } else if node::fits_leaf16(ids.len(), ids.iter().copied()) {
         let upper = ids.first().map_or(0, |&t| t >> 16);
         let first =
-            u32::try_from(idx16.count()).map_err(|_| too_large("idx16 over 2^32 entries"))?;
+            u32::try_from(idx16.count()).map_err(|_| FormatError::TooLarge(Limit::Idx16Entries))?;
         idx16.put(ids)?;
         node::encode_leaf16(ids.len() as u32, upper as u16, first)
     } else {
         let first =
-            u32::try_from(idx32.count()).map_err(|_| too_large("idx32 over 2^32 entries"))?;
+            u32::try_from(idx32.count()).map_err(|_| FormatError::TooLarge(Limit::Idx32Entries))?;
         idx32.put(ids)?;
         node::encode_leaf32(ids.len() as u32, first)
     })
 }
 
-fn put_u32(b: &mut [u8], at: usize, v: u32) {
-    b[at..at + 4].copy_from_slice(&v.to_le_bytes());
-}
-
-fn put_u64(b: &mut [u8], at: usize, v: u64) {
-    b[at..at + 8].copy_from_slice(&v.to_le_bytes());
-}
-
 /// Refuses a scene the reader would reject (see [`write_to_vec`]).
 pub(super) fn check_scene(b: Aabb, scene: &TriangleColumns) -> Result<(), FormatError> {
-    if !(b.min.is_finite() && b.max.is_finite() && b.min.cmple(b.max).all()) {
-        return Err(FormatError::Header(
-            "scene bounds are not a finite box".into(),
-        ));
+    if !is_finite_box(b) {
+        return Err(HeaderError::Bounds.into());
     }
     if scene.len() > u32::MAX as usize || scene.positions().len() > u32::MAX as usize {
-        return Err(FormatError::TooLarge(
-            "more than 2^32 triangles or vertices".into(),
-        ));
+        return Err(FormatError::TooLarge(Limit::TrianglesOrVertices));
     }
     if let Some(p) = scene.positions().iter().position(|p| !p.is_finite()) {
         return Err(FormatError::Index {
@@ -597,45 +463,21 @@ fn write_kd<W: Read + Write + Seek>(
 ) -> Result<(), FormatError> {
     check_scene(tree.bounds, scene)?;
     let n_tris = scene.len();
-    let perm: Option<Vec<u32>> = options.reorder.then(|| scene.morton_order());
+    let (perm, inverse) = renumbering(scene, options);
     out.write_all(&[0u8; HEADER_SIZE]).map_err(io)?;
 
     // The node section.
     let (lay, late) = {
-        let inverse: Option<Vec<u32>> = perm.as_ref().map(|p| {
-            let mut inv = vec![0u32; p.len()];
-            for (new, &old) in p.iter().enumerate() {
-                inv[old as usize] = new as u32;
-            }
-            inv
-        });
-        let new_id = |t: TriId| inverse.as_ref().map_or(t.0, |inv| inv[t.0 as usize]);
-        let mut bytes = Vec::with_capacity(8 * window);
-        let mut flush = |ws: &[u64]| {
-            bytes.clear();
-            bytes.extend(ws.iter().flat_map(|w| w.to_le_bytes()));
-            out.write_all(&bytes).map_err(io)
-        };
-        let mut words = Words {
-            window,
-            base: 0,
-            buf: Vec::with_capacity(window),
-            late: Vec::new(),
-            flush: &mut flush,
-        };
+        let new_id = |t: TriId| new_id(inverse.as_deref(), t);
+        let mut flush = flush_to(out, io, window);
+        let mut words = Words::new(window, &mut flush);
         let lay = layout(tree, n_tris, &new_id, &mut words)?;
         (lay, words.finish()?)
     };
-    let counts = Counts {
-        n_words: lay.n_words,
-        n_inner: lay.n_inner,
-        n_t_inner: lay.n_t_inner,
-        n_leaves: lay.n_leaves,
-        n_implicit_empty: lay.n_implicit_empty,
-        n_one_leaves: lay.n_one_leaves,
-        max_depth: lay.max_depth,
-        n_idx32: lay.idx32.len() as u64,
-        n_idx16: lay.idx16.len() as u64,
+    let figures = TreeFigures {
+        idx32: lay.idx32.len() as u64,
+        idx16: lay.idx16.len() as u64,
+        ..lay.figures
     };
     let mut put_idx = |section: Section, sink: &mut SectionSink<'_, W>| match section {
         Section::Idx32 => lay
@@ -650,7 +492,8 @@ fn write_kd<W: Read + Write + Seek>(
     finish_kd(
         out,
         late,
-        &counts,
+        figures,
+        lay.max_depth,
         &mut put_idx,
         scene,
         perm.as_deref(),
@@ -658,19 +501,6 @@ fn write_kd<W: Read + Write + Seek>(
         tree.bounds,
         io,
     )
-}
-
-/// What a finished layout counts (the header's figures).
-pub(super) struct Counts {
-    pub(super) n_words: u64,
-    pub(super) n_inner: u64,
-    pub(super) n_t_inner: u64,
-    pub(super) n_leaves: u64,
-    pub(super) n_implicit_empty: u64,
-    pub(super) n_one_leaves: u64,
-    pub(super) max_depth: u32,
-    pub(super) n_idx32: u64,
-    pub(super) n_idx16: u64,
 }
 
 /// The file after its node words (which `out` holds from [`HEADER_SIZE`]
@@ -683,7 +513,8 @@ pub(super) struct Counts {
 pub(super) fn finish_kd<W: Read + Write + Seek>(
     out: &mut W,
     late: Vec<(usize, u64)>,
-    counts: &Counts,
+    figures: TreeFigures,
+    max_depth: u32,
     put_idx: &mut dyn FnMut(Section, &mut SectionSink<'_, W>) -> std::io::Result<()>,
     scene: &TriangleColumns,
     perm: Option<&[u32]>,
@@ -692,7 +523,7 @@ pub(super) fn finish_kd<W: Read + Write + Seek>(
     io: &dyn Fn(std::io::Error) -> FormatError,
 ) -> Result<(), FormatError> {
     let n_tris = scene.len();
-    let nodes_len = counts.n_words * 8;
+    let nodes_len = figures.words * 8;
     let crc_nodes = (|| {
         for (slot, w) in late {
             out.seek(SeekFrom::Start(HEADER_SIZE as u64 + 8 * slot as u64))?;
@@ -750,60 +581,29 @@ pub(super) fn finish_kd<W: Read + Write + Seek>(
         crcs[*section as usize] = crc;
     }
 
-    let mut header = [0u8; HEADER_SIZE];
-    header[0..8].copy_from_slice(&MAGIC);
-    put_u32(&mut header, 8, VERSION);
-    put_u32(&mut header, 12, ENDIAN_CHECK);
-    put_u32(&mut header, 16, HEADER_SIZE as u32);
-    put_u32(
-        &mut header,
-        20,
-        if perm.is_some() { FLAG_REORDERED } else { 0 },
-    );
-    let c = &options.config;
-    put_u64(&mut header, 24, c.k_t.to_bits());
-    put_u64(&mut header, 32, c.k_i.to_bits());
-    put_u64(&mut header, 40, c.lambda_empty.to_bits());
-    put_u32(&mut header, 48, c.depth_limit);
-    put_u32(&mut header, 52, c.preset as u32);
-    put_u32(&mut header, 56, c.tau_occu.to_bits());
-    put_u32(&mut header, 60, c.tau_freq.to_bits());
-    put_u32(&mut header, 64, c.max_t2rn);
-    put_u32(&mut header, 68, counts.max_depth);
-    put_u64(&mut header, 72, counts.n_words);
-    put_u64(&mut header, 80, counts.n_inner);
-    put_u64(&mut header, 88, counts.n_t_inner);
-    put_u64(&mut header, 96, counts.n_leaves);
-    put_u64(
-        &mut header,
-        super::IMPLICIT_EMPTY_AT,
-        counts.n_implicit_empty,
-    );
-    put_u64(&mut header, super::ONE_LEAVES_AT, counts.n_one_leaves);
-    put_u64(&mut header, super::SPLIT_PRICE_AT, c.split_price.to_bits());
-    put_u64(&mut header, 104, counts.n_idx32);
-    put_u64(&mut header, 112, counts.n_idx16);
-    put_u64(&mut header, 120, n_tris as u64);
-    put_u64(&mut header, 128, scene.positions().len() as u64);
-    for (k, v) in [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z]
-        .into_iter()
-        .enumerate()
-    {
-        put_u32(&mut header, 136 + 4 * k, v.to_bits());
-    }
-    c.scene.put(&mut header);
     let mut offset = HEADER_SIZE as u64;
-    for s in 0..6 {
-        let entry = SECTION_TABLE + s * SECTION_ENTRY;
-        put_u64(&mut header, entry, offset);
-        put_u64(&mut header, entry + 8, lens[s]);
-        put_u32(&mut header, entry + 16, crcs[s]);
+    let sections: [SectionEntry; 6] = std::array::from_fn(|s| {
+        let entry = SectionEntry {
+            offset,
+            len: lens[s],
+            crc: crcs[s],
+        };
         offset = (offset + lens[s]).next_multiple_of(SECTION_ALIGN as u64);
+        entry
+    });
+    let header = Header {
+        reordered: perm.is_some(),
+        config: options.config,
+        max_depth,
+        counts: TreeFigures {
+            triangles: n_tris as u64,
+            vertices: scene.positions().len() as u64,
+            ..figures
+        },
+        bounds: b,
+        sections,
     }
-    let crc = crc32fast::hash(&header[..HEADER_CRC]);
-    put_u32(&mut header, HEADER_CRC, crc);
-    let tail = crc32fast::hash(&header[super::SPLIT_PRICE_AT..super::TAIL_CRC]);
-    put_u32(&mut header, super::TAIL_CRC, tail);
+    .to_bytes();
     (|| {
         let end = out.stream_position()?;
         debug_assert_eq!(end, offset);
@@ -869,30 +669,16 @@ pub fn write_file(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::build::{self, Algorithm, BuildConfig};
-    use glam::Vec3;
+    use crate::format::testing::{grid_tree, whole_files};
 
     /// Windows of a few words send many words out before they are set;
     /// the file is the same as with one window for the whole section.
     #[test]
     fn late_words_are_patched_in() {
         // A grid of small triangles, one per unit cell.
-        let tris: Vec<[Vec3; 3]> = (0..400)
-            .map(|i| {
-                let p = Vec3::new((i % 20) as f32, (i / 20) as f32, (i % 7) as f32);
-                [p, p + Vec3::X, p + Vec3::Y]
-            })
-            .collect();
-        let scene = TriangleColumns::from_triangles(&tris).unwrap();
-        let tree =
-            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        let (scene, tree) = grid_tree(400, 20, (1.0, 1.0));
         assert!(tree.nodes.len() > 100);
-        for reorder in [false, true] {
-            let options = WriteOptions {
-                reorder,
-                ..WriteOptions::default()
-            };
-            let whole = write_to_vec(&tree, &scene, &options).unwrap();
+        for (options, whole) in whole_files(&scene, &tree) {
             for window in [1, 2, 3, 7, 64] {
                 let mut out = std::io::Cursor::new(Vec::new());
                 write_kd(

@@ -121,8 +121,8 @@ fn le_words(words: impl Iterator<Item = u32>, out: &mut Vec<u8>) {
 /// scene. The map is populated at once (`MAP_POPULATE`), since the checks
 /// fault in every page anyway.
 ///
-/// **Soundness.** As for a mapped `.kd` file
-/// ([`crate::format::KdFile::open`]): the file must not be modified or
+/// **Soundness.** As for a mapped `.kd` file (`KdFile::open`, one layer
+/// up, in the file format): the file must not be modified or
 /// truncated in place while the columns are alive. slimkd writes caches by
 /// atomic rename, so rewriting one with `slimkd convert` leaves an open map
 /// intact; a file changed in place by another program can change the

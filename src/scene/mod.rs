@@ -261,49 +261,31 @@ impl TriangleColumns {
 }
 
 /// Why [`TriangleColumns::new`] refused its columns.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum InvalidColumns {
     /// A position with a NaN or infinite coordinate.
+    #[error("vertex {vertex} has a non-finite coordinate")]
     NonFiniteVertex {
         /// Its index in the position column.
         vertex: usize,
     },
     /// A triangle naming a vertex past the position column.
+    #[error("triangle {triangle} has a vertex index out of range")]
     IndexOutOfRange {
         /// Its index in the index column.
         triangle: usize,
     },
     /// `u32::MAX` triangles or more (ids are `u32`, one value reserved).
+    #[error("too many triangles for 32-bit ids")]
     TooManyTriangles,
     /// A coordinate `-0.0` in columns that cannot be changed (a mapped
     /// scene cache; its writer writes `+0.0`).
+    #[error("vertex {vertex} has a coordinate -0.0 (columns hold +0.0)")]
     NegativeZero {
         /// Its index in the position column.
         vertex: usize,
     },
 }
-
-impl fmt::Display for InvalidColumns {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            InvalidColumns::NonFiniteVertex { vertex } => {
-                write!(f, "vertex {vertex} has a non-finite coordinate")
-            }
-            InvalidColumns::IndexOutOfRange { triangle } => {
-                write!(f, "triangle {triangle} has a vertex index out of range")
-            }
-            InvalidColumns::TooManyTriangles => write!(f, "too many triangles for 32-bit ids"),
-            InvalidColumns::NegativeZero { vertex } => {
-                write!(
-                    f,
-                    "vertex {vertex} has a coordinate -0.0 (columns hold +0.0)"
-                )
-            }
-        }
-    }
-}
-
-impl std::error::Error for InvalidColumns {}
 
 /// What a load did.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -330,10 +312,11 @@ impl fmt::Display for LoadSummary {
 }
 
 /// A scene that could not be loaded. Every variant names the file.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum SceneError {
     /// The file (or a file it names, such as a glTF side buffer) could not
     /// be read, or its compressed stream is corrupt.
+    #[error("{}: {source}", path.display())]
     Io {
         /// The scene file.
         path: PathBuf,
@@ -341,6 +324,7 @@ pub enum SceneError {
         source: std::io::Error,
     },
     /// A problem with one line (1-based).
+    #[error("{}:{line}: {message}", path.display())]
     Line {
         /// The scene file.
         path: PathBuf,
@@ -352,6 +336,7 @@ pub enum SceneError {
     /// A problem with one element, record or mesh of a binary or
     /// structured format: `what` names it (`vertex 17`, `mesh 2
     /// primitive 0`).
+    #[error("{}: {what}: {message}", path.display())]
     Element {
         /// The scene file.
         path: PathBuf,
@@ -361,33 +346,13 @@ pub enum SceneError {
         message: String,
     },
     /// A problem not tied to one line or element.
+    #[error("{}: {message}", path.display())]
     Invalid {
         /// The scene file.
         path: PathBuf,
         /// What is wrong.
         message: String,
     },
-}
-
-impl fmt::Display for SceneError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            SceneError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-            SceneError::Line {
-                path,
-                line,
-                message,
-            } => {
-                write!(f, "{}:{line}: {message}", path.display())
-            }
-            SceneError::Element {
-                path,
-                what,
-                message,
-            } => write!(f, "{}: {what}: {message}", path.display()),
-            SceneError::Invalid { path, message } => write!(f, "{}: {message}", path.display()),
-        }
-    }
 }
 
 /// The scene formats [`load`] reads, told apart by the file name.
@@ -462,8 +427,14 @@ impl SceneFormat {
 pub fn is_kd_file(path: &Path) -> bool {
     path.extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("kd"))
-        || starts_with(path, &crate::format::MAGIC)
+        || starts_with(path, &KD_MAGIC)
 }
+
+/// The first 8 bytes of a slimkd tree file, so that one handed over as a
+/// scene is named as such. The scene layer lies below the file format and
+/// does not depend on it: the format's own `MAGIC` is checked, where it is
+/// defined, to be these bytes.
+pub(crate) const KD_MAGIC: [u8; 8] = [0x89, b'S', b'L', b'K', b'D', b'\r', b'\n', 0x1a];
 
 /// Whether the file at `path` starts with `magic` (false if it cannot be
 /// read).
@@ -598,15 +569,6 @@ pub(crate) fn finish(
         lines,
     };
     Ok((columns, summary))
-}
-
-impl std::error::Error for SceneError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            SceneError::Io { source, .. } => Some(source),
-            _ => None,
-        }
-    }
 }
 
 /// A synthetic scene for tests: an `n`×`n` grid of small slanted triangles
