@@ -25,11 +25,12 @@
 //! std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
-use crate::build::{self, BuildConfig, BuildError, Builder};
-use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped, WriteOptions};
+use crate::build::{BuildConfig, BuildError};
+use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped};
 use crate::geom::{Aabb, Ray, RayPrecomp};
+use crate::pipeline::{Pipeline, PipelineError};
 use crate::scene::{InvalidColumns, TriangleColumns};
-use crate::slim::{self, HoistRule, SlimParams};
+use crate::slim::{HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
 use crate::trace::{ClosestHit, FileWalk, Hit, HitContext, Scalar, Walk};
 use glam::Vec3;
@@ -60,6 +61,10 @@ pub struct BuildOptions {
     /// Worker threads for the build; `None` (or `Some(0)`) uses rayon's
     /// current pool.
     pub threads: Option<usize>,
+    /// Bytes of anonymous memory the build may hold; above it the
+    /// builder's columns go to scratch files in the system's temporary
+    /// directory. `None` (the default): no budget.
+    pub mem_budget: Option<u64>,
 }
 
 impl Default for BuildOptions {
@@ -68,6 +73,7 @@ impl Default for BuildOptions {
             preset: Preset::Std,
             reorder: true,
             threads: None,
+            mem_budget: None,
         }
     }
 }
@@ -281,8 +287,6 @@ impl Accel {
     }
 
     fn build_here(scene: &TriangleColumns, options: &BuildOptions) -> Result<Accel, AccelError> {
-        let config = BuildConfig::default();
-        let tree = build::build(scene, &config, Builder::Level, None).map_err(AccelError::Build)?;
         let rule = HoistRule::Bytes {
             reordered: options.reorder,
         };
@@ -294,18 +298,15 @@ impl Accel {
                 format::Preset::Small,
             ),
         };
-        let tree = match &params {
-            Some(p) => slim::slim(&tree, scene, &config, p).0,
-            None => tree,
-        };
-        let write = WriteOptions {
+        let pipeline = Pipeline {
+            mem_budget: options.mem_budget,
             reorder: options.reorder,
-            config: crate::pipeline::file_config(&config, scene.len(), preset, params.as_ref()),
+            ..Pipeline::new(BuildConfig::default()).slimmed(params, preset)
         };
-        let bad = |source| AccelError::Format { path: None, source };
-        let bytes = format::write_to_vec(&tree, scene, &write).map_err(bad)?;
-        drop(tree);
-        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).map_err(bad)?;
+        let file = pipeline.image(scene).map_err(|e| match e {
+            PipelineError::Build(e) => AccelError::Build(e),
+            PipelineError::Format(source) => AccelError::Format { path: None, source },
+        })?;
         Ok(Accel::new(Image::Memory(file), None))
     }
 

@@ -1,12 +1,213 @@
-//! What the command line and the report ([`crate::stats::report`]) share
-//! on the way from a scene to a tree file: the median of timings, the
-//! build parameters a `.kd` file records, and a tree's figures as JSON.
+//! The one way from a scene to a tree file: [`Pipeline`] builds the
+//! standard tree (with the memory-budget policy of the level builder),
+//! slims it, and writes it as a `.kd` file or image whose header records
+//! the build ([`file_config`]). The facade ([`crate::accel`]), the
+//! command line and the report all run it. Also here: what the command
+//! line and the report share on the way: the median of timings and a
+//! tree's figures as JSON.
 
-use crate::build::BuildConfig;
-use crate::format::{FileConfig, Preset, TreeFigures};
-use crate::slim::SlimParams;
+use crate::build::level::{self, LevelOptions, LevelReport};
+use crate::build::{self, BuildConfig, BuildError, Builder};
+use crate::format::{
+    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
+    WriteOptions,
+};
+use crate::progress::Progress;
+use crate::scene::TriangleColumns;
+use crate::slim::{self, SlimParams, SlimPhases, SlimReport};
 use crate::stats::TreeStats;
+use crate::tree::{PreOrderSink, TreeIr};
 use serde::Serialize;
+use std::path::Path;
+
+/// Why a [`Pipeline`] stopped: its build or its writing failed (the
+/// message is that of the step).
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// The build failed (its scratch files, or the scene).
+    #[error(transparent)]
+    Build(#[from] BuildError),
+    /// The tree could not be written or its image opened.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+}
+
+/// What to make of a scene: the build, the slim pass, and how the file
+/// is written. Each step is a method, so that a caller can time it or
+/// show its progress; [`Pipeline::image`] runs them all.
+#[derive(Clone, Debug)]
+pub struct Pipeline {
+    /// The cost model and depth limit of the build (and the slim pass).
+    pub config: BuildConfig,
+    /// Which builder makes the standard tree (all make the same tree).
+    pub builder: Builder,
+    /// The level builder's options but its budget and finisher size,
+    /// which [`Pipeline::level_options`] sets.
+    pub level: LevelOptions,
+    /// Bytes of anonymous memory the level build may hold; `None`: no
+    /// budget.
+    pub mem_budget: Option<u64>,
+    /// Nodes of fewer references than this are finished depth-first;
+    /// `None`: the default, or the budget's
+    /// ([`LevelOptions::small_threshold_for_budget`]).
+    pub small: Option<usize>,
+    /// The slim pass; `None`: the standard tree.
+    pub slim: Option<SlimParams>,
+    /// The preset the file records.
+    pub preset: Preset,
+    /// Renumber triangles in Morton order in the file.
+    pub reorder: bool,
+    /// The scene's name the file records; `None`: no scene tag.
+    pub scene_name: Option<String>,
+}
+
+impl Pipeline {
+    /// The standard tree of `config` with the level builder, no budget,
+    /// written reordered and without a scene tag.
+    pub fn new(config: BuildConfig) -> Pipeline {
+        Pipeline {
+            config,
+            builder: Builder::Level,
+            level: LevelOptions::default(),
+            mem_budget: None,
+            small: None,
+            slim: None,
+            preset: Preset::Std,
+            reorder: true,
+            scene_name: None,
+        }
+    }
+
+    /// The same pipeline with the slim pass `slim` recorded as `preset`.
+    pub fn slimmed(&self, slim: Option<SlimParams>, preset: Preset) -> Pipeline {
+        Pipeline {
+            slim,
+            preset,
+            ..self.clone()
+        }
+    }
+
+    /// The level builder's options under the memory budget: the budget
+    /// itself, and finishers that take larger nodes under a budget (which
+    /// saves levels of scratch traffic) unless [`Pipeline::small`] says
+    /// otherwise.
+    pub fn level_options(&self) -> LevelOptions {
+        // `LevelOptions` spells "no budget" as `u64::MAX`; this is the
+        // one place that translates.
+        let mem_budget = self.mem_budget.unwrap_or(u64::MAX);
+        let small_threshold = self.small.unwrap_or_else(|| {
+            LevelOptions::small_threshold_for_budget(mem_budget, rayon::current_num_threads())
+        });
+        LevelOptions {
+            mem_budget,
+            small_threshold,
+            ..self.level.clone()
+        }
+    }
+
+    /// Builds the standard tree (on the current rayon pool), with the
+    /// level builder's report when it ran.
+    pub fn build(
+        &self,
+        scene: &TriangleColumns,
+        progress: Option<&Progress>,
+    ) -> Result<(TreeIr, Option<LevelReport>), BuildError> {
+        match self.builder {
+            Builder::Level => {
+                let (tree, report) =
+                    level::build(scene, &self.config, progress, &self.level_options())?;
+                Ok((tree, Some(report)))
+            }
+            other => Ok((build::build(scene, &self.config, other, progress)?, None)),
+        }
+    }
+
+    /// Builds the standard tree straight into the file `path` (the level
+    /// builder, no slim pass), feeding `sink` too; `built` is called once
+    /// the tree is complete, before the file is finished. `None`: the
+    /// tree did not reach the file. The file's bytes are those of
+    /// [`Pipeline::build`] then [`Pipeline::write_file`].
+    pub fn build_into_file(
+        &self,
+        path: &Path,
+        scene: &TriangleColumns,
+        progress: Option<&Progress>,
+        sink: &mut impl PreOrderSink,
+        built: impl FnOnce(),
+    ) -> Result<Option<LevelReport>, PipelineError> {
+        let options = self.level_options();
+        format::write_file_streamed(path, scene, &self.write_options(scene), |w| {
+            let report =
+                level::build_into(scene, &self.config, progress, &options, &mut (w, sink))?;
+            built();
+            Ok(report)
+        })
+    }
+
+    /// The pipeline's slim pass over `tree` (on the current rayon pool);
+    /// `None` for the standard tree.
+    pub fn slim(
+        &self,
+        tree: &TreeIr,
+        scene: &TriangleColumns,
+        progress: Option<&Progress>,
+    ) -> Option<(TreeIr, SlimReport, SlimPhases)> {
+        let params = self.slim.as_ref()?;
+        Some(slim::slim_with_progress(
+            tree,
+            scene,
+            &self.config,
+            params,
+            progress,
+        ))
+    }
+
+    /// How the tree of `scene` is written: reordered or not, with the
+    /// build recorded in the header.
+    pub fn write_options(&self, scene: &TriangleColumns) -> WriteOptions {
+        let config = file_config(&self.config, scene.len(), self.preset, self.slim.as_ref());
+        WriteOptions {
+            reorder: self.reorder,
+            config: match &self.scene_name {
+                Some(name) => FileConfig {
+                    scene: SceneTag::new(name, scene),
+                    ..config
+                },
+                None => config,
+            },
+        }
+    }
+
+    /// Writes `tree` as the `.kd` file `path` (atomically).
+    pub fn write_file(
+        &self,
+        path: &Path,
+        tree: &TreeIr,
+        scene: &TriangleColumns,
+    ) -> Result<(), FormatError> {
+        format::write_file(path, tree, scene, &self.write_options(scene))
+    }
+
+    /// Writes `tree` as `.kd` bytes in memory and opens them.
+    pub fn write_image(
+        &self,
+        tree: &TreeIr,
+        scene: &TriangleColumns,
+    ) -> Result<KdFile<AlignedBytes>, FormatError> {
+        let bytes = format::write_to_vec(tree, scene, &self.write_options(scene))?;
+        KdFile::from_bytes(format::aligned_copy(&bytes))
+    }
+
+    /// The whole pipeline in memory: build, slim, write, open.
+    pub fn image(&self, scene: &TriangleColumns) -> Result<KdFile<AlignedBytes>, PipelineError> {
+        let (tree, _) = self.build(scene, None)?;
+        let tree = match self.slim(&tree, scene, None) {
+            Some((slimmed, _, _)) => slimmed,
+            None => tree,
+        };
+        Ok(self.write_image(&tree, scene)?)
+    }
+}
 
 /// The version of the JSON that `--json` prints and the report writes
 /// (the `schema` key; docs/json-schema.md). It changes when a key changes

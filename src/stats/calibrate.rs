@@ -30,9 +30,9 @@
 //! spin for work at the end of a batch.)
 
 use crate::build::{self, BuildConfig, BuildError};
-use crate::format::{self, AlignedBytes, KdFile, WriteOptions};
+use crate::format::{AlignedBytes, KdFile};
 use crate::geom::Ray;
-use crate::pipeline::median;
+use crate::pipeline::{Pipeline, median};
 use crate::render::{self, Camera, View};
 use crate::scene::TriangleColumns;
 use crate::trace::packet::PacketTracer;
@@ -236,18 +236,13 @@ pub fn measure_scene(
         let mut config = BuildConfig::default();
         config.sah.k_t = k_t;
         config.sah.k_i = options.k_i;
-        let tree = build::build(scene, &config, build::Builder::Level, None)
+        let pipeline = Pipeline::new(config);
+        let (tree, _) = pipeline
+            .build(scene, None)
             .map_err(|e: BuildError| format!("{name}: the build with K_T {k_t}: {e}"))?;
-        let bytes = format::write_to_vec(
-            &tree,
-            scene,
-            &WriteOptions {
-                reorder: true,
-                ..Default::default()
-            },
-        )
-        .and_then(|b| KdFile::from_bytes(format::aligned_copy(&b)))
-        .map_err(|e| format!("{name}: the tree of K_T {k_t} as a .kd file: {e}"))?;
+        let bytes = pipeline
+            .write_image(&tree, scene)
+            .map_err(|e| format!("{name}: the tree of K_T {k_t} as a .kd file: {e}"))?;
         trees.push(TreeFiguresOf {
             k_t,
             nodes: bytes.figures().nodes(),

@@ -520,7 +520,13 @@ pub(crate) fn parse_bytes(s: &str) -> Result<u64, String> {
     if !(n >= 0.0 && n.is_finite()) {
         return Err(format!("size `{s}` out of range"));
     }
-    Ok((n * (1u64 << shift) as f64) as u64)
+    let bytes = n * (1u64 << shift) as f64;
+    // `u64::MAX as f64` is 2^64: every smaller value fits; a larger one
+    // would saturate, and a size is never taken to mean "no limit".
+    if bytes >= u64::MAX as f64 {
+        return Err(format!("size `{s}` is too large (2^64 bytes or more)"));
+    }
+    Ok(bytes as u64)
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]

@@ -66,7 +66,8 @@ pub(crate) fn cmd_build_cells(
     pool.install(|| {
         let loaded = load(path, ui.bars_off())?;
         let config = build_config(args);
-        let options = level_options(args);
+        // The reordering does not enter the level build.
+        let options = pipeline_of(args, &loaded, false).level_options();
         // The plan's cut depends on the small-node threshold, so the plan
         // takes the default one (or `--small`), not the budget's: a plan
         // then resumes under any budget. The cells build with `options`.

@@ -7,10 +7,10 @@
 
 use crate::*;
 use slimkd::build::BuildConfig;
-use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
-use slimkd::pipeline::{self, FiguresJson};
+use slimkd::format::{self, Preset};
+use slimkd::pipeline::{self, FiguresJson, Pipeline};
 use slimkd::render::{self, AoFrame, AoOptions, Camera, HitBuffer, Secondary};
-use slimkd::slim::{self, SlimParams};
+use slimkd::slim::SlimParams;
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::tree::TreeIr;
@@ -124,22 +124,13 @@ fn write_and_trace(
     name: &'static str,
     tree: &TreeIr,
     loaded: &Loaded,
-    config: &BuildConfig,
-    preset: Preset,
-    params: Option<&SlimParams>,
+    pipeline: &Pipeline,
     camera: &Camera,
     ao: Option<&AoOptions>,
 ) -> Res<Row> {
     let path = dir.join(format!("{name}.kd"));
     let start = Instant::now();
-    let options = WriteOptions {
-        reorder: true,
-        config: FileConfig {
-            scene: SceneTag::new(&loaded.name(), &loaded.scene),
-            ..pipeline::file_config(config, loaded.scene.len(), preset, params)
-        },
-    };
-    format::write_file(&path, tree, &loaded.scene, &options)?;
+    pipeline.write_file(&path, tree, &loaded.scene)?;
     let write_s = start.elapsed().as_secs_f64();
     let file = open_kd(&path, slimkd::format::Check::Header)?;
     let tracer = PacketTracer::new(&file);
@@ -182,32 +173,14 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
             }
         };
     }
-    let args = BuildArgs {
-        builder: BuilderArg::Level,
-        mem_budget: None,
-        scratch: None,
-        new_events: NewEventsArg::Merge,
-        tiny: slimkd::build::level::DEFAULT_TINY_THRESHOLD as u8,
-        small: None,
-        threads: None,
-        max_depth: None,
-        kt: slimkd::build::sah::SahParams::default().k_t,
-        ki: slimkd::build::sah::SahParams::default().k_i,
-        lambda: slimkd::build::sah::SahParams::default().lambda_empty,
-        split_price: slimkd::build::sah::SahParams::default().split_price,
-        preset: PresetArg::Std,
-        tau_occu: None,
-        tau_freq: None,
-        max_t2rn: None,
-        coarsen: None,
-        cost_ratio: None,
-        hoist_rule: HoistRuleArg::Bytes,
-        given: Vec::new(),
-    };
     let dir = TempDir::new()?;
     let loaded = load(Path::new(DEFAULT_ARG), ui.bars_off())?;
-    let built = build_tree(&loaded.scene, &args, ui.bars_off(), true)?;
-    let stats = TreeStats::of(&built.tree, &built.config.sah);
+    let pipeline = Pipeline {
+        scene_name: Some(loaded.name()),
+        ..Pipeline::new(BuildConfig::default())
+    };
+    let built = build_tree(&loaded.scene, pipeline, ui.bars_off())?;
+    let stats = TreeStats::of(&built.tree, &built.pipeline.config.sah);
     if !text {
     } else if verbose {
         print_summary(&loaded, &built, &stats, true);
@@ -226,9 +199,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         "std",
         &built.tree,
         &loaded,
-        &built.config,
-        Preset::Std,
-        None,
+        &built.pipeline,
         &camera,
         Some(&AO),
     )?];
@@ -237,8 +208,10 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         ("fast", Preset::Fast, SlimParams::FAST),
     ] {
         let start = Instant::now();
-        let (tree, report, phases) =
-            slim::slim_with_phases(&built.tree, &loaded.scene, &built.config, &params);
+        let pipeline = built.pipeline.slimmed(Some(params), preset);
+        let (tree, report, phases) = pipeline
+            .slim(&built.tree, &loaded.scene, None)
+            .expect("the pipeline has a slim pass");
         let slim_s = start.elapsed().as_secs_f64();
         say!(
             "slim       {name} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted in {slim_s:.3} s",
@@ -258,15 +231,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
             );
         }
         rows.push(write_and_trace(
-            &dir.0,
-            name,
-            &tree,
-            &loaded,
-            &built.config,
-            preset,
-            Some(&params),
-            &camera,
-            None,
+            &dir.0, name, &tree, &loaded, &pipeline, &camera, None,
         )?);
     }
     let n = loaded.scene.len().max(1) as f64;

@@ -187,8 +187,9 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
         } else {
             let loaded = load(&args.scene, ui.bars_off())?;
             // Not written: bytes are counted as in a reordered file.
-            let built = build_tree(&loaded.scene, &args.build, ui.bars_off(), true)?;
-            let stats = TreeStats::of(&built.tree, &built.config.sah);
+            let pipeline = pipeline_of(&args.build, &loaded, true);
+            let built = build_tree(&loaded.scene, pipeline, ui.bars_off())?;
+            let stats = TreeStats::of(&built.tree, &built.pipeline.config.sah);
             Source::Built {
                 loaded,
                 built: Box::new(built),

@@ -57,15 +57,12 @@ pub use run::{run, run_with_progress};
 pub use tables::duplication;
 
 use super::plot::{self, LabelledPoint, LinePanel, LineSeries, ScatterSeries};
-use crate::build::{self, BuildConfig, Builder};
-use crate::format::{
-    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
-    WriteOptions,
-};
+use crate::build::{self, BuildConfig};
+use crate::format::{self, AlignedBytes, FormatError, KdFile, Preset, TreeFigures};
 use crate::geom::Aabb;
 use crate::render::{self, Camera, View};
 use crate::scene::TriangleColumns;
-use crate::slim::{self, HoistRule, SlimParams};
+use crate::slim::{HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
 use crate::trace::{ClosestHit, Hit, Scalar};
 use crate::tree::{Node, TreeIr};
