@@ -1,23 +1,18 @@
 //! The one way from a scene to a tree file: [`Pipeline`] builds the
 //! standard tree (with the memory-budget policy of the level builder),
 //! slims it, and writes it as a `.kd` file or image whose header records
-//! the build ([`file_config`]). The facade ([`crate::accel`]), the
-//! command line and the report all run it. Also here: what the command
-//! line and the report share on the way: the median of timings and a
-//! tree's figures as JSON.
+//! the build ([`file_config`]). The facade ([`crate::accel`]) and the
+//! command line (its builds, the report, the sweep) all run it.
 
 use crate::build::level::{self, LevelOptions, LevelReport};
 use crate::build::{self, BuildConfig, BuildError, Builder};
 use crate::format::{
-    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
-    WriteOptions,
+    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, WriteOptions,
 };
 use crate::progress::Progress;
 use crate::scene::TriangleColumns;
 use crate::slim::{self, SlimParams, SlimPhases, SlimReport};
-use crate::stats::TreeStats;
 use crate::tree::{PreOrderSink, TreeIr};
-use serde::Serialize;
 use std::path::Path;
 
 /// Why a [`Pipeline`] stopped: its build or its writing failed (the
@@ -209,96 +204,6 @@ impl Pipeline {
     }
 }
 
-/// The version of the JSON that `--json` prints and the report writes
-/// (the `schema` key; docs/json-schema.md). It changes when a key changes
-/// meaning or goes away, not when one is added.
-pub const JSON_SCHEMA: u32 = 1;
-
-/// A tree's node counts as the paper's Table 3(a) counts them, with the
-/// same keys wherever they appear (`build`, `render`, `info`, `verify`, the
-/// main job and the report).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct NodeCounts {
-    /// Inner, t-inner and leaf nodes (T-references are not nodes).
-    pub nodes_total: u64,
-    /// Inner nodes without a hoisted triangle (type I).
-    pub nodes_inner: u64,
-    /// Inner nodes holding a hoisted triangle (type II).
-    pub nodes_t_inner: u64,
-    /// Leaves, empty ones included.
-    pub nodes_leaf: u64,
-}
-
-impl NodeCounts {
-    pub fn of_figures(f: &TreeFigures) -> NodeCounts {
-        NodeCounts {
-            nodes_total: f.nodes(),
-            nodes_inner: f.inner,
-            nodes_t_inner: f.t_inner,
-            nodes_leaf: f.leaves,
-        }
-    }
-
-    pub fn of_stats(s: &TreeStats) -> NodeCounts {
-        NodeCounts {
-            nodes_total: s.nodes as u64,
-            nodes_inner: s.inner as u64,
-            nodes_t_inner: s.t_inner as u64,
-            nodes_leaf: s.leaves as u64,
-        }
-    }
-}
-
-/// What a stored tree takes: its leaf indices and bytes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct StorageJson {
-    /// 4-byte leaf index entries.
-    pub idx32: u64,
-    /// 2-byte leaf index entries.
-    pub idx16: u64,
-    /// Bytes of the node words and leaf indices.
-    pub tree_bytes: u64,
-    /// Bytes of the vertices and triangles (and the triangle map).
-    pub geometry_bytes: u64,
-}
-
-/// A stored tree's figures: [`NodeCounts`] and [`StorageJson`] in one
-/// object.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct FiguresJson {
-    #[serde(flatten)]
-    pub nodes: NodeCounts,
-    #[serde(flatten)]
-    pub storage: StorageJson,
-}
-
-impl FiguresJson {
-    pub fn of(f: &TreeFigures) -> FiguresJson {
-        FiguresJson {
-            nodes: NodeCounts::of_figures(f),
-            storage: StorageJson {
-                idx32: f.idx32,
-                idx16: f.idx16,
-                tree_bytes: f.tree_bytes(),
-                geometry_bytes: f.geometry_bytes(),
-            },
-        }
-    }
-}
-
-/// The median (the mean of the middle two for an even count; NaN for
-/// none).
-pub fn median(values: &[f64]) -> f64 {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    match n {
-        0 => f64::NAN,
-        _ if n % 2 == 1 => v[n / 2],
-        _ => (v[n / 2 - 1] + v[n / 2]) / 2.0,
-    }
-}
-
 /// The build parameters a `.kd` file records: the SAH constants and depth
 /// limit of `config` for `n_tris` triangles, the preset, and the slim
 /// thresholds (zero without a slim pass).
@@ -322,17 +227,5 @@ pub fn file_config(
         tau_freq,
         max_t2rn,
         scene: Default::default(),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn median_of_odd_even_and_none() {
-        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
-        assert!(median(&[]).is_nan());
     }
 }

@@ -2,14 +2,16 @@
 //! and `report` share: a scene loaded, a tree built (and slimmed), its
 //! summary and JSON, and the peak memory of the command.
 
+use crate::lab::figures::FiguresJson;
+use crate::lab::report;
 use crate::*;
 use slimkd::build::{BuildConfig, Builder, level};
 use slimkd::format;
-use slimkd::pipeline::{FiguresJson, Pipeline};
+use slimkd::pipeline::Pipeline;
 use slimkd::progress::Progress;
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
 use slimkd::slim::{SlimParams, SlimPhases, SlimReport};
-use slimkd::stats::{StatsSink, TreeStats, report};
+use slimkd::stats::{StatsSink, TreeStats};
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

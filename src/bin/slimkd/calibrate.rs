@@ -1,10 +1,10 @@
 //! `slimkd calibrate`: the cost of a traversal step and of a ray–triangle
 //! test on this machine's traverser, fitted per scene and pooled
-//! ([`slimkd::stats::calibrate`]).
+//! ([`crate::lab::calibrate`]).
 
+use crate::lab::calibrate::{self as cal, Fit, Mode, SceneMeasurement};
 use crate::*;
 use serde::Serialize;
-use slimkd::stats::calibrate::{self as cal, Fit, Mode, SceneMeasurement};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]

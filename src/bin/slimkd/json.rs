@@ -2,10 +2,11 @@
 //! commands that print the same quantity, so that a key means one thing
 //! everywhere (docs/json-schema.md lists every key, its meaning and unit).
 
+use crate::lab::figures::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
+use crate::lab::report;
 use crate::*;
 use serde::Serialize;
-use slimkd::pipeline::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
-use slimkd::stats::{TreeStats, report};
+use slimkd::stats::TreeStats;
 
 /// One command's object: `schema` and `command` first, then its parts.
 #[derive(Serialize)]
@@ -351,7 +352,7 @@ impl AoJson {
     ) -> AoJson {
         use slimkd::render::AoTimes;
         let med = |f: fn(&AoTimes) -> f64| {
-            1e3 * slimkd::pipeline::median(&reps.iter().map(f).collect::<Vec<_>>())
+            1e3 * crate::lab::figures::median(&reps.iter().map(f).collect::<Vec<_>>())
         };
         let t = reps[0];
         AoJson {

@@ -10,6 +10,7 @@ mod calibrate;
 mod cells;
 mod info;
 mod json;
+mod lab;
 mod main_job;
 mod progress_bar;
 mod render;

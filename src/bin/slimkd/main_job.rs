@@ -5,10 +5,11 @@
 //! renderer would (primary rays, a shadow ray and AO rays per hit, the
 //! time by ray kind), and that picture goes to `slimkd.png`.
 
+use crate::lab::figures::{self, FiguresJson};
 use crate::*;
 use slimkd::build::BuildConfig;
 use slimkd::format::{self, Preset};
-use slimkd::pipeline::{self, FiguresJson, Pipeline};
+use slimkd::pipeline::Pipeline;
 use slimkd::render::{self, AoFrame, AoOptions, Camera, HitBuffer, Secondary};
 use slimkd::slim::SlimParams;
 use slimkd::stats::TreeStats;
@@ -155,7 +156,7 @@ fn write_and_trace(
         name,
         ao,
         figures: file.figures(),
-        mrays: pipeline::median(&rates),
+        mrays: figures::median(&rates),
         frame: last.expect("REPS >= 1"),
         write_s,
     })

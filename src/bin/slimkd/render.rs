@@ -1,9 +1,9 @@
 //! `slimkd render` and the main job's render: the camera, the source of
 //! the tree (built or a mapped file), frames and their figures.
 
+use crate::lab::figures;
 use crate::*;
 use slimkd::format::{self, Check, KdFile, Mapped};
-use slimkd::pipeline;
 use slimkd::progress::Progress;
 use slimkd::render::{
     self, AoFrame, AoOptions, AoTimes, Camera, HitBuffer, Secondary, Shading, View,
@@ -295,7 +295,7 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
         if let Some(out) = &args.dump_t {
             render::write_depth_f32(out, &frame)?;
         }
-        let mrays = pipeline::median(&rates);
+        let mrays = figures::median(&rates);
         let mode = args.mode.name();
         let simd = if args.mode == ModeArg::Packet {
             SimdLevel::detect().name()

@@ -1,8 +1,8 @@
 //! `slimkd report`: the paper's tables and figures.
 
+use crate::lab::report;
 use crate::*;
 use slimkd::progress::Progress;
-use slimkd::stats::report;
 use std::time::Instant;
 
 /// `slimkd report --json`: the files written; the figures are in the

@@ -1,9 +1,9 @@
 //! `slimkd sweep`: the trade-off front of tree bytes against trace time
-//! over families of settings ([`slimkd::stats::report::run_front`]).
+//! over families of settings ([`crate::lab::report::front::run_front`]).
 
+use crate::lab::report;
 use crate::*;
 use slimkd::progress::Progress;
-use slimkd::stats::report;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -56,7 +56,7 @@ pub(crate) fn cmd_sweep(args: &SweepArgs, ui: Out) -> Res<()> {
         .into_iter()
         .map(|loaded| (loaded.name(), loaded.scene))
         .collect();
-    let options = report::FrontOptions {
+    let options = report::front::FrontOptions {
         scenes,
         views,
         size: args.size,
@@ -69,12 +69,16 @@ pub(crate) fn cmd_sweep(args: &SweepArgs, ui: Out) -> Res<()> {
     let current = std::sync::Mutex::new(String::new());
     let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
     let sweep = with_bar_lines(ui.bars_off(), "sweep", &progress, &message, |lines| {
-        Ok(report::run_front(&options, Some(&progress), &mut |line| {
-            if let Ok(mut m) = current.lock() {
-                line.clone_into(&mut m);
-            }
-            lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
-        })?)
+        Ok(report::front::run_front(
+            &options,
+            Some(&progress),
+            &mut |line| {
+                if let Ok(mut m) = current.lock() {
+                    line.clone_into(&mut m);
+                }
+                lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
+            },
+        )?)
     })?;
     let written = sweep
         .write(&args.output)

@@ -155,7 +155,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
             },
         )?;
     }
-    let mrays = slimkd::pipeline::median(&rates);
+    let mrays = crate::lab::figures::median(&rates);
     let simd = if packets {
         packet.level().name()
     } else {

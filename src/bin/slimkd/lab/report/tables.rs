@@ -2,7 +2,7 @@
 //! views, and one point of the Figure 5 sweep.
 
 use super::*;
-use crate::pipeline::Pipeline;
+use slimkd::pipeline::Pipeline;
 
 /// The two thread pools: one thread and all threads.
 pub(super) struct Pools {

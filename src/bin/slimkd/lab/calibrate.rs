@@ -6,7 +6,7 @@
 //! one `K_I`), so that the ratio of steps to tests per ray varies, writes
 //! each as `.kd` bytes (Morton-reordered, as `build --reorder` does) and
 //! traces primary rays from the scene's views and ambient-occlusion rays
-//! from their hits ([`crate::trace::rays::secondary_rays`]) through each,
+//! from their hits ([`slimkd::trace::rays::secondary_rays`]) through each,
 //! as single rays and as 16-ray packets. Each combination is a
 //! [`Sample`]: its time per ray (the median over the repetitions, the
 //! trees interleaved within each repetition so that drift in the machine's
@@ -29,15 +29,16 @@
 //! counts what contention does to the caches, and a pool thread's short
 //! spin for work at the end of a batch.)
 
-use crate::build::{self, BuildConfig, BuildError};
-use crate::format::{AlignedBytes, KdFile};
-use crate::geom::Ray;
-use crate::pipeline::{Pipeline, median};
-use crate::render::{self, Camera, View};
-use crate::scene::TriangleColumns;
-use crate::trace::packet::PacketTracer;
-use crate::trace::rays::{self, Query};
-use crate::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
+use crate::lab::figures::median;
+use slimkd::build::{self, BuildConfig, BuildError};
+use slimkd::format::{AlignedBytes, KdFile};
+use slimkd::geom::Ray;
+use slimkd::pipeline::Pipeline;
+use slimkd::render::{self, Camera, View};
+use slimkd::scene::TriangleColumns;
+use slimkd::trace::packet::PacketTracer;
+use slimkd::trace::rays::{self, Query};
+use slimkd::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
 
 /// The `K_T` values trees are built with by default (with `K_I` 20: from
 /// a third of today's ratio to four times it; the steps per ray vary by a
@@ -333,14 +334,14 @@ pub fn measure_scene(
                     };
                     let i = k * per_tree + s * Mode::ALL.len() + m;
                     let mut seconds = 0.0;
-                    let cpu_start = crate::sys::process_cpu_seconds();
+                    let cpu_start = slimkd::sys::process_cpu_seconds();
                     for _ in 0..passes[i] {
                         seconds +=
                             rays::trace_batch(tracer, rays, set.query(), mode == Mode::Packet)
                                 .seconds;
                     }
                     let cpu = cpu_start
-                        .zip(crate::sys::process_cpu_seconds())
+                        .zip(slimkd::sys::process_cpu_seconds())
                         .map(|(a, b)| b - a);
                     if rep == 0 {
                         passes[i] = (MIN_SECONDS / seconds.max(1e-9)).ceil().max(1.0) as usize;

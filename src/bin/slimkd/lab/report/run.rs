@@ -2,8 +2,8 @@
 
 use super::tables::{Pools, duplication, measure_views, sweep_point, write_tree};
 use super::*;
-use crate::pipeline::Pipeline;
-use crate::progress::Progress;
+use slimkd::pipeline::Pipeline;
+use slimkd::progress::Progress;
 
 /// The views of a scene among [`VIEW_IDS`], found by its name (or, for a
 /// file name or path, by its stem).
@@ -98,7 +98,8 @@ pub(crate) fn check_timing_options(
 }
 
 /// Builds, writes and traces every scene; `progress` gets one line per
-/// step.
+/// step (what the tests run; the command shows a bar too).
+#[cfg(test)]
 pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Report, ReportError> {
     run_with_progress(options, None, progress)
 }

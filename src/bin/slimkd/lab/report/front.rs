@@ -23,9 +23,10 @@
 use super::run::{cameras_of, check_timing_options};
 use super::tables::{check_hits, write_tree};
 use super::*;
-use crate::pipeline::{JSON_SCHEMA, Pipeline};
-use crate::progress::Progress;
+use crate::lab::figures::JSON_SCHEMA;
 use serde::Serialize;
+use slimkd::pipeline::Pipeline;
+use slimkd::progress::Progress;
 
 /// `K_T` of the std trees of the `K_T` family (with the default `K_I`,
 /// 20): from two thirds of the default (15) to three times it. The SAH's
