@@ -7,7 +7,7 @@ use slimkd::render::{self};
 use slimkd::slim::{HoistRule, SlimParams};
 use std::path::{Path, PathBuf};
 
-use crate::Res;
+use crate::CmdResult;
 
 #[derive(Parser)]
 #[command(
@@ -32,7 +32,7 @@ pub(crate) struct Cli {
     #[command(subcommand)]
     pub(crate) command: Option<Command>,
     #[command(flatten)]
-    pub(crate) out: Out,
+    pub(crate) out: OutputFlags,
     /// Read `.kd` files and `.kds` scene caches into memory instead of
     /// mapping them: for files
     /// another process may rewrite or truncate in place while slimkd reads
@@ -43,7 +43,7 @@ pub(crate) struct Cli {
 
 /// What a command prints: the flags every command takes.
 #[derive(clap::Args, Clone, Copy, Debug, Default)]
-pub(crate) struct Out {
+pub(crate) struct OutputFlags {
     /// Print errors only (and, with --json, the JSON object): no summary,
     /// no progress bars.
     #[arg(
@@ -65,7 +65,7 @@ pub(crate) struct Out {
     pub(crate) json: bool,
 }
 
-impl Out {
+impl OutputFlags {
     /// Whether progress bars are off: with -q, and with --json (whose
     /// output is for programs).
     pub(crate) fn bars_off(self) -> bool {
@@ -649,7 +649,7 @@ impl std::error::Error for Usage {}
 
 /// Checks, before any work, that an output file can go where it is asked
 /// to: its directory exists (an error naming the path, exit 1).
-pub(crate) fn check_output_dir(path: &Path) -> Res<()> {
+pub(crate) fn check_output_dir(path: &Path) -> CmdResult<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -668,7 +668,7 @@ pub(crate) fn check_output_dir(path: &Path) -> Res<()> {
 
 /// Checks an image output's name (a usage error unless `.png` or `.exr`)
 /// and its directory.
-pub(crate) fn check_image_output(path: &Path) -> Res<()> {
+pub(crate) fn check_image_output(path: &Path) -> CmdResult<()> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())

@@ -2,9 +2,16 @@
 //! and `report` share: a scene loaded, a tree built (and slimmed), its
 //! summary and JSON, and the peak memory of the command.
 
+use crate::args::{BuildArgs, BuilderArg, NewEventsArg, OutputFlags, check_output_dir};
+use crate::json::{
+    BuildCmdJson, BuildJson, CellsJson, MemoryJson, SceneJson, TreeJson, WrittenJson, print_json,
+};
 use crate::lab::figures::FiguresJson;
 use crate::lab::report;
-use crate::*;
+use crate::progress_bar::{si, with_bar};
+use crate::render;
+use crate::render::open_kd;
+use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE, DEFAULT_SCENE_NAME, pool};
 use slimkd::build::{BuildConfig, Builder, level};
 use slimkd::format;
 use slimkd::pipeline::Pipeline;
@@ -44,7 +51,7 @@ pub(crate) fn scene_name(path: &Path) -> String {
 
 /// Loads every scene of `paths` in turn, each announced on stderr with its
 /// summary unless `ui.quiet` (the multi-scene commands: report, sweep).
-pub(crate) fn load_all(paths: &[PathBuf], ui: Out) -> Res<Vec<Loaded>> {
+pub(crate) fn load_all(paths: &[PathBuf], ui: OutputFlags) -> CmdResult<Vec<Loaded>> {
     let mut out = Vec::with_capacity(paths.len());
     for path in paths {
         let loaded = load(path, ui.bars_off())?;
@@ -58,7 +65,7 @@ pub(crate) fn load_all(paths: &[PathBuf], ui: Out) -> Res<Vec<Loaded>> {
 
 /// Loads a scene; a progress bar shows the bytes read once loading has
 /// taken a second, unless `quiet`.
-pub(crate) fn load(path: &Path, quiet: bool) -> Res<Loaded> {
+pub(crate) fn load(path: &Path, quiet: bool) -> CmdResult<Loaded> {
     let start = Instant::now();
     let (scene, summary, path) = if path.as_os_str() == DEFAULT_ARG {
         let name = scene::embedded_name(DEFAULT_SCENE_NAME);
@@ -130,7 +137,11 @@ pub(crate) fn pipeline_of(args: &BuildArgs, loaded: &Loaded, reorder: bool) -> P
 /// Runs `pipeline`'s build and slim pass on a worker thread; shows a
 /// progress bar once the build has taken a second (on a terminal), and
 /// another for the slim pass.
-pub(crate) fn build_tree(scene: &TriangleColumns, pipeline: Pipeline, quiet: bool) -> Res<Built> {
+pub(crate) fn build_tree(
+    scene: &TriangleColumns,
+    pipeline: Pipeline,
+    quiet: bool,
+) -> CmdResult<Built> {
     let (progress, status, pipeline) = with_status(pipeline);
     let start = Instant::now();
     let level_message = || match pipeline.builder {
@@ -358,8 +369,8 @@ pub(crate) fn cmd_build(
     args: &BuildArgs,
     output: Option<&Path>,
     reorder: bool,
-    ui: Out,
-) -> Res<()> {
+    ui: OutputFlags,
+) -> CmdResult<()> {
     args.check()?;
     if let Some(out) = output {
         check_output_dir(out)?;
@@ -390,9 +401,9 @@ fn build_streamed(
     loaded: &Loaded,
     pipeline: Pipeline,
     out: &Path,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
-) -> Res<()> {
+) -> CmdResult<()> {
     let (progress, status, pipeline) = with_status(pipeline);
     let start = Instant::now();
     let mut stats = StatsSink::new(&pipeline.config.sah);
@@ -450,10 +461,10 @@ fn print_streamed(
     built: &Built,
     (out, write_s, stats): (&Path, f64, TreeStats),
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: Option<CellsJson>,
-) -> Res<()> {
+) -> CmdResult<()> {
     let file = open_kd(out, slimkd::format::Check::Full)?;
     let written = Some((out.to_path_buf(), file.figures(), write_s));
     print_built(
@@ -475,11 +486,11 @@ pub(crate) fn stitch_streamed(
     config: BuildConfig,
     out: &Path,
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: CellsJson,
     seconds: f64,
-) -> Res<()> {
+) -> CmdResult<()> {
     let pipeline = Pipeline {
         reorder,
         scene_name: Some(loaded.name()),
@@ -488,13 +499,14 @@ pub(crate) fn stitch_streamed(
     let write_options = pipeline.write_options(&loaded.scene);
     let start = Instant::now();
     let mut stats = StatsSink::new(&pipeline.config.sah);
-    let fed = format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> Res<_> {
-        Ok(slimkd::cells::stitch_dir_into(
-            dir,
-            plan,
-            &mut (w, &mut stats),
-        )?)
-    })?;
+    let fed =
+        format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> CmdResult<_> {
+            Ok(slimkd::cells::stitch_dir_into(
+                dir,
+                plan,
+                &mut (w, &mut stats),
+            )?)
+        })?;
     if !fed {
         return Err(format!(
             "{}: the plan's cells are not leaves of its top tree in pre-order",
@@ -530,10 +542,10 @@ pub(crate) fn write_and_print(
     mut built: Built,
     output: Option<&Path>,
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: Option<CellsJson>,
-) -> Res<()> {
+) -> CmdResult<()> {
     let stats = TreeStats::of(&built.tree, &built.pipeline.config.sah);
     let mut written = None;
     if let Some(out) = output {
@@ -563,10 +575,10 @@ fn print_built(
     stats: &TreeStats,
     written: Option<(PathBuf, format::TreeFigures, f64)>,
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: Option<CellsJson>,
-) -> Res<()> {
+) -> CmdResult<()> {
     // The whole command: loading, building, writing.
     let (peak_anon, peak_file) = watch.peaks();
     let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));

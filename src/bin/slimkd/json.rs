@@ -2,9 +2,10 @@
 //! commands that print the same quantity, so that a key means one thing
 //! everywhere (docs/json-schema.md lists every key, its meaning and unit).
 
+use crate::CmdResult;
+use crate::build::{Built, Loaded};
 use crate::lab::figures::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
 use crate::lab::report;
-use crate::*;
 use serde::Serialize;
 use slimkd::stats::TreeStats;
 
@@ -18,7 +19,7 @@ pub(crate) struct Doc<T: Serialize> {
 }
 
 /// Prints `body` as the one JSON object of `command`.
-pub(crate) fn print_json<T: Serialize>(command: &'static str, body: T) -> Res<()> {
+pub(crate) fn print_json<T: Serialize>(command: &'static str, body: T) -> CmdResult<()> {
     let doc = Doc {
         schema: JSON_SCHEMA,
         command,

@@ -5,8 +5,12 @@
 //! renderer would (primary rays, a shadow ray and AO rays per hit, the
 //! time by ray kind), and that picture goes to `slimkd.png`.
 
+use crate::args::OutputFlags;
+use crate::build::{Loaded, build_tree, load, print_scene_line, print_summary};
+use crate::json::{AoJson, SceneJson, print_json};
 use crate::lab::figures::{self, FiguresJson};
-use crate::*;
+use crate::render::open_kd;
+use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE_NAME, DEFAULT_VIEWS};
 use slimkd::build::BuildConfig;
 use slimkd::format::{self, Preset};
 use slimkd::pipeline::Pipeline;
@@ -36,7 +40,7 @@ const AO: AoOptions = AoOptions {
 struct TempDir(PathBuf);
 
 impl TempDir {
-    fn new() -> Res<TempDir> {
+    fn new() -> CmdResult<TempDir> {
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos());
@@ -107,7 +111,7 @@ fn same_hits(a: &HitBuffer, b: &HitBuffer) -> bool {
 }
 
 /// The embedded scene's view 1 (the default camera if it had none).
-fn camera(bounds: &slimkd::geom::Aabb) -> Res<Camera> {
+fn camera(bounds: &slimkd::geom::Aabb) -> CmdResult<Camera> {
     let views = render::parse_views(DEFAULT_VIEWS)?;
     let cam = match render::find_view(&views, Path::new(DEFAULT_SCENE_NAME), "1") {
         Some(v) => Camera::from_view(v, SIZE.0, SIZE.1),
@@ -128,7 +132,7 @@ fn write_and_trace(
     pipeline: &Pipeline,
     camera: &Camera,
     ao: Option<&AoOptions>,
-) -> Res<Row> {
+) -> CmdResult<Row> {
     let path = dir.join(format!("{name}.kd"));
     let start = Instant::now();
     pipeline.write_file(&path, tree, &loaded.scene)?;
@@ -163,7 +167,7 @@ fn write_and_trace(
 }
 
 /// The main job; `-v` adds the build's phase times and memory.
-pub(crate) fn main_job(ui: Out) -> Res<()> {
+pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
     let verbose = ui.verbose;
     let text = !(ui.quiet || ui.json);
     // The text lines, which -q and --json leave out.

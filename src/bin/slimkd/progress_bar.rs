@@ -4,7 +4,7 @@
 //! terminal's width (the message is cut, never wrapped), and estimates the
 //! time left; what is ours is when it appears and what it counts.
 
-use crate::*;
+use crate::CmdResult;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use slimkd::progress::Progress;
 use std::sync::mpsc::{self, RecvTimeoutError};
@@ -57,8 +57,8 @@ pub(crate) fn with_bar<T: Send>(
     label: &str,
     progress: &Progress,
     message: &(dyn Fn() -> String + Sync),
-    work: impl FnOnce() -> Res<T> + Send,
-) -> Res<T> {
+    work: impl FnOnce() -> CmdResult<T> + Send,
+) -> CmdResult<T> {
     with_bar_lines(quiet, label, progress, message, |_| work())
 }
 
@@ -70,8 +70,8 @@ pub(crate) fn with_bar_lines<T: Send>(
     label: &str,
     progress: &Progress,
     message: &(dyn Fn() -> String + Sync),
-    work: impl FnOnce(&Lines) -> Res<T> + Send,
-) -> Res<T> {
+    work: impl FnOnce(&Lines) -> CmdResult<T> + Send,
+) -> CmdResult<T> {
     let start = Instant::now();
     // Inside a pool, its size; outside, rayon's default, without starting
     // the global pool (which panics where it cannot start its threads).
@@ -83,11 +83,11 @@ pub(crate) fn with_bar_lines<T: Send>(
         // The worker sends its result, so that this thread wakes the moment
         // it is done (a plain sleep between polls added up to a poll's
         // interval to every timed build).
-        let (done, result) = mpsc::channel::<Res<T>>();
+        let (done, result) = mpsc::channel::<CmdResult<T>>();
         let (line_tx, line_rx) = mpsc::channel::<String>();
         let worker = std::thread::Builder::new().spawn_scoped(s, move || {
             let lines = Lines(line_tx);
-            let run = || -> Res<T> {
+            let run = || -> CmdResult<T> {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(pool_threads)
                     .build()

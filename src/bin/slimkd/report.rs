@@ -1,7 +1,11 @@
 //! `slimkd report`: the paper's tables and figures.
 
+use crate::CmdResult;
+use crate::args::{OutputFlags, ReportArgs, Usage, check_output_dir};
+use crate::build::load_all;
+use crate::json::print_json;
 use crate::lab::report;
-use crate::*;
+use crate::progress_bar::with_bar_lines;
 use slimkd::progress::Progress;
 use std::time::Instant;
 
@@ -15,7 +19,7 @@ struct ReportCmdJson {
     reps: usize,
 }
 
-pub(crate) fn cmd_report(args: &ReportArgs, ui: Out) -> Res<()> {
+pub(crate) fn cmd_report(args: &ReportArgs, ui: OutputFlags) -> CmdResult<()> {
     // The output's name and directory, before any work.
     report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
     check_output_dir(&args.output)?;

@@ -1,8 +1,12 @@
 //! `slimkd sweep`: the trade-off front of tree bytes against trace time
 //! over families of settings ([`crate::lab::report::front::run_front`]).
 
+use crate::CmdResult;
+use crate::args::{OutputFlags, parse_positive, parse_size};
+use crate::build::load_all;
+use crate::json::print_json;
 use crate::lab::report;
-use crate::*;
+use crate::progress_bar::with_bar_lines;
 use slimkd::progress::Progress;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -45,7 +49,7 @@ struct SweepCmdJson {
     sweep: serde_json::Value,
 }
 
-pub(crate) fn cmd_sweep(args: &SweepArgs, ui: Out) -> Res<()> {
+pub(crate) fn cmd_sweep(args: &SweepArgs, ui: OutputFlags) -> CmdResult<()> {
     match std::fs::metadata(&args.output) {
         Ok(m) if m.is_dir() => {}
         Ok(_) => return Err(format!("{}: not a directory", args.output.display()).into()),
