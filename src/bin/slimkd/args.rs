@@ -198,8 +198,10 @@ pub(crate) enum Command {
     Sweep(Box<crate::sweep::SweepArgs>),
 }
 
+/// The scenes and frames of a timed command (`report`, `sweep`): the
+/// help text is the report's; `sweep` words some of it its own way.
 #[derive(clap::Args)]
-pub(crate) struct ReportArgs {
+pub(crate) struct TimedScenesArgs {
     /// OBJ files or scene caches (.kds), or `default`.
     #[arg(required = true)]
     pub(crate) scenes: Vec<PathBuf>,
@@ -216,6 +218,12 @@ pub(crate) struct ReportArgs {
     /// fewer than 5 leave the range meaningless.
     #[arg(long, default_value_t = 9, value_parser = parse_positive)]
     pub(crate) reps: usize,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct ReportArgs {
+    #[command(flatten)]
+    pub(crate) timed: TimedScenesArgs,
     /// Threads for the "all threads" columns (at least 1; default: all
     /// cores).
     #[arg(long, value_parser = parse_positive)]

@@ -23,8 +23,8 @@ pub(crate) fn cmd_report(args: &ReportArgs, ui: OutputFlags) -> CmdResult<()> {
     // The output's name and directory, before any work.
     report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
     check_output_dir(&args.output)?;
-    let views = crate::read_views(args.views.as_deref())?;
-    let scenes: Vec<_> = load_all(&args.scenes, ui)?
+    let views = crate::read_views(args.timed.views.as_deref())?;
+    let scenes: Vec<_> = load_all(&args.timed.scenes, ui)?
         .into_iter()
         .map(|loaded| (loaded.name(), loaded.scene, loaded.seconds))
         .collect();
@@ -36,8 +36,8 @@ pub(crate) fn cmd_report(args: &ReportArgs, ui: OutputFlags) -> CmdResult<()> {
     let options = report::ReportOptions {
         scenes,
         views,
-        size: args.size,
-        reps: args.reps,
+        size: args.timed.size,
+        reps: args.timed.reps,
         sweep: args.sweep,
         all_threads,
         sweep_grid: None,
