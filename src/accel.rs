@@ -161,17 +161,21 @@ impl RayPacket {
 }
 
 /// Why an [`Accel`] could not be built, written or opened.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum AccelError {
     /// The caller's buffers break the scene invariant (a non-finite
     /// vertex, an index out of range).
-    Scene(InvalidColumns),
+    #[error("invalid scene buffers: {0}")]
+    Scene(#[source] InvalidColumns),
     /// The builder failed (its columns).
-    Build(BuildError),
+    #[error("kd-tree build failed: {0}")]
+    Build(#[source] BuildError),
     /// The build's thread pool could not be made.
-    Threads(rayon::ThreadPoolBuildError),
+    #[error("cannot start the build threads: {0}")]
+    Threads(#[source] rayon::ThreadPoolBuildError),
     /// The tree could not be stored, or a `.kd` file is not valid;
     /// `path` is the file, where there is one.
+    #[error("{}", format_message(path.as_deref(), source))]
     Format {
         /// The file read or written (`None` for an in-memory image).
         path: Option<PathBuf>,
@@ -179,6 +183,7 @@ pub enum AccelError {
         source: FormatError,
     },
     /// Reading or writing a file failed.
+    #[error("{}: {source}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
@@ -187,35 +192,14 @@ pub enum AccelError {
     },
 }
 
-impl fmt::Display for AccelError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            AccelError::Scene(e) => write!(f, "invalid scene buffers: {e}"),
-            AccelError::Build(e) => write!(f, "kd-tree build failed: {e}"),
-            AccelError::Threads(e) => write!(f, "cannot start the build threads: {e}"),
-            AccelError::Format {
-                path: Some(p),
-                source: FormatError::Io { source, .. },
-            } => write!(f, "{}: {source}", p.display()),
-            AccelError::Format {
-                path: Some(p),
-                source,
-            } => write!(f, "{}: {source}", p.display()),
-            AccelError::Format { path: None, source } => write!(f, "kd image: {source}"),
-            AccelError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-        }
-    }
-}
-
-impl std::error::Error for AccelError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            AccelError::Scene(e) => Some(e),
-            AccelError::Build(e) => Some(e),
-            AccelError::Threads(e) => Some(e),
-            AccelError::Format { source, .. } => Some(source),
-            AccelError::Io { source, .. } => Some(source),
-        }
+/// [`AccelError::Format`]'s message: the file and what is wrong with it
+/// (an I/O error's own message, without the path the format error
+/// repeats), or the in-memory image's.
+fn format_message(path: Option<&Path>, source: &FormatError) -> String {
+    match (path, source) {
+        (Some(p), FormatError::Io { source, .. }) => format!("{}: {source}", p.display()),
+        (Some(p), source) => format!("{}: {source}", p.display()),
+        (None, source) => format!("kd image: {source}"),
     }
 }
 

@@ -644,16 +644,9 @@ pub(crate) struct RenderArgs {
 
 /// A usage error: the command line asks for something impossible or
 /// contradictory; `main` exits with 2 for it.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
 pub(crate) struct Usage(pub(crate) String);
-
-impl std::fmt::Display for Usage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for Usage {}
 
 /// Checks, before any work, that an output file can go where it is asked
 /// to: its directory exists (an error naming the path, exit 1).

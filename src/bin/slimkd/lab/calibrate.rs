@@ -31,7 +31,7 @@
 
 use crate::lab::figures::median;
 use slimkd::build::{self, BuildConfig, BuildError};
-use slimkd::format::{AlignedBytes, KdFile};
+use slimkd::format::{AlignedBytes, FormatError, KdFile};
 use slimkd::geom::Ray;
 use slimkd::pipeline::Pipeline;
 use slimkd::render::{self, Camera, View};
@@ -39,6 +39,26 @@ use slimkd::scene::TriangleColumns;
 use slimkd::trace::packet::PacketTracer;
 use slimkd::trace::rays::{self, Query};
 use slimkd::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
+
+/// Why a scene could not be measured: one of its trees could not be
+/// built or written as a `.kd` image.
+#[derive(Debug, thiserror::Error)]
+pub enum CalibrateError {
+    /// The build with `k_t` failed.
+    #[error("{scene}: the build with K_T {k_t}: {source}")]
+    Build {
+        scene: String,
+        k_t: f64,
+        source: BuildError,
+    },
+    /// The tree of `k_t` could not be written or opened as a `.kd` image.
+    #[error("{scene}: the tree of K_T {k_t} as a .kd file: {source}")]
+    Format {
+        scene: String,
+        k_t: f64,
+        source: FormatError,
+    },
+}
 
 /// The `K_T` values trees are built with by default (with `K_I` 20: from
 /// a third of today's ratio to four times it; the steps per ray vary by a
@@ -225,7 +245,7 @@ pub fn measure_scene(
     views: &[View],
     options: &CalibrateOptions,
     progress: &mut dyn FnMut(&str),
-) -> Result<SceneMeasurement, String> {
+) -> Result<SceneMeasurement, CalibrateError> {
     let threads = rayon::current_num_threads();
     let mut files: Vec<KdFile<AlignedBytes>> = Vec::new();
     let mut trees = Vec::new();
@@ -240,10 +260,19 @@ pub fn measure_scene(
         let pipeline = Pipeline::new(config);
         let (tree, _) = pipeline
             .build(scene, None)
-            .map_err(|e: BuildError| format!("{name}: the build with K_T {k_t}: {e}"))?;
-        let bytes = pipeline
-            .write_image(&tree, scene)
-            .map_err(|e| format!("{name}: the tree of K_T {k_t} as a .kd file: {e}"))?;
+            .map_err(|source| CalibrateError::Build {
+                scene: name.to_string(),
+                k_t,
+                source,
+            })?;
+        let bytes =
+            pipeline
+                .write_image(&tree, scene)
+                .map_err(|source| CalibrateError::Format {
+                    scene: name.to_string(),
+                    k_t,
+                    source,
+                })?;
         trees.push(TreeFiguresOf {
             k_t,
             nodes: bytes.figures().nodes(),

@@ -62,7 +62,6 @@ use slimkd::slim::{HoistRule, SlimParams};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{ClosestHit, Hit, Scalar};
 use slimkd::tree::{Node, TreeIr};
-use std::fmt;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -124,13 +123,16 @@ impl Default for ReportOptions {
 }
 
 /// Why a report could not be made.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum ReportError {
     /// An option out of range.
+    #[error("report: {0}")]
     Options(String),
     /// A thread pool could not be started.
-    ThreadPool(rayon::ThreadPoolBuildError),
+    #[error("report: cannot start threads: {0}")]
+    ThreadPool(#[source] rayon::ThreadPoolBuildError),
     /// A tree could not be written or read back as a `.kd` file.
+    #[error("report: {scene}: the {tree} tree as a .kd file: {source}")]
     Format {
         scene: String,
         tree: String,
@@ -138,44 +140,14 @@ pub enum ReportError {
     },
     /// Two trees or two traversal modes disagree on the hits of a frame,
     /// which must never happen (slim trees are exact).
+    #[error("report: hits differ: {0}")]
     Mismatch(String),
     /// The std tree of a scene could not be built.
+    #[error("report: {scene}: the std build failed: {source}")]
     Build {
         scene: String,
         source: build::BuildError,
     },
-}
-
-impl fmt::Display for ReportError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            ReportError::Options(m) => write!(f, "report: {m}"),
-            ReportError::ThreadPool(e) => write!(f, "report: cannot start threads: {e}"),
-            ReportError::Format {
-                scene,
-                tree,
-                source,
-            } => write!(
-                f,
-                "report: {scene}: the {tree} tree as a .kd file: {source}"
-            ),
-            ReportError::Mismatch(m) => write!(f, "report: hits differ: {m}"),
-            ReportError::Build { scene, source } => {
-                write!(f, "report: {scene}: the std build failed: {source}")
-            }
-        }
-    }
-}
-
-impl std::error::Error for ReportError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            ReportError::ThreadPool(e) => Some(e),
-            ReportError::Format { source, .. } => Some(source),
-            ReportError::Build { source, .. } => Some(source),
-            _ => None,
-        }
-    }
 }
 
 /// The three trees of Tables 3 and 4.
