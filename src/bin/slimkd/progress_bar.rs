@@ -62,6 +62,28 @@ pub(crate) fn with_bar<T: Send>(
     with_bar_lines(quiet, label, progress, message, |_| work())
 }
 
+/// [`with_bar_lines`] for a job of announced steps (`report`, `sweep`):
+/// one bar over all of them; each line `work` logs goes above it with the
+/// seconds since the start, and the last one is the bar's message.
+pub(crate) fn with_step_log<T: Send>(
+    quiet: bool,
+    label: &str,
+    work: impl FnOnce(&Progress, &mut dyn FnMut(&str)) -> CmdResult<T> + Send,
+) -> CmdResult<T> {
+    let start = Instant::now();
+    let progress = Progress::default();
+    let current = std::sync::Mutex::new(String::new());
+    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
+    with_bar_lines(quiet, label, &progress, &message, |lines| {
+        work(&progress, &mut |line| {
+            if let Ok(mut m) = current.lock() {
+                line.clone_into(&mut m);
+            }
+            lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
+        })
+    })
+}
+
 /// [`with_bar`] for a job that also prints lines: what `work` sends to its
 /// [`Lines`] goes to standard error, above the bar once it is drawn (and
 /// nowhere if `quiet`).

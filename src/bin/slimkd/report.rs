@@ -5,9 +5,7 @@ use crate::args::{OutputFlags, ReportArgs, Usage, check_output_dir};
 use crate::build::load_all;
 use crate::json::print_json;
 use crate::lab::report;
-use crate::progress_bar::with_bar_lines;
-use slimkd::progress::Progress;
-use std::time::Instant;
+use crate::progress_bar::with_step_log;
 
 /// `slimkd report --json`: the files written; the figures are in the
 /// report's own JSON file.
@@ -43,23 +41,8 @@ pub(crate) fn cmd_report(args: &ReportArgs, ui: OutputFlags) -> CmdResult<()> {
         sweep_grid: None,
         rule: args.hoist_rule.rule(true),
     };
-    let start = Instant::now();
-    // One bar over all the report's steps; each step's line goes above it,
-    // and the last one is its message.
-    let progress = Progress::default();
-    let current = std::sync::Mutex::new(String::new());
-    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
-    let report = with_bar_lines(ui.bars_off(), "report", &progress, &message, |lines| {
-        Ok(report::run_with_progress(
-            &options,
-            Some(&progress),
-            &mut |line| {
-                if let Ok(mut m) = current.lock() {
-                    line.clone_into(&mut m);
-                }
-                lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
-            },
-        )?)
+    let report = with_step_log(ui.bars_off(), "report", |progress, log| {
+        Ok(report::run_with_progress(&options, Some(progress), log)?)
     })?;
     let written = report
         .write(&args.output)

@@ -6,10 +6,8 @@ use crate::args::{OutputFlags, TimedScenesArgs, parse_positive};
 use crate::build::load_all;
 use crate::json::print_json;
 use crate::lab::report;
-use crate::progress_bar::with_bar_lines;
-use slimkd::progress::Progress;
+use crate::progress_bar::with_step_log;
 use std::path::PathBuf;
-use std::time::Instant;
 
 #[derive(clap::Args)]
 #[command(
@@ -60,21 +58,8 @@ pub(crate) fn cmd_sweep(args: &SweepArgs, ui: OutputFlags) -> CmdResult<()> {
         threads: args.threads,
         grid: None,
     };
-    let start = Instant::now();
-    let progress = Progress::default();
-    let current = std::sync::Mutex::new(String::new());
-    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
-    let sweep = with_bar_lines(ui.bars_off(), "sweep", &progress, &message, |lines| {
-        Ok(report::front::run_front(
-            &options,
-            Some(&progress),
-            &mut |line| {
-                if let Ok(mut m) = current.lock() {
-                    line.clone_into(&mut m);
-                }
-                lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
-            },
-        )?)
+    let sweep = with_step_log(ui.bars_off(), "sweep", |progress, log| {
+        Ok(report::front::run_front(&options, Some(progress), log)?)
     })?;
     let written = sweep
         .write(&args.output)
