@@ -25,11 +25,12 @@
 //! std::fs::remove_dir_all(&dir).unwrap();
 //! ```
 
-use crate::build::{self, Algorithm, BuildConfig, BuildError};
-use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped, WriteOptions};
+use crate::build::{BuildConfig, BuildError};
+use crate::format::{self, AlignedBytes, FormatError, KdFile, Mapped};
 use crate::geom::{Aabb, Ray, RayPrecomp};
+use crate::pipeline::{Pipeline, PipelineError};
 use crate::scene::{InvalidColumns, TriangleColumns};
-use crate::slim::{self, HoistRule, SlimParams};
+use crate::slim::{HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
 use crate::trace::{ClosestHit, FileWalk, Hit, HitContext, Scalar, Walk};
 use glam::Vec3;
@@ -60,6 +61,10 @@ pub struct BuildOptions {
     /// Worker threads for the build; `None` (or `Some(0)`) uses rayon's
     /// current pool.
     pub threads: Option<usize>,
+    /// Bytes of anonymous memory the build may hold; above it the
+    /// builder's columns go to scratch files in the system's temporary
+    /// directory. `None` (the default): no budget.
+    pub mem_budget: Option<u64>,
 }
 
 impl Default for BuildOptions {
@@ -68,6 +73,7 @@ impl Default for BuildOptions {
             preset: Preset::Std,
             reorder: true,
             threads: None,
+            mem_budget: None,
         }
     }
 }
@@ -155,17 +161,21 @@ impl RayPacket {
 }
 
 /// Why an [`Accel`] could not be built, written or opened.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum AccelError {
     /// The caller's buffers break the scene invariant (a non-finite
     /// vertex, an index out of range).
-    Scene(InvalidColumns),
+    #[error("invalid scene buffers: {0}")]
+    Scene(#[source] InvalidColumns),
     /// The builder failed (its columns).
-    Build(BuildError),
+    #[error("kd-tree build failed: {0}")]
+    Build(#[source] BuildError),
     /// The build's thread pool could not be made.
-    Threads(rayon::ThreadPoolBuildError),
+    #[error("cannot start the build threads: {0}")]
+    Threads(#[source] rayon::ThreadPoolBuildError),
     /// The tree could not be stored, or a `.kd` file is not valid;
     /// `path` is the file, where there is one.
+    #[error("{}", format_message(path.as_deref(), source))]
     Format {
         /// The file read or written (`None` for an in-memory image).
         path: Option<PathBuf>,
@@ -173,6 +183,7 @@ pub enum AccelError {
         source: FormatError,
     },
     /// Reading or writing a file failed.
+    #[error("{}: {source}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
@@ -181,35 +192,14 @@ pub enum AccelError {
     },
 }
 
-impl fmt::Display for AccelError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            AccelError::Scene(e) => write!(f, "invalid scene buffers: {e}"),
-            AccelError::Build(e) => write!(f, "kd-tree build failed: {e}"),
-            AccelError::Threads(e) => write!(f, "cannot start the build threads: {e}"),
-            AccelError::Format {
-                path: Some(p),
-                source: FormatError::Io { source, .. },
-            } => write!(f, "{}: {source}", p.display()),
-            AccelError::Format {
-                path: Some(p),
-                source,
-            } => write!(f, "{}: {source}", p.display()),
-            AccelError::Format { path: None, source } => write!(f, "kd image: {source}"),
-            AccelError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-        }
-    }
-}
-
-impl std::error::Error for AccelError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            AccelError::Scene(e) => Some(e),
-            AccelError::Build(e) => Some(e),
-            AccelError::Threads(e) => Some(e),
-            AccelError::Format { source, .. } => Some(source),
-            AccelError::Io { source, .. } => Some(source),
-        }
+/// [`AccelError::Format`]'s message: the file and what is wrong with it
+/// (an I/O error's own message, without the path the format error
+/// repeats), or the in-memory image's.
+fn format_message(path: Option<&Path>, source: &FormatError) -> String {
+    match (path, source) {
+        (Some(p), FormatError::Io { source, .. }) => format!("{}: {source}", p.display()),
+        (Some(p), source) => format!("{}: {source}", p.display()),
+        (None, source) => format!("kd image: {source}"),
     }
 }
 
@@ -281,9 +271,6 @@ impl Accel {
     }
 
     fn build_here(scene: &TriangleColumns, options: &BuildOptions) -> Result<Accel, AccelError> {
-        let config = BuildConfig::default();
-        let tree =
-            build::build(scene, &config, Algorithm::Level, None).map_err(AccelError::Build)?;
         let rule = HoistRule::Bytes {
             reordered: options.reorder,
         };
@@ -295,18 +282,15 @@ impl Accel {
                 format::Preset::Small,
             ),
         };
-        let tree = match &params {
-            Some(p) => slim::slim(&tree, scene, &config, p).0,
-            None => tree,
-        };
-        let write = WriteOptions {
+        let pipeline = Pipeline {
+            mem_budget: options.mem_budget,
             reorder: options.reorder,
-            config: crate::pipeline::file_config(&config, scene.len(), preset, params.as_ref()),
+            ..Pipeline::new(BuildConfig::default()).slimmed(params, preset)
         };
-        let bad = |source| AccelError::Format { path: None, source };
-        let bytes = format::write_to_vec(&tree, scene, &write).map_err(bad)?;
-        drop(tree);
-        let file = KdFile::from_bytes(format::aligned_copy(&bytes)).map_err(bad)?;
+        let file = pipeline.image(scene).map_err(|e| match e {
+            PipelineError::Build(e) => AccelError::Build(e),
+            PipelineError::Format(source) => AccelError::Format { path: None, source },
+        })?;
         Ok(Accel::new(Image::Memory(file), None))
     }
 

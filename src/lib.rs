@@ -17,7 +17,10 @@
 //! 4. [`trace`] finds closest hits: scalar front-to-back traversal, 4×4
 //!    SIMD packets, or brute force for reference.
 //! 5. [`render`] shoots camera rays over image tiles in parallel and writes
-//!    PNG or OpenEXR; [`stats`] reports the figures of the papers.
+//!    PNG or OpenEXR; [`stats`] takes a tree's figures.
+//!
+//! [`pipeline::Pipeline`] runs steps 2–3 as one: build, slim and write,
+//! under a memory budget, with the build recorded in the file's header.
 //!
 //! [`accel`] wraps steps 2–4 for a renderer: [`Accel`] builds from a
 //! scene or the caller's buffers, writes and maps `.kd` files, and traces
@@ -72,7 +75,6 @@ pub mod format;
 #[doc(hidden)] // the CLI's atomic writes and input checks
 pub mod fsio;
 pub mod geom;
-#[doc(hidden)] // what the CLI and the report share
 pub mod pipeline;
 pub mod progress;
 pub mod render;

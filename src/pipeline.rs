@@ -1,100 +1,206 @@
-//! What the command line and the report ([`crate::stats::report`]) share
-//! on the way from a scene to a tree file: the median of timings, the
-//! build parameters a `.kd` file records, and a tree's figures as JSON.
+//! The one way from a scene to a tree file: [`Pipeline`] builds the
+//! standard tree (with the memory-budget policy of the level builder),
+//! slims it, and writes it as a `.kd` file or image whose header records
+//! the build ([`file_config`]). The facade ([`crate::accel`]) and the
+//! command line (its builds, the report, the sweep) all run it.
 
-use crate::build::BuildConfig;
-use crate::format::{FileConfig, Preset, TreeFigures};
-use crate::slim::SlimParams;
-use crate::stats::TreeStats;
-use serde::Serialize;
+use crate::build::level::{self, LevelOptions, LevelReport};
+use crate::build::{self, Algorithm, BuildConfig, BuildError};
+use crate::format::{
+    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, WriteOptions,
+};
+use crate::progress::Progress;
+use crate::scene::TriangleColumns;
+use crate::slim::{self, SlimParams, SlimPhases, SlimReport};
+use crate::tree::{PreOrderSink, TreeIr};
+use std::path::Path;
 
-/// The version of the JSON that `--json` prints and the report writes
-/// (the `schema` key; docs/json-schema.md). It changes when a key changes
-/// meaning or goes away, not when one is added.
-pub const JSON_SCHEMA: u32 = 1;
-
-/// A tree's node counts as the paper's Table 3(a) counts them, with the
-/// same keys wherever they appear (`build`, `render`, `info`, `verify`, the
-/// main job and the report).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct NodeCounts {
-    /// Inner, t-inner and leaf nodes (T-references are not nodes).
-    pub nodes_total: u64,
-    /// Inner nodes without a hoisted triangle (type I).
-    pub nodes_inner: u64,
-    /// Inner nodes holding a hoisted triangle (type II).
-    pub nodes_t_inner: u64,
-    /// Leaves, empty ones included.
-    pub nodes_leaf: u64,
+/// Why a [`Pipeline`] stopped: its build or its writing failed (the
+/// message is that of the step).
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// The build failed (its scratch files, or the scene).
+    #[error(transparent)]
+    Build(#[from] BuildError),
+    /// The tree could not be written or its image opened.
+    #[error(transparent)]
+    Format(#[from] FormatError),
 }
 
-impl NodeCounts {
-    pub fn of_figures(f: &TreeFigures) -> NodeCounts {
-        NodeCounts {
-            nodes_total: f.nodes(),
-            nodes_inner: f.inner,
-            nodes_t_inner: f.t_inner,
-            nodes_leaf: f.leaves,
+/// What to make of a scene: the build, the slim pass, and how the file
+/// is written. Each step is a method, so that a caller can time it or
+/// show its progress; [`Pipeline::image`] runs them all.
+#[derive(Clone, Debug)]
+pub struct Pipeline {
+    /// The cost model and depth limit of the build (and the slim pass).
+    pub config: BuildConfig,
+    /// Which builder makes the standard tree (all make the same tree).
+    pub algorithm: Algorithm,
+    /// The level builder's options but its budget and finisher size,
+    /// which [`Pipeline::level_options`] sets.
+    pub level: LevelOptions,
+    /// Bytes of anonymous memory the level build may hold; `None`: no
+    /// budget.
+    pub mem_budget: Option<u64>,
+    /// Nodes of fewer references than this are finished depth-first;
+    /// `None`: the default, or the budget's
+    /// ([`LevelOptions::small_threshold_for_budget`]).
+    pub small: Option<usize>,
+    /// The slim pass; `None`: the standard tree.
+    pub slim: Option<SlimParams>,
+    /// The preset the file records.
+    pub preset: Preset,
+    /// Renumber triangles in Morton order in the file.
+    pub reorder: bool,
+    /// The scene's name the file records; `None`: no scene tag.
+    pub scene_name: Option<String>,
+}
+
+impl Pipeline {
+    /// The standard tree of `config` with the level builder, no budget,
+    /// written reordered and without a scene tag.
+    pub fn new(config: BuildConfig) -> Pipeline {
+        Pipeline {
+            config,
+            algorithm: Algorithm::Level,
+            level: LevelOptions::default(),
+            mem_budget: None,
+            small: None,
+            slim: None,
+            preset: Preset::Std,
+            reorder: true,
+            scene_name: None,
         }
     }
 
-    pub fn of_stats(s: &TreeStats) -> NodeCounts {
-        NodeCounts {
-            nodes_total: s.nodes as u64,
-            nodes_inner: s.inner as u64,
-            nodes_t_inner: s.t_inner as u64,
-            nodes_leaf: s.leaves as u64,
+    /// The same pipeline with the slim pass `slim` recorded as `preset`.
+    pub fn slimmed(&self, slim: Option<SlimParams>, preset: Preset) -> Pipeline {
+        Pipeline {
+            slim,
+            preset,
+            ..self.clone()
         }
     }
-}
 
-/// What a stored tree takes: its leaf indices and bytes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct StorageJson {
-    /// 4-byte leaf index entries.
-    pub idx32: u64,
-    /// 2-byte leaf index entries.
-    pub idx16: u64,
-    /// Bytes of the node words and leaf indices.
-    pub tree_bytes: u64,
-    /// Bytes of the vertices and triangles (and the triangle map).
-    pub geometry_bytes: u64,
-}
+    /// The level builder's options under the memory budget: the budget
+    /// itself, and finishers that take larger nodes under a budget (which
+    /// saves levels of scratch traffic) unless [`Pipeline::small`] says
+    /// otherwise.
+    pub fn level_options(&self) -> LevelOptions {
+        // `LevelOptions` spells "no budget" as `u64::MAX`; this is the
+        // one place that translates.
+        let mem_budget = self.mem_budget.unwrap_or(u64::MAX);
+        let small_threshold = self.small.unwrap_or_else(|| {
+            LevelOptions::small_threshold_for_budget(mem_budget, rayon::current_num_threads())
+        });
+        LevelOptions {
+            mem_budget,
+            small_threshold,
+            ..self.level.clone()
+        }
+    }
 
-/// A stored tree's figures: [`NodeCounts`] and [`StorageJson`] in one
-/// object.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct FiguresJson {
-    #[serde(flatten)]
-    pub nodes: NodeCounts,
-    #[serde(flatten)]
-    pub storage: StorageJson,
-}
+    /// Builds the standard tree (on the current rayon pool), with the
+    /// level builder's report when it ran.
+    pub fn build(
+        &self,
+        scene: &TriangleColumns,
+        progress: Option<&Progress>,
+    ) -> Result<(TreeIr, Option<LevelReport>), BuildError> {
+        match self.algorithm {
+            Algorithm::Level => {
+                let (tree, report) =
+                    level::build(scene, &self.config, progress, &self.level_options())?;
+                Ok((tree, Some(report)))
+            }
+            other => Ok((build::build(scene, &self.config, other, progress)?, None)),
+        }
+    }
 
-impl FiguresJson {
-    pub fn of(f: &TreeFigures) -> FiguresJson {
-        FiguresJson {
-            nodes: NodeCounts::of_figures(f),
-            storage: StorageJson {
-                idx32: f.idx32,
-                idx16: f.idx16,
-                tree_bytes: f.tree_bytes(),
-                geometry_bytes: f.geometry_bytes(),
+    /// Builds the standard tree straight into the file `path` (the level
+    /// builder, no slim pass), feeding `sink` too; `built` is called once
+    /// the tree is complete, before the file is finished. `None`: the
+    /// tree did not reach the file. The file's bytes are those of
+    /// [`Pipeline::build`] then [`Pipeline::write_file`].
+    pub fn build_into_file(
+        &self,
+        path: &Path,
+        scene: &TriangleColumns,
+        progress: Option<&Progress>,
+        sink: &mut impl PreOrderSink,
+        built: impl FnOnce(),
+    ) -> Result<Option<LevelReport>, PipelineError> {
+        let options = self.level_options();
+        format::write_file_streamed(path, scene, &self.write_options(scene), |w| {
+            let report =
+                level::build_into(scene, &self.config, progress, &options, &mut (w, sink))?;
+            built();
+            Ok(report)
+        })
+    }
+
+    /// The pipeline's slim pass over `tree` (on the current rayon pool);
+    /// `None` for the standard tree.
+    pub fn slim(
+        &self,
+        tree: &TreeIr,
+        scene: &TriangleColumns,
+        progress: Option<&Progress>,
+    ) -> Option<(TreeIr, SlimReport, SlimPhases)> {
+        let params = self.slim.as_ref()?;
+        Some(slim::slim_with_progress(
+            tree,
+            scene,
+            &self.config,
+            params,
+            progress,
+        ))
+    }
+
+    /// How the tree of `scene` is written: reordered or not, with the
+    /// build recorded in the header.
+    pub fn write_options(&self, scene: &TriangleColumns) -> WriteOptions {
+        let config = file_config(&self.config, scene.len(), self.preset, self.slim.as_ref());
+        WriteOptions {
+            reorder: self.reorder,
+            config: match &self.scene_name {
+                Some(name) => FileConfig {
+                    scene: SceneTag::new(name, scene),
+                    ..config
+                },
+                None => config,
             },
         }
     }
-}
 
-/// The median (the mean of the middle two for an even count; NaN for
-/// none).
-pub fn median(values: &[f64]) -> f64 {
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    match n {
-        0 => f64::NAN,
-        _ if n % 2 == 1 => v[n / 2],
-        _ => (v[n / 2 - 1] + v[n / 2]) / 2.0,
+    /// Writes `tree` as the `.kd` file `path` (atomically).
+    pub fn write_file(
+        &self,
+        path: &Path,
+        tree: &TreeIr,
+        scene: &TriangleColumns,
+    ) -> Result<(), FormatError> {
+        format::write_file(path, tree, scene, &self.write_options(scene))
+    }
+
+    /// Writes `tree` as `.kd` bytes in memory and opens them.
+    pub fn write_image(
+        &self,
+        tree: &TreeIr,
+        scene: &TriangleColumns,
+    ) -> Result<KdFile<AlignedBytes>, FormatError> {
+        let bytes = format::write_to_vec(tree, scene, &self.write_options(scene))?;
+        KdFile::from_bytes(format::aligned_copy(&bytes))
+    }
+
+    /// The whole pipeline in memory: build, slim, write, open.
+    pub fn image(&self, scene: &TriangleColumns) -> Result<KdFile<AlignedBytes>, PipelineError> {
+        let (tree, _) = self.build(scene, None)?;
+        let tree = match self.slim(&tree, scene, None) {
+            Some((slimmed, _, _)) => slimmed,
+            None => tree,
+        };
+        Ok(self.write_image(&tree, scene)?)
     }
 }
 
@@ -121,17 +227,5 @@ pub fn file_config(
         tau_freq,
         max_t2rn,
         scene: Default::default(),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn median_of_odd_even_and_none() {
-        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
-        assert!(median(&[]).is_nan());
     }
 }

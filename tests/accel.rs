@@ -179,6 +179,7 @@ fn round_trip(preset: Preset, reorder: bool) {
         preset,
         reorder,
         threads: None,
+        mem_budget: None,
     };
     let memory = Accel::build(&scene, &options).unwrap();
     assert!(!memory.is_mapped());
@@ -294,4 +295,18 @@ fn bad_files_are_errors_naming_the_file() {
     let err = accel.write(dir.join("no-such-dir/out.kd")).unwrap_err();
     assert!(err.to_string().contains("no-such-dir"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A memory budget moves the builder's columns to scratch files, never
+/// the tree: the image is the same byte for byte.
+#[test]
+fn a_budget_builds_the_same_image() {
+    let scene = load_scene("nexuiz_dieselpower.obj");
+    let free = Accel::build(&scene, &BuildOptions::default()).unwrap();
+    let options = BuildOptions {
+        mem_budget: Some(1 << 16),
+        ..Default::default()
+    };
+    let budgeted = Accel::build(&scene, &options).unwrap();
+    assert_eq!(free.as_bytes(), budgeted.as_bytes());
 }

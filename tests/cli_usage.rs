@@ -345,6 +345,12 @@ fn usage_errors_exit_2() {
     ] {
         exits(&slimkd(&args), 2, &format!("{args:?}"));
     }
+    // A budget too large to count in bytes is an error, never "no budget".
+    for budget in ["16777216T", "18446744073709551616", "1e30"] {
+        let args = ["build", "default", "--mem-budget", budget];
+        let err = exits(&slimkd(&args), 2, &format!("{args:?}"));
+        assert!(err.contains("is too large (2^64 bytes or more)"), "{err}");
+    }
     assert!(!x_cache.exists());
     let all = std::thread::available_parallelism().map_or(1, |n| n.get());
     let b = json(&slimkd(&["build", &bunny(), "-j", "0", "--json"]));

@@ -10,9 +10,14 @@ mod common;
 use common::{dir_entries, fresh_temp_dir, json, slimkd};
 use serde_json::Value;
 use slimkd::build::sah::SahParams;
-use slimkd::stats::report::{self, FrontGrid, FrontOptions, FrontSetting, ReportError};
 use std::path::Path;
 use std::sync::OnceLock;
+
+/// The default grid's settings, `K_T` and split-price families (the unit
+/// tests of `lab::report::front` hold the grid to these).
+const DEFAULT_GRID_SETTINGS: usize = 20;
+const FRONT_KT: [f64; 5] = [10.0, 15.0, 20.0, 30.0, 45.0];
+const FRONT_SPLIT_PRICE: [f64; 5] = [0.0, 0.25, 0.5, 1.0, 8.0];
 
 /// The sweep of the embedded scene (one round, 16×16 frames) and its
 /// directory, run once for the tests that read it (a static is never
@@ -106,7 +111,9 @@ fn sweep_families_hold_its_points_and_the_presets_exactly() {
     let (j, _) = sweep();
     let scene = &j["scenes"][0];
     let pts = points(scene);
-    assert_eq!(pts.len(), report::default_grid().settings.len());
+    // The settings of the default grid (`lab::report::front::default_grid`,
+    // whose unit tests hold these figures to it).
+    assert_eq!(pts.len(), DEFAULT_GRID_SETTINGS);
     let labels: Vec<&str> = pts.iter().map(|p| p["label"].as_str().unwrap()).collect();
     let families = scene["families"].as_array().unwrap();
     assert!(families.len() >= 3, "{families:?}");
@@ -131,7 +138,7 @@ fn sweep_families_hold_its_points_and_the_presets_exactly() {
         .iter()
         .map(|n| f(&pts[labels.iter().position(|l| n == l).unwrap()]["k_t"]))
         .collect();
-    assert_eq!(kts, report::FRONT_KT);
+    assert_eq!(kts, FRONT_KT);
     // The split-price family varies only μ.
     let mu: Vec<(f64, f64)> = families[1]["points"]
         .as_array()
@@ -142,7 +149,7 @@ fn sweep_families_hold_its_points_and_the_presets_exactly() {
             (f(&p["split_price"]), f(&p["k_t"]))
         })
         .collect();
-    assert_eq!(mu, report::FRONT_SPLIT_PRICE.map(|m| (m, 15.0)));
+    assert_eq!(mu, FRONT_SPLIT_PRICE.map(|m| (m, 15.0)));
     let preset = |name: &str| {
         let found: Vec<&Value> = pts.iter().filter(|p| p["preset"] == name).collect();
         assert_eq!(found.len(), 1, "{name}");
@@ -297,58 +304,4 @@ fn sweep_usage_errors_exit_2_and_a_missing_directory_exits_1() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("no-such-scene.obj"));
     assert!(dir_entries(&dir).is_empty());
-}
-
-#[test]
-fn sweep_options_out_of_range_are_errors() {
-    let scene = slimkd::scene::load_obj(
-        &Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj"),
-    )
-    .unwrap()
-    .0;
-    let std = FrontSetting {
-        label: "std".into(),
-        k_t: 15.0,
-        k_i: 20.0,
-        split_price: 0.0,
-        slim: None,
-        preset: None,
-    };
-    let options = |reps, threads, grid| FrontOptions {
-        scenes: vec![("bunny_npm".into(), scene.clone())],
-        views: Vec::new(),
-        size: (8, 8),
-        reps,
-        threads,
-        grid: Some(grid),
-    };
-    let grid = |points: Vec<usize>| FrontGrid {
-        settings: vec![std.clone()],
-        families: vec![report::FrontFamily {
-            name: "one".into(),
-            points,
-        }],
-    };
-    let run = |o: &FrontOptions| report::run_front(o, None, &mut |_| {});
-    for o in [
-        options(0, 1, grid(vec![0])),
-        options(1, 0, grid(vec![0])),
-        options(1, 1, grid(vec![0, 1])),
-        options(
-            1,
-            1,
-            FrontGrid {
-                settings: Vec::new(),
-                families: Vec::new(),
-            },
-        ),
-    ] {
-        assert!(matches!(run(&o), Err(ReportError::Options(_))));
-    }
-    // One setting: a front of one point, traced from the default camera.
-    let r = run(&options(1, 1, grid(vec![0]))).unwrap();
-    let s = &r.scenes[0];
-    assert_eq!(s.views, ["default"]);
-    assert_eq!(s.points.len(), 1);
-    assert!(s.points[0].on_front);
 }

@@ -14,8 +14,18 @@ pub fn quick() -> bool {
     std::env::args().skip(1).any(|a| a == "--quick")
 }
 
-/// The median of some timings (the one the CLI and the report use).
-pub use slimkd::pipeline::median;
+/// The median of some timings, as the CLI and the report take it (the
+/// mean of the middle two for an even count; NaN for none).
+pub fn median(values: &[f64]) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    match n {
+        0 => f64::NAN,
+        _ if n % 2 == 1 => v[n / 2],
+        _ => (v[n / 2 - 1] + v[n / 2]) / 2.0,
+    }
+}
 
 /// A path relative to the crate root.
 pub fn crate_path(rel: &str) -> PathBuf {

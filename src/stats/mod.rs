@@ -3,11 +3,6 @@
 //! Table 3 and Figure 6, for the standard tree).
 
 pub mod bytes;
-#[doc(hidden)] // the `slimkd calibrate` command
-pub mod calibrate;
-pub(crate) mod plot;
-#[doc(hidden)] // the `slimkd report` driver
-pub mod report;
 
 use crate::build::sah::SahParams;
 use crate::geom::Aabb;

@@ -7,7 +7,7 @@ use slimkd::render::{self};
 use slimkd::slim::{HoistRule, SlimParams};
 use std::path::{Path, PathBuf};
 
-use crate::Res;
+use crate::CmdResult;
 
 #[derive(Parser)]
 #[command(
@@ -32,7 +32,7 @@ pub(crate) struct Cli {
     #[command(subcommand)]
     pub(crate) command: Option<Command>,
     #[command(flatten)]
-    pub(crate) out: Out,
+    pub(crate) out: OutputFlags,
     /// Read `.kd` files and `.kds` scene caches into memory instead of
     /// mapping them: for files
     /// another process may rewrite or truncate in place while slimkd reads
@@ -43,7 +43,7 @@ pub(crate) struct Cli {
 
 /// What a command prints: the flags every command takes.
 #[derive(clap::Args, Clone, Copy, Debug, Default)]
-pub(crate) struct Out {
+pub(crate) struct OutputFlags {
     /// Print errors only (and, with --json, the JSON object): no summary,
     /// no progress bars.
     #[arg(
@@ -65,7 +65,7 @@ pub(crate) struct Out {
     pub(crate) json: bool,
 }
 
-impl Out {
+impl OutputFlags {
     /// Whether progress bars are off: with -q, and with --json (whose
     /// output is for programs).
     pub(crate) fn bars_off(self) -> bool {
@@ -198,8 +198,10 @@ pub(crate) enum Command {
     Sweep(Box<crate::sweep::SweepArgs>),
 }
 
+/// The scenes and frames of a timed command (`report`, `sweep`): the
+/// help text is the report's; `sweep` words some of it its own way.
 #[derive(clap::Args)]
-pub(crate) struct ReportArgs {
+pub(crate) struct TimedScenesArgs {
     /// OBJ files or scene caches (.kds), or `default`.
     #[arg(required = true)]
     pub(crate) scenes: Vec<PathBuf>,
@@ -216,6 +218,12 @@ pub(crate) struct ReportArgs {
     /// fewer than 5 leave the range meaningless.
     #[arg(long, default_value_t = 9, value_parser = parse_positive)]
     pub(crate) reps: usize,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct ReportArgs {
+    #[command(flatten)]
+    pub(crate) timed: TimedScenesArgs,
     /// Threads for the "all threads" columns (at least 1; default: all
     /// cores).
     #[arg(long, value_parser = parse_positive)]
@@ -520,7 +528,13 @@ pub(crate) fn parse_bytes(s: &str) -> Result<u64, String> {
     if !(n >= 0.0 && n.is_finite()) {
         return Err(format!("size `{s}` out of range"));
     }
-    Ok((n * (1u64 << shift) as f64) as u64)
+    let bytes = n * (1u64 << shift) as f64;
+    // `u64::MAX as f64` is 2^64: every smaller value fits; a larger one
+    // would saturate, and a size is never taken to mean "no limit".
+    if bytes >= u64::MAX as f64 {
+        return Err(format!("size `{s}` is too large (2^64 bytes or more)"));
+    }
+    Ok(bytes as u64)
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -630,20 +644,13 @@ pub(crate) struct RenderArgs {
 
 /// A usage error: the command line asks for something impossible or
 /// contradictory; `main` exits with 2 for it.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
 pub(crate) struct Usage(pub(crate) String);
-
-impl std::fmt::Display for Usage {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for Usage {}
 
 /// Checks, before any work, that an output file can go where it is asked
 /// to: its directory exists (an error naming the path, exit 1).
-pub(crate) fn check_output_dir(path: &Path) -> Res<()> {
+pub(crate) fn check_output_dir(path: &Path) -> CmdResult<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -662,7 +669,7 @@ pub(crate) fn check_output_dir(path: &Path) -> Res<()> {
 
 /// Checks an image output's name (a usage error unless `.png` or `.exr`)
 /// and its directory.
-pub(crate) fn check_image_output(path: &Path) -> Res<()> {
+pub(crate) fn check_image_output(path: &Path) -> CmdResult<()> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())

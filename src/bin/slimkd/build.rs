@@ -2,14 +2,23 @@
 //! and `report` share: a scene loaded, a tree built (and slimmed), its
 //! summary and JSON, and the peak memory of the command.
 
-use crate::*;
-use slimkd::build::{self, Algorithm, BuildConfig, level};
-use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
-use slimkd::pipeline::{self, FiguresJson};
+use crate::args::{BuildArgs, BuilderArg, NewEventsArg, OutputFlags, check_output_dir};
+use crate::json::{
+    BuildCmdJson, BuildJson, CellsJson, MemoryJson, SceneJson, TreeJson, WrittenJson, print_json,
+};
+use crate::lab::figures::FiguresJson;
+use crate::lab::report;
+use crate::progress_bar::{si, with_bar};
+use crate::render;
+use crate::render::open_kd;
+use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE, DEFAULT_SCENE_NAME, pool};
+use slimkd::build::{Algorithm, BuildConfig, level};
+use slimkd::format;
+use slimkd::pipeline::Pipeline;
 use slimkd::progress::Progress;
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
-use slimkd::slim::{self, SlimParams, SlimPhases, SlimReport};
-use slimkd::stats::{StatsSink, TreeStats, report};
+use slimkd::slim::{SlimParams, SlimPhases, SlimReport};
+use slimkd::stats::{StatsSink, TreeStats};
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -42,7 +51,7 @@ pub(crate) fn scene_name(path: &Path) -> String {
 
 /// Loads every scene of `paths` in turn, each announced on stderr with its
 /// summary unless `ui.quiet` (the multi-scene commands: report, sweep).
-pub(crate) fn load_all(paths: &[PathBuf], ui: Out) -> Res<Vec<Loaded>> {
+pub(crate) fn load_all(paths: &[PathBuf], ui: OutputFlags) -> CmdResult<Vec<Loaded>> {
     let mut out = Vec::with_capacity(paths.len());
     for path in paths {
         let loaded = load(path, ui.bars_off())?;
@@ -56,7 +65,7 @@ pub(crate) fn load_all(paths: &[PathBuf], ui: Out) -> Res<Vec<Loaded>> {
 
 /// Loads a scene; a progress bar shows the bytes read once loading has
 /// taken a second, unless `quiet`.
-pub(crate) fn load(path: &Path, quiet: bool) -> Res<Loaded> {
+pub(crate) fn load(path: &Path, quiet: bool) -> CmdResult<Loaded> {
     let start = Instant::now();
     let (scene, summary, path) = if path.as_os_str() == DEFAULT_ARG {
         let name = scene::embedded_name(DEFAULT_SCENE_NAME);
@@ -83,68 +92,75 @@ pub(crate) fn load(path: &Path, quiet: bool) -> Res<Loaded> {
 
 pub(crate) struct Built {
     pub(crate) tree: TreeIr,
-    pub(crate) config: BuildConfig,
+    /// What was built and how it is written.
+    pub(crate) pipeline: Pipeline,
     /// Wall seconds of the whole build (standard tree + slim pass).
     pub(crate) seconds: f64,
     /// Seconds of the standard build alone.
     pub(crate) std_seconds: f64,
     pub(crate) slim: Option<(SlimParams, SlimReport, SlimPhases)>,
-    pub(crate) preset: Preset,
     pub(crate) level: Option<level::LevelReport>,
     pub(crate) builder: &'static str,
 }
 
-/// Builds on a worker thread; shows a progress bar once the build has
-/// taken a second (on a terminal), and another for the slim pass.
-/// `reordered`: whether the tree will be written with reordering (what the
-/// byte rule of the slim pass counts with).
+/// The pipeline of the build flags for `loaded`'s scene (the name its
+/// file records), written with reordering or not (`reorder`: also what
+/// the byte rule of the slim pass counts with).
+pub(crate) fn pipeline_of(args: &BuildArgs, loaded: &Loaded, reorder: bool) -> Pipeline {
+    let (slim, preset) = args.slim(reorder);
+    Pipeline {
+        algorithm: match args.builder {
+            BuilderArg::Level => Algorithm::Level,
+            BuilderArg::Sweep => Algorithm::WaldHavran,
+            BuilderArg::Naive => Algorithm::Naive,
+        },
+        level: level::LevelOptions {
+            new_events: match args.new_events {
+                NewEventsArg::Merge => level::NewEvents::SortMerge,
+                NewEventsArg::Bucket => level::NewEvents::Bucket,
+            },
+            tiny_threshold: usize::from(args.tiny),
+            scratch_dir: args
+                .scratch
+                .clone()
+                .unwrap_or_else(|| level::LevelOptions::default().scratch_dir),
+            ..level::LevelOptions::default()
+        },
+        mem_budget: args.mem_budget,
+        small: args.small,
+        reorder,
+        scene_name: Some(loaded.name()),
+        ..Pipeline::new(build_config(args)).slimmed(slim, preset)
+    }
+}
+
+/// Runs `pipeline`'s build and slim pass on a worker thread; shows a
+/// progress bar once the build has taken a second (on a terminal), and
+/// another for the slim pass.
 pub(crate) fn build_tree(
     scene: &TriangleColumns,
-    args: &BuildArgs,
+    pipeline: Pipeline,
     quiet: bool,
-    reordered: bool,
-) -> Res<Built> {
-    let (config, progress, status, options) = level_setup(args);
+) -> CmdResult<Built> {
+    let (progress, status, pipeline) = with_status(pipeline);
     let start = Instant::now();
-    let level_message = || match args.builder {
-        BuilderArg::Level => level_message(&status),
+    let level_message = || match pipeline.algorithm {
+        Algorithm::Level => level_message(&status),
         _ => String::new(),
     };
-    let built = with_bar(
-        quiet,
-        "building",
-        &progress,
-        &level_message,
-        || match args.builder {
-            BuilderArg::Level => {
-                let (tree, report) = level::build(scene, &config, Some(&progress), &options)?;
-                Ok((tree, Some(report)))
-            }
-            BuilderArg::Sweep => Ok((
-                build::build(scene, &config, Algorithm::WaldHavran, Some(&progress))?,
-                None,
-            )),
-            BuilderArg::Naive => Ok((
-                build::build(scene, &config, Algorithm::Naive, Some(&progress))?,
-                None,
-            )),
-        },
-    );
+    let built = with_bar(quiet, "building", &progress, &level_message, || {
+        Ok(pipeline.build(scene, Some(&progress))?)
+    });
     let (tree, level_report) = built?;
     let std_seconds = start.elapsed().as_secs_f64();
-    let (params, preset) = args.slim(reordered);
-    let (tree, slim) = match params {
+    let (tree, slim) = match pipeline.slim {
         Some(p) => {
             let progress = Progress::default();
             let (t, report, phases) =
                 with_bar(quiet, "slim pass", &progress, &String::new, || {
-                    Ok(slim::slim_with_progress(
-                        &tree,
-                        scene,
-                        &config,
-                        &p,
-                        Some(&progress),
-                    ))
+                    Ok(pipeline
+                        .slim(&tree, scene, Some(&progress))
+                        .expect("the pipeline has a slim pass"))
                 })?;
             (t, Some((p, report, phases)))
         }
@@ -152,17 +168,16 @@ pub(crate) fn build_tree(
     };
     Ok(Built {
         tree,
-        config,
         seconds: start.elapsed().as_secs_f64(),
         std_seconds,
         slim,
-        preset,
         level: level_report,
-        builder: match args.builder {
-            BuilderArg::Level => "level",
-            BuilderArg::Sweep => "sweep",
-            BuilderArg::Naive => "naive",
+        builder: match pipeline.algorithm {
+            Algorithm::Level => "level",
+            Algorithm::WaldHavran => "sweep",
+            Algorithm::Naive => "naive",
         },
+        pipeline,
     })
 }
 
@@ -177,49 +192,18 @@ pub(crate) fn build_config(args: &BuildArgs) -> BuildConfig {
     config
 }
 
-/// The level builder's options of the build flags (no status).
-/// The level build of `args`: its configuration, a progress counter,
-/// and the options with a status the progress bar reads.
-fn level_setup(
-    args: &BuildArgs,
-) -> (
-    BuildConfig,
-    Progress,
-    Arc<level::LevelStatus>,
-    level::LevelOptions,
-) {
+/// `pipeline` with a level status the progress bar reads, and a progress
+/// counter for the build.
+fn with_status(pipeline: Pipeline) -> (Progress, Arc<level::LevelStatus>, Pipeline) {
     let status = Arc::new(level::LevelStatus::default());
-    let options = level::LevelOptions {
-        status: Some(status.clone()),
-        ..level_options(args)
-    };
-    (build_config(args), Progress::default(), status, options)
-}
-
-pub(crate) fn level_options(args: &BuildArgs) -> level::LevelOptions {
-    let mut options = level::LevelOptions {
-        new_events: match args.new_events {
-            NewEventsArg::Merge => level::NewEvents::SortMerge,
-            NewEventsArg::Bucket => level::NewEvents::Bucket,
+    let pipeline = Pipeline {
+        level: level::LevelOptions {
+            status: Some(status.clone()),
+            ..pipeline.level
         },
-        tiny_threshold: usize::from(args.tiny),
-        ..level::LevelOptions::default()
+        ..pipeline
     };
-    if let Some(b) = args.mem_budget {
-        options.mem_budget = b;
-    }
-    if let Some(d) = &args.scratch {
-        options.scratch_dir = d.clone();
-    }
-    // Under a budget the finishers take larger nodes, which saves levels
-    // of scratch traffic; `--small` overrides it.
-    options.small_threshold = args.small.unwrap_or_else(|| {
-        level::LevelOptions::small_threshold_for_budget(
-            options.mem_budget,
-            rayon::current_num_threads(),
-        )
-    });
-    options
+    (Progress::default(), status, pipeline)
 }
 
 /// The build bar's message for the level builder: the level, its open
@@ -302,7 +286,7 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats, v
     if let Some((p, r, ph)) = &built.slim {
         println!(
             "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}, cost ratio {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} by the price rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
-            built.preset.name(),
+            built.pipeline.preset.name(),
             p.tau_occu,
             p.tau_freq,
             p.max_t2rn,
@@ -385,8 +369,8 @@ pub(crate) fn cmd_build(
     args: &BuildArgs,
     output: Option<&Path>,
     reorder: bool,
-    ui: Out,
-) -> Res<()> {
+    ui: OutputFlags,
+) -> CmdResult<()> {
     args.check()?;
     if let Some(out) = output {
         check_output_dir(out)?;
@@ -395,13 +379,14 @@ pub(crate) fn cmd_build(
     let watch = PeakRss::start();
     pool.install(|| {
         let loaded = load(path, ui.bars_off())?;
+        let pipeline = pipeline_of(args, &loaded, reorder);
         if let Some(out) = output
-            && matches!(args.builder, BuilderArg::Level)
-            && args.slim(reorder).0.is_none()
+            && pipeline.algorithm == Algorithm::Level
+            && pipeline.slim.is_none()
         {
-            return build_streamed(&loaded, args, out, reorder, ui, &watch);
+            return build_streamed(&loaded, pipeline, out, ui, &watch);
         }
-        let built = build_tree(&loaded.scene, args, ui.bars_off(), reorder)?;
+        let built = build_tree(&loaded.scene, pipeline, ui.bars_off())?;
         write_and_print("build", &loaded, built, output, reorder, ui, &watch, None)
     })
 }
@@ -414,39 +399,35 @@ pub(crate) fn cmd_build(
 /// whole tree, so slim presets take that path.
 fn build_streamed(
     loaded: &Loaded,
-    args: &BuildArgs,
+    pipeline: Pipeline,
     out: &Path,
-    reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
-) -> Res<()> {
-    let (config, progress, status, options) = level_setup(args);
-    let write_options = write_options(loaded, &config, Preset::Std, None, reorder);
+) -> CmdResult<()> {
+    let (progress, status, pipeline) = with_status(pipeline);
     let start = Instant::now();
-    let mut stats = StatsSink::new(&config.sah);
+    let mut stats = StatsSink::new(&pipeline.config.sah);
     let mut built_s = 0.0;
-    let report = with_bar(
-        ui.bars_off(),
-        "building",
-        &progress,
-        &|| level_message(&status),
-        || {
-            format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> Res<_> {
-                let r = level::build_into(
+    let report =
+        with_bar(
+            ui.bars_off(),
+            "building",
+            &progress,
+            &|| level_message(&status),
+            || {
+                Ok(pipeline.build_into_file(
+                    out,
                     &loaded.scene,
-                    &config,
                     Some(&progress),
-                    &options,
-                    &mut (w, &mut stats),
-                )?;
-                built_s = start.elapsed().as_secs_f64();
-                Ok(r)
-            })
-        },
-    )?
-    .ok_or("the tree did not reach the file")?;
+                    &mut stats,
+                    || built_s = start.elapsed().as_secs_f64(),
+                )?)
+            },
+        )?
+        .ok_or("the tree did not reach the file")?;
     let seconds = start.elapsed().as_secs_f64();
-    let built = streamed_built(config, built_s, Some(report), "level");
+    let reorder = pipeline.reorder;
+    let built = streamed_built(pipeline, built_s, Some(report), "level");
     let streamed = (out, seconds - built_s, stats.finish());
     print_streamed("build", loaded, &built, streamed, reorder, ui, watch, None)
 }
@@ -454,18 +435,17 @@ fn build_streamed(
 /// A std tree that went straight into its file: its figures without the
 /// tree (`seconds` of building).
 fn streamed_built(
-    config: BuildConfig,
+    pipeline: Pipeline,
     seconds: f64,
     level: Option<level::LevelReport>,
     builder: &'static str,
 ) -> Built {
     Built {
         tree: TreeIr::default(),
-        config,
+        pipeline,
         seconds,
         std_seconds: seconds,
         slim: None,
-        preset: Preset::Std,
         level,
         builder,
     }
@@ -481,10 +461,10 @@ fn print_streamed(
     built: &Built,
     (out, write_s, stats): (&Path, f64, TreeStats),
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: Option<CellsJson>,
-) -> Res<()> {
+) -> CmdResult<()> {
     let file = open_kd(out, slimkd::format::Check::Full)?;
     let written = Some((out.to_path_buf(), file.figures(), write_s));
     print_built(
@@ -506,21 +486,27 @@ pub(crate) fn stitch_streamed(
     config: BuildConfig,
     out: &Path,
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: CellsJson,
     seconds: f64,
-) -> Res<()> {
-    let write_options = write_options(loaded, &config, Preset::Std, None, reorder);
+) -> CmdResult<()> {
+    let pipeline = Pipeline {
+        reorder,
+        scene_name: Some(loaded.name()),
+        ..Pipeline::new(config)
+    };
+    let write_options = pipeline.write_options(&loaded.scene);
     let start = Instant::now();
-    let mut stats = StatsSink::new(&config.sah);
-    let fed = format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> Res<_> {
-        Ok(slimkd::cells::stitch_dir_into(
-            dir,
-            plan,
-            &mut (w, &mut stats),
-        )?)
-    })?;
+    let mut stats = StatsSink::new(&pipeline.config.sah);
+    let fed =
+        format::write_file_streamed(out, &loaded.scene, &write_options, |w| -> CmdResult<_> {
+            Ok(slimkd::cells::stitch_dir_into(
+                dir,
+                plan,
+                &mut (w, &mut stats),
+            )?)
+        })?;
     if !fed {
         return Err(format!(
             "{}: the plan's cells are not leaves of its top tree in pre-order",
@@ -532,7 +518,7 @@ pub(crate) fn stitch_streamed(
     if ui.verbose && !ui.json {
         eprintln!("cells      stitched and written in {secs:.3} s");
     }
-    let built = streamed_built(config, seconds + secs, None, "level (cells)");
+    let built = streamed_built(pipeline, seconds + secs, None, "level (cells)");
     let streamed = (out, secs, stats.finish());
     print_streamed(
         command,
@@ -546,23 +532,6 @@ pub(crate) fn stitch_streamed(
     )
 }
 
-/// How `build -o` writes a tree of `loaded`'s scene.
-fn write_options(
-    loaded: &Loaded,
-    config: &BuildConfig,
-    preset: Preset,
-    slim: Option<&SlimParams>,
-    reorder: bool,
-) -> WriteOptions {
-    WriteOptions {
-        reorder,
-        config: FileConfig {
-            scene: SceneTag::new(&loaded.name(), &loaded.scene),
-            ..pipeline::file_config(config, loaded.scene.len(), preset, slim)
-        },
-    }
-}
-
 /// The end of `build` (and of `build --cells`, `stitch`): the tree
 /// written to `output` (if given) as `build -o` writes it, then its
 /// summary or JSON (under `command`, with the cells' figures if any).
@@ -573,22 +542,15 @@ pub(crate) fn write_and_print(
     mut built: Built,
     output: Option<&Path>,
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: Option<CellsJson>,
-) -> Res<()> {
-    let stats = TreeStats::of(&built.tree, &built.config.sah);
+) -> CmdResult<()> {
+    let stats = TreeStats::of(&built.tree, &built.pipeline.config.sah);
     let mut written = None;
     if let Some(out) = output {
         let start = Instant::now();
-        let options = write_options(
-            loaded,
-            &built.config,
-            built.preset,
-            built.slim.as_ref().map(|(p, _, _)| p),
-            reorder,
-        );
-        format::write_file(out, &built.tree, &loaded.scene, &options)?;
+        built.pipeline.write_file(out, &built.tree, &loaded.scene)?;
         let secs = start.elapsed().as_secs_f64();
         // Only figures are left to print: free the tree before the file
         // is mapped and checked, so that the two never add up.
@@ -613,10 +575,10 @@ fn print_built(
     stats: &TreeStats,
     written: Option<(PathBuf, format::TreeFigures, f64)>,
     reorder: bool,
-    ui: Out,
+    ui: OutputFlags,
     watch: &PeakRss,
     cells: Option<CellsJson>,
-) -> Res<()> {
+) -> CmdResult<()> {
     // The whole command: loading, building, writing.
     let (peak_anon, peak_file) = watch.peaks();
     let peak_anon = peak_anon.max(built.level.as_ref().map_or(0, |r| r.peak_rss_anon_bytes));

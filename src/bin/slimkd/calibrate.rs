@@ -1,10 +1,13 @@
 //! `slimkd calibrate`: the cost of a traversal step and of a ray–triangle
 //! test on this machine's traverser, fitted per scene and pooled
-//! ([`slimkd::stats::calibrate`]).
+//! ([`crate::lab::calibrate`]).
 
-use crate::*;
+use crate::args::{OutputFlags, Usage, parse_cost, parse_positive};
+use crate::build::load;
+use crate::json::print_json;
+use crate::lab::calibrate::{self as cal, Fit, Mode, SceneMeasurement};
+use crate::{CmdResult, DEFAULT_ARG, pool};
 use serde::Serialize;
-use slimkd::stats::calibrate::{self as cal, Fit, Mode, SceneMeasurement};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -210,7 +213,7 @@ impl Fits {
     }
 }
 
-pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: Out) -> Res<()> {
+pub(crate) fn cmd_calibrate(args: &CalibrateArgs, ui: OutputFlags) -> CmdResult<()> {
     let mut distinct = args.kt.clone();
     distinct.sort_by(f64::total_cmp);
     distinct.dedup();

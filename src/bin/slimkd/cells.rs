@@ -1,7 +1,11 @@
 //! `slimkd build --cells`, `build-cell` and `stitch`: a build in cells
 //! (`slimkd::cells`; the design is docs/cells.md).
 
-use crate::*;
+use crate::args::{BuildArgs, BuilderArg, CellsArgs, OutputFlags, Usage, check_output_dir};
+use crate::build::{PeakRss, build_config, load, pipeline_of, stitch_streamed};
+use crate::json::{BuildCellJson, CellJson, CellsJson, print_json};
+use crate::progress_bar::{si, with_bar};
+use crate::{CmdResult, pool};
 use slimkd::build::{BuildConfig, SahParams, level};
 use slimkd::cells::{self, CellMismatch, CellsError, Plan};
 use slimkd::format::SceneTag;
@@ -16,7 +20,7 @@ fn check_cells_usage(
     output: Option<&Path>,
     reorder: bool,
     cells: &CellsArgs,
-) -> Res<PathBuf> {
+) -> CmdResult<PathBuf> {
     args.check()?;
     if args.slim(reorder).0.is_some() {
         return Err(Usage(
@@ -55,8 +59,8 @@ pub(crate) fn cmd_build_cells(
     reorder: bool,
     k: usize,
     cells: &CellsArgs,
-    ui: Out,
-) -> Res<()> {
+    ui: OutputFlags,
+) -> CmdResult<()> {
     let dir = check_cells_usage(args, output, reorder, cells)?;
     if output.is_none() && !cells.plan_only {
         return Err(Usage("--cells needs -o (or --plan-only)".into()).into());
@@ -66,7 +70,8 @@ pub(crate) fn cmd_build_cells(
     pool.install(|| {
         let loaded = load(path, ui.bars_off())?;
         let config = build_config(args);
-        let options = level_options(args);
+        // The reordering does not enter the level build.
+        let options = pipeline_of(args, &loaded, false).level_options();
         // The plan's cut depends on the small-node threshold, so the plan
         // takes the default one (or `--small`), not the budget's: a plan
         // then resumes under any budget. The cells build with `options`.
@@ -121,9 +126,9 @@ fn build_missing(
     plan: &Plan,
     done: &[bool],
     options: &level::LevelOptions,
-    ui: Out,
+    ui: OutputFlags,
     times: &mut [Option<f64>],
-) -> Res<()> {
+) -> CmdResult<()> {
     use rayon::prelude::*;
     let todo: Vec<usize> = (0..plan.cells.len()).filter(|&i| !done[i]).collect();
     let finished = AtomicUsize::new(0);
@@ -183,8 +188,8 @@ pub(crate) fn cmd_build_cell(
     cell: &Path,
     output: Option<&Path>,
     threads: Option<usize>,
-    ui: Out,
-) -> Res<()> {
+    ui: OutputFlags,
+) -> CmdResult<()> {
     let output = output.map_or_else(|| cell.with_extension("kdpart"), Path::to_path_buf);
     check_output_dir(&output)?;
     let pool = pool(threads)?;
@@ -237,8 +242,8 @@ pub(crate) fn cmd_stitch(
     output: &Path,
     reorder: bool,
     threads: Option<usize>,
-    ui: Out,
-) -> Res<()> {
+    ui: OutputFlags,
+) -> CmdResult<()> {
     check_output_dir(output)?;
     let pool = pool(threads)?;
     let watch = PeakRss::start();

@@ -1,6 +1,10 @@
 //! `slimkd info`, `verify` and `convert`.
 
-use crate::*;
+use crate::CmdResult;
+use crate::args::{OutputFlags, Usage, check_output_dir};
+use crate::build::load;
+use crate::json::{FileJson, SceneJson, print_json};
+use crate::render::{expect_kd, open_kd};
 use serde::Serialize;
 use slimkd::format::{self, Section};
 use slimkd::scene::{self};
@@ -76,7 +80,7 @@ struct VerifyJson {
     sections: Vec<SectionJson>,
 }
 
-pub(crate) fn cmd_convert(scene: &Path, output: &Path, ui: Out) -> Res<()> {
+pub(crate) fn cmd_convert(scene: &Path, output: &Path, ui: OutputFlags) -> CmdResult<()> {
     if !scene::is_scene_cache(output) {
         return Err(Usage(format!(
             "{}: a scene cache's name must end in .kds (that is how commands recognise it)",
@@ -124,7 +128,7 @@ pub(crate) fn cmd_convert(scene: &Path, output: &Path, ui: Out) -> Res<()> {
     Ok(())
 }
 
-pub(crate) fn cmd_info(path: &Path, ui: Out) -> Res<()> {
+pub(crate) fn cmd_info(path: &Path, ui: OutputFlags) -> CmdResult<()> {
     expect_kd(path, "info")?;
     let start = Instant::now();
     let file = open_kd(path, format::Check::Header)?;
@@ -288,7 +292,7 @@ fn print_sections<D: AsRef<[u8]>>(file: &format::KdFile<D>) {
     }
 }
 
-pub(crate) fn cmd_verify(path: &Path, ui: Out) -> Res<()> {
+pub(crate) fn cmd_verify(path: &Path, ui: OutputFlags) -> CmdResult<()> {
     expect_kd(path, "verify")?;
     let start = Instant::now();
     let file = open_kd(path, format::Check::Verify)?;

@@ -2,10 +2,12 @@
 //! commands that print the same quantity, so that a key means one thing
 //! everywhere (docs/json-schema.md lists every key, its meaning and unit).
 
-use crate::*;
+use crate::CmdResult;
+use crate::build::{Built, Loaded};
+use crate::lab::figures::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
+use crate::lab::report;
 use serde::Serialize;
-use slimkd::pipeline::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
-use slimkd::stats::{TreeStats, report};
+use slimkd::stats::TreeStats;
 
 /// One command's object: `schema` and `command` first, then its parts.
 #[derive(Serialize)]
@@ -17,7 +19,7 @@ pub(crate) struct Doc<T: Serialize> {
 }
 
 /// Prints `body` as the one JSON object of `command`.
-pub(crate) fn print_json<T: Serialize>(command: &'static str, body: T) -> Res<()> {
+pub(crate) fn print_json<T: Serialize>(command: &'static str, body: T) -> CmdResult<()> {
     let doc = Doc {
         schema: JSON_SCHEMA,
         command,
@@ -147,11 +149,11 @@ impl BuildJson {
             builder: built.builder,
             build_s: built.seconds,
             std_build_s: built.std_seconds,
-            k_t: built.config.sah.k_t,
-            k_i: built.config.sah.k_i,
-            lambda_empty: built.config.sah.lambda_empty,
-            split_price: built.config.sah.split_price,
-            preset: built.preset.name(),
+            k_t: built.pipeline.config.sah.k_t,
+            k_i: built.pipeline.config.sah.k_i,
+            lambda_empty: built.pipeline.config.sah.lambda_empty,
+            split_price: built.pipeline.config.sah.split_price,
+            preset: built.pipeline.preset.name(),
             hoisted: slim.map_or(0, |(_, r, _)| r.hoisted),
             tau_occu: slim.map(|(p, _, _)| p.tau_occu),
             tau_freq: slim.map(|(p, _, _)| p.tau_freq),
@@ -351,7 +353,7 @@ impl AoJson {
     ) -> AoJson {
         use slimkd::render::AoTimes;
         let med = |f: fn(&AoTimes) -> f64| {
-            1e3 * slimkd::pipeline::median(&reps.iter().map(f).collect::<Vec<_>>())
+            1e3 * crate::lab::figures::median(&reps.iter().map(f).collect::<Vec<_>>())
         };
         let t = reps[0];
         AoJson {

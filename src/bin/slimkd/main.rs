@@ -10,6 +10,7 @@ mod calibrate;
 mod cells;
 mod info;
 mod json;
+mod lab;
 mod main_job;
 mod progress_bar;
 mod render;
@@ -17,17 +18,14 @@ mod report;
 mod sweep;
 mod trace;
 
+use crate::args::{BuildArgs, Cli, Command, OutputFlags, Usage, check_output_dir};
+use crate::build::cmd_build;
+use crate::info::{cmd_convert, cmd_info, cmd_verify};
+use crate::render::cmd_render;
+use crate::report::cmd_report;
 use clap::parser::ValueSource;
 use clap::{Args, CommandFactory, FromArgMatches};
 use std::process::ExitCode;
-
-use args::*;
-use build::*;
-use info::*;
-use json::*;
-use progress_bar::*;
-use render::*;
-use report::*;
 
 /// The embedded default scene: nexuiz_dieselpower (see scenes/README.md).
 pub(crate) const DEFAULT_SCENE_NAME: &str = "nexuiz_dieselpower.obj";
@@ -36,10 +34,11 @@ pub(crate) const DEFAULT_VIEWS: &str = include_str!("../../../scenes/views.txt")
 /// The name that selects the embedded scene on the command line.
 pub(crate) const DEFAULT_ARG: &str = "default";
 
-pub(crate) type Res<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
+/// What a command returns: its error, if any, is printed by `main`.
+pub(crate) type CmdResult<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
 
 /// The views of a views file (errors name it), or the embedded ones.
-pub(crate) fn read_views(file: Option<&std::path::Path>) -> Res<Vec<slimkd::render::View>> {
+pub(crate) fn read_views(file: Option<&std::path::Path>) -> CmdResult<Vec<slimkd::render::View>> {
     let Some(file) = file else {
         return Ok(slimkd::render::parse_views(DEFAULT_VIEWS)?);
     };
@@ -235,7 +234,7 @@ fn given_build_flags(sub: &clap::ArgMatches) -> Vec<String> {
 }
 
 /// `slimkd trace`, its usage checked first.
-fn cmd_trace(args: &trace::TraceArgs, ui: Out) -> Res<()> {
+fn cmd_trace(args: &trace::TraceArgs, ui: OutputFlags) -> CmdResult<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
@@ -261,7 +260,7 @@ fn cmd_trace(args: &trace::TraceArgs, ui: Out) -> Res<()> {
 }
 
 /// A thread pool of `threads` workers; `None` or 0: one per core.
-pub(crate) fn pool(threads: Option<usize>) -> Res<rayon::ThreadPool> {
+pub(crate) fn pool(threads: Option<usize>) -> CmdResult<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(n) = threads {
         b = b.num_threads(n);

@@ -5,12 +5,17 @@
 //! renderer would (primary rays, a shadow ray and AO rays per hit, the
 //! time by ray kind), and that picture goes to `slimkd.png`.
 
-use crate::*;
+use crate::args::OutputFlags;
+use crate::build::{Loaded, build_tree, load, print_scene_line, print_summary};
+use crate::json::{AoJson, SceneJson, print_json};
+use crate::lab::figures::{self, FiguresJson};
+use crate::render::open_kd;
+use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE_NAME, DEFAULT_VIEWS};
 use slimkd::build::BuildConfig;
-use slimkd::format::{self, FileConfig, Preset, SceneTag, WriteOptions};
-use slimkd::pipeline::{self, FiguresJson};
+use slimkd::format::{self, Preset};
+use slimkd::pipeline::Pipeline;
 use slimkd::render::{self, AoFrame, AoOptions, Camera, HitBuffer, Secondary};
-use slimkd::slim::{self, SlimParams};
+use slimkd::slim::SlimParams;
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::tree::TreeIr;
@@ -35,7 +40,7 @@ const AO: AoOptions = AoOptions {
 struct TempDir(PathBuf);
 
 impl TempDir {
-    fn new() -> Res<TempDir> {
+    fn new() -> CmdResult<TempDir> {
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos());
@@ -106,7 +111,7 @@ fn same_hits(a: &HitBuffer, b: &HitBuffer) -> bool {
 }
 
 /// The embedded scene's view 1 (the default camera if it had none).
-fn camera(bounds: &slimkd::geom::Aabb) -> Res<Camera> {
+fn camera(bounds: &slimkd::geom::Aabb) -> CmdResult<Camera> {
     let views = render::parse_views(DEFAULT_VIEWS)?;
     let cam = match render::find_view(&views, Path::new(DEFAULT_SCENE_NAME), "1") {
         Some(v) => Camera::from_view(v, SIZE.0, SIZE.1),
@@ -124,22 +129,13 @@ fn write_and_trace(
     name: &'static str,
     tree: &TreeIr,
     loaded: &Loaded,
-    config: &BuildConfig,
-    preset: Preset,
-    params: Option<&SlimParams>,
+    pipeline: &Pipeline,
     camera: &Camera,
     ao: Option<&AoOptions>,
-) -> Res<Row> {
+) -> CmdResult<Row> {
     let path = dir.join(format!("{name}.kd"));
     let start = Instant::now();
-    let options = WriteOptions {
-        reorder: true,
-        config: FileConfig {
-            scene: SceneTag::new(&loaded.name(), &loaded.scene),
-            ..pipeline::file_config(config, loaded.scene.len(), preset, params)
-        },
-    };
-    format::write_file(&path, tree, &loaded.scene, &options)?;
+    pipeline.write_file(&path, tree, &loaded.scene)?;
     let write_s = start.elapsed().as_secs_f64();
     let file = open_kd(&path, slimkd::format::Check::Header)?;
     let tracer = PacketTracer::new(&file);
@@ -164,14 +160,14 @@ fn write_and_trace(
         name,
         ao,
         figures: file.figures(),
-        mrays: pipeline::median(&rates),
+        mrays: figures::median(&rates),
         frame: last.expect("REPS >= 1"),
         write_s,
     })
 }
 
 /// The main job; `-v` adds the build's phase times and memory.
-pub(crate) fn main_job(ui: Out) -> Res<()> {
+pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
     let verbose = ui.verbose;
     let text = !(ui.quiet || ui.json);
     // The text lines, which -q and --json leave out.
@@ -182,32 +178,14 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
             }
         };
     }
-    let args = BuildArgs {
-        builder: BuilderArg::Level,
-        mem_budget: None,
-        scratch: None,
-        new_events: NewEventsArg::Merge,
-        tiny: slimkd::build::level::DEFAULT_TINY_THRESHOLD as u8,
-        small: None,
-        threads: None,
-        max_depth: None,
-        kt: slimkd::build::sah::SahParams::default().k_t,
-        ki: slimkd::build::sah::SahParams::default().k_i,
-        lambda: slimkd::build::sah::SahParams::default().lambda_empty,
-        split_price: slimkd::build::sah::SahParams::default().split_price,
-        preset: PresetArg::Std,
-        tau_occu: None,
-        tau_freq: None,
-        max_t2rn: None,
-        coarsen: None,
-        cost_ratio: None,
-        hoist_rule: HoistRuleArg::Bytes,
-        given: Vec::new(),
-    };
     let dir = TempDir::new()?;
     let loaded = load(Path::new(DEFAULT_ARG), ui.bars_off())?;
-    let built = build_tree(&loaded.scene, &args, ui.bars_off(), true)?;
-    let stats = TreeStats::of(&built.tree, &built.config.sah);
+    let pipeline = Pipeline {
+        scene_name: Some(loaded.name()),
+        ..Pipeline::new(BuildConfig::default())
+    };
+    let built = build_tree(&loaded.scene, pipeline, ui.bars_off())?;
+    let stats = TreeStats::of(&built.tree, &built.pipeline.config.sah);
     if !text {
     } else if verbose {
         print_summary(&loaded, &built, &stats, true);
@@ -226,9 +204,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         "std",
         &built.tree,
         &loaded,
-        &built.config,
-        Preset::Std,
-        None,
+        &built.pipeline,
         &camera,
         Some(&AO),
     )?];
@@ -237,8 +213,10 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
         ("fast", Preset::Fast, SlimParams::FAST),
     ] {
         let start = Instant::now();
-        let (tree, report, phases) =
-            slim::slim_with_phases(&built.tree, &loaded.scene, &built.config, &params);
+        let pipeline = built.pipeline.slimmed(Some(params), preset);
+        let (tree, report, phases) = pipeline
+            .slim(&built.tree, &loaded.scene, None)
+            .expect("the pipeline has a slim pass");
         let slim_s = start.elapsed().as_secs_f64();
         say!(
             "slim       {name} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted in {slim_s:.3} s",
@@ -258,15 +236,7 @@ pub(crate) fn main_job(ui: Out) -> Res<()> {
             );
         }
         rows.push(write_and_trace(
-            &dir.0,
-            name,
-            &tree,
-            &loaded,
-            &built.config,
-            preset,
-            Some(&params),
-            &camera,
-            None,
+            &dir.0, name, &tree, &loaded, &pipeline, &camera, None,
         )?);
     }
     let n = loaded.scene.len().max(1) as f64;

@@ -4,7 +4,7 @@
 //! terminal's width (the message is cut, never wrapped), and estimates the
 //! time left; what is ours is when it appears and what it counts.
 
-use crate::*;
+use crate::CmdResult;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use slimkd::progress::Progress;
 use std::sync::mpsc::{self, RecvTimeoutError};
@@ -57,9 +57,31 @@ pub(crate) fn with_bar<T: Send>(
     label: &str,
     progress: &Progress,
     message: &(dyn Fn() -> String + Sync),
-    work: impl FnOnce() -> Res<T> + Send,
-) -> Res<T> {
+    work: impl FnOnce() -> CmdResult<T> + Send,
+) -> CmdResult<T> {
     with_bar_lines(quiet, label, progress, message, |_| work())
+}
+
+/// [`with_bar_lines`] for a job of announced steps (`report`, `sweep`):
+/// one bar over all of them; each line `work` logs goes above it with the
+/// seconds since the start, and the last one is the bar's message.
+pub(crate) fn with_step_log<T: Send>(
+    quiet: bool,
+    label: &str,
+    work: impl FnOnce(&Progress, &mut dyn FnMut(&str)) -> CmdResult<T> + Send,
+) -> CmdResult<T> {
+    let start = Instant::now();
+    let progress = Progress::default();
+    let current = std::sync::Mutex::new(String::new());
+    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
+    with_bar_lines(quiet, label, &progress, &message, |lines| {
+        work(&progress, &mut |line| {
+            if let Ok(mut m) = current.lock() {
+                line.clone_into(&mut m);
+            }
+            lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
+        })
+    })
 }
 
 /// [`with_bar`] for a job that also prints lines: what `work` sends to its
@@ -70,8 +92,8 @@ pub(crate) fn with_bar_lines<T: Send>(
     label: &str,
     progress: &Progress,
     message: &(dyn Fn() -> String + Sync),
-    work: impl FnOnce(&Lines) -> Res<T> + Send,
-) -> Res<T> {
+    work: impl FnOnce(&Lines) -> CmdResult<T> + Send,
+) -> CmdResult<T> {
     let start = Instant::now();
     // Inside a pool, its size; outside, rayon's default, without starting
     // the global pool (which panics where it cannot start its threads).
@@ -83,11 +105,11 @@ pub(crate) fn with_bar_lines<T: Send>(
         // The worker sends its result, so that this thread wakes the moment
         // it is done (a plain sleep between polls added up to a poll's
         // interval to every timed build).
-        let (done, result) = mpsc::channel::<Res<T>>();
+        let (done, result) = mpsc::channel::<CmdResult<T>>();
         let (line_tx, line_rx) = mpsc::channel::<String>();
         let worker = std::thread::Builder::new().spawn_scoped(s, move || {
             let lines = Lines(line_tx);
-            let run = || -> Res<T> {
+            let run = || -> CmdResult<T> {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(pool_threads)
                     .build()

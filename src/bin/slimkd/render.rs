@@ -1,9 +1,19 @@
 //! `slimkd render` and the main job's render: the camera, the source of
 //! the tree (built or a mapped file), frames and their figures.
 
-use crate::*;
+use crate::args::{
+    ModeArg, OutputFlags, RenderArgs, SecondaryArg, ShadingArg, Usage, check_image_output,
+    check_output_dir,
+};
+use crate::build::{Built, Loaded, build_tree, load, pipeline_of, print_summary};
+use crate::json::{
+    AoJson, BuildJson, BuiltJson, FileJson, FrameJson, RenderCmdJson, RenderSourceJson, SceneJson,
+    TreeJson, print_json,
+};
+use crate::lab::figures;
+use crate::progress_bar::with_bar;
+use crate::{CmdResult, DEFAULT_ARG, pool};
 use slimkd::format::{self, Check, KdFile, Mapped};
-use slimkd::pipeline;
 use slimkd::progress::Progress;
 use slimkd::render::{
     self, AoFrame, AoOptions, AoTimes, Camera, HitBuffer, Secondary, Shading, View,
@@ -22,7 +32,7 @@ pub(crate) fn is_kd_file(path: &Path) -> bool {
 /// Refuses a scene given to `command`, which reads a `.kd` tree file,
 /// saying what it is (by its magic bytes or name) rather than what its
 /// first bytes are not.
-pub(crate) fn expect_kd(path: &Path, command: &str) -> Res<()> {
+pub(crate) fn expect_kd(path: &Path, command: &str) -> CmdResult<()> {
     if is_kd_file(path) {
         return Ok(());
     }
@@ -44,7 +54,7 @@ pub(crate) static NO_MMAP: std::sync::atomic::AtomicBool =
 
 /// Maps (or with `--no-mmap` reads) a `.kd` file and checks it as `check`
 /// says; every error names the file once.
-pub(crate) fn open_kd(path: &Path, check: Check) -> Res<KdFile<Mapped>> {
+pub(crate) fn open_kd(path: &Path, check: Check) -> CmdResult<KdFile<Mapped>> {
     let opened = if NO_MMAP.load(std::sync::atomic::Ordering::Relaxed) {
         KdFile::read(path, check)
     } else {
@@ -66,7 +76,7 @@ pub(crate) fn camera_for(
     scene_path: &Path,
     recorded: Option<&str>,
     bounds: &slimkd::geom::Aabb,
-) -> Res<Camera> {
+) -> CmdResult<Camera> {
     let (w, h) = args.size;
     let mut cam = Camera::default_for(bounds, w, h);
     if let Some(id) = &args.view {
@@ -131,7 +141,7 @@ pub(crate) enum Source {
     },
 }
 
-pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
+pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
@@ -187,8 +197,9 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
         } else {
             let loaded = load(&args.scene, ui.bars_off())?;
             // Not written: bytes are counted as in a reordered file.
-            let built = build_tree(&loaded.scene, &args.build, ui.bars_off(), true)?;
-            let stats = TreeStats::of(&built.tree, &built.config.sah);
+            let pipeline = pipeline_of(&args.build, &loaded, true);
+            let built = build_tree(&loaded.scene, pipeline, ui.bars_off())?;
+            let stats = TreeStats::of(&built.tree, &built.pipeline.config.sah);
             Source::Built {
                 loaded,
                 built: Box::new(built),
@@ -294,7 +305,7 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: Out) -> Res<()> {
         if let Some(out) = &args.dump_t {
             render::write_depth_f32(out, &frame)?;
         }
-        let mrays = pipeline::median(&rates);
+        let mrays = figures::median(&rates);
         let mode = args.mode.name();
         let simd = if args.mode == ModeArg::Packet {
             SimdLevel::detect().name()

@@ -1,9 +1,11 @@
 //! `slimkd report`: the paper's tables and figures.
 
-use crate::*;
-use slimkd::progress::Progress;
-use slimkd::stats::report;
-use std::time::Instant;
+use crate::CmdResult;
+use crate::args::{OutputFlags, ReportArgs, Usage, check_output_dir};
+use crate::build::load_all;
+use crate::json::print_json;
+use crate::lab::report;
+use crate::progress_bar::with_step_log;
 
 /// `slimkd report --json`: the files written; the figures are in the
 /// report's own JSON file.
@@ -15,12 +17,12 @@ struct ReportCmdJson {
     reps: usize,
 }
 
-pub(crate) fn cmd_report(args: &ReportArgs, ui: Out) -> Res<()> {
+pub(crate) fn cmd_report(args: &ReportArgs, ui: OutputFlags) -> CmdResult<()> {
     // The output's name and directory, before any work.
     report::ReportPaths::for_markdown(&args.output).map_err(|e| Usage(e.to_string()))?;
     check_output_dir(&args.output)?;
-    let views = crate::read_views(args.views.as_deref())?;
-    let scenes: Vec<_> = load_all(&args.scenes, ui)?
+    let views = crate::read_views(args.timed.views.as_deref())?;
+    let scenes: Vec<_> = load_all(&args.timed.scenes, ui)?
         .into_iter()
         .map(|loaded| (loaded.name(), loaded.scene, loaded.seconds))
         .collect();
@@ -32,30 +34,15 @@ pub(crate) fn cmd_report(args: &ReportArgs, ui: Out) -> Res<()> {
     let options = report::ReportOptions {
         scenes,
         views,
-        size: args.size,
-        reps: args.reps,
+        size: args.timed.size,
+        reps: args.timed.reps,
         sweep: args.sweep,
         all_threads,
         sweep_grid: None,
         rule: args.hoist_rule.rule(true),
     };
-    let start = Instant::now();
-    // One bar over all the report's steps; each step's line goes above it,
-    // and the last one is its message.
-    let progress = Progress::default();
-    let current = std::sync::Mutex::new(String::new());
-    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
-    let report = with_bar_lines(ui.bars_off(), "report", &progress, &message, |lines| {
-        Ok(report::run_with_progress(
-            &options,
-            Some(&progress),
-            &mut |line| {
-                if let Ok(mut m) = current.lock() {
-                    line.clone_into(&mut m);
-                }
-                lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
-            },
-        )?)
+    let report = with_step_log(ui.bars_off(), "report", |progress, log| {
+        Ok(report::run_with_progress(&options, Some(progress), log)?)
     })?;
     let written = report
         .write(&args.output)

@@ -1,30 +1,24 @@
 //! `slimkd sweep`: the trade-off front of tree bytes against trace time
-//! over families of settings ([`slimkd::stats::report::run_front`]).
+//! over families of settings ([`crate::lab::report::front::run_front`]).
 
-use crate::*;
-use slimkd::progress::Progress;
-use slimkd::stats::report;
+use crate::CmdResult;
+use crate::args::{OutputFlags, TimedScenesArgs, parse_positive};
+use crate::build::load_all;
+use crate::json::print_json;
+use crate::lab::report;
+use crate::progress_bar::with_step_log;
 use std::path::PathBuf;
-use std::time::Instant;
 
 #[derive(clap::Args)]
+#[command(
+    mut_arg("scenes", |a| a.help("OBJ files or scene caches (.kds), or `default` (the embedded scene)")),
+    mut_arg("views", |a| a.help("Views file; each scene is matched by its name, the file's stem (views 1–3). Without it the embedded views are used; a scene without views is traced from the default camera")),
+    mut_arg("size", |a| a.help("Frame size WxH of every view")),
+    mut_arg("reps", |a| a.help("Timed rounds after a warm-up (at least 1); min, median and max are kept")),
+)]
 pub(crate) struct SweepArgs {
-    /// OBJ files or scene caches (.kds), or `default` (the embedded
-    /// scene).
-    #[arg(required = true)]
-    pub(crate) scenes: Vec<PathBuf>,
-    /// Views file; each scene is matched by its name, the file's stem
-    /// (views 1–3). Without it the embedded views are used; a scene
-    /// without views is traced from the default camera.
-    #[arg(long)]
-    pub(crate) views: Option<PathBuf>,
-    /// Frame size WxH of every view.
-    #[arg(long, value_parser = parse_size, default_value = "512x512")]
-    pub(crate) size: (u32, u32),
-    /// Timed rounds after a warm-up (at least 1); min, median and max are
-    /// kept.
-    #[arg(long, default_value_t = 9, value_parser = parse_positive)]
-    pub(crate) reps: usize,
+    #[command(flatten)]
+    pub(crate) timed: TimedScenesArgs,
     /// Threads of the builds and the tracing (at least 1). The default, 2,
     /// keeps the figures comparable across machines and with the
     /// measurements in docs/perf-notes.md.
@@ -45,36 +39,27 @@ struct SweepCmdJson {
     sweep: serde_json::Value,
 }
 
-pub(crate) fn cmd_sweep(args: &SweepArgs, ui: Out) -> Res<()> {
+pub(crate) fn cmd_sweep(args: &SweepArgs, ui: OutputFlags) -> CmdResult<()> {
     match std::fs::metadata(&args.output) {
         Ok(m) if m.is_dir() => {}
         Ok(_) => return Err(format!("{}: not a directory", args.output.display()).into()),
         Err(e) => return Err(format!("{}: {e}", args.output.display()).into()),
     }
-    let views = crate::read_views(args.views.as_deref())?;
-    let scenes: Vec<_> = load_all(&args.scenes, ui)?
+    let views = crate::read_views(args.timed.views.as_deref())?;
+    let scenes: Vec<_> = load_all(&args.timed.scenes, ui)?
         .into_iter()
         .map(|loaded| (loaded.name(), loaded.scene))
         .collect();
-    let options = report::FrontOptions {
+    let options = report::front::FrontOptions {
         scenes,
         views,
-        size: args.size,
-        reps: args.reps,
+        size: args.timed.size,
+        reps: args.timed.reps,
         threads: args.threads,
         grid: None,
     };
-    let start = Instant::now();
-    let progress = Progress::default();
-    let current = std::sync::Mutex::new(String::new());
-    let message = || current.lock().map(|m| m.clone()).unwrap_or_default();
-    let sweep = with_bar_lines(ui.bars_off(), "sweep", &progress, &message, |lines| {
-        Ok(report::run_front(&options, Some(&progress), &mut |line| {
-            if let Ok(mut m) = current.lock() {
-                line.clone_into(&mut m);
-            }
-            lines.line(format!("[{:7.1} s] {line}", start.elapsed().as_secs_f64()));
-        })?)
+    let sweep = with_step_log(ui.bars_off(), "sweep", |progress, log| {
+        Ok(report::front::run_front(&options, Some(progress), log)?)
     })?;
     let written = sweep
         .write(&args.output)

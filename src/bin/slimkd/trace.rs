@@ -11,7 +11,9 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use crate::{Out, Res, print_json};
+use crate::CmdResult;
+use crate::args::OutputFlags;
+use crate::json::print_json;
 
 #[derive(clap::Args)]
 pub struct TraceArgs {
@@ -83,7 +85,7 @@ struct TraceStatsJson {
     lanes_per_step: f64,
 }
 
-pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> {
+pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> CmdResult<()> {
     if args.reps == 0 {
         return Err("--reps must be at least 1".into());
     }
@@ -155,7 +157,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: Out, pool: rayon::ThreadPool) -> Res<()> 
             },
         )?;
     }
-    let mrays = slimkd::pipeline::median(&rates);
+    let mrays = crate::lab::figures::median(&rates);
     let simd = if packets {
         packet.level().name()
     } else {

@@ -3,7 +3,7 @@
 //! as `null` (serde_json's rule for `f64`).
 
 use super::*;
-use crate::pipeline::{FiguresJson, JSON_SCHEMA};
+use crate::lab::figures::{FiguresJson, JSON_SCHEMA};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -276,7 +276,7 @@ fn scene_json(s: &SceneReport) -> SceneJson<'_> {
                 figures: FiguresJson::of(&r.figures),
                 tree: r.tree.name(),
                 mib: r.figures.tree_bytes() as f64 / MIB,
-                paper_layout_bytes: crate::stats::bytes::paper_layout_bytes_of(&r.figures),
+                paper_layout_bytes: slimkd::stats::bytes::paper_layout_bytes_of(&r.figures),
                 reduction_pct: s.reduction_pct(r.tree),
                 reduction_vs_classic_pct: s.reduction_vs_classic_pct(r.tree),
                 hoisted: r.hoisted,

@@ -1,9 +1,46 @@
 //! The tables' measurements: Table 1 from a tree, Table 3(b) over the
 //! views, and one point of the Figure 5 sweep.
 
-use super::run::{Pools, write_tree};
 use super::*;
-use crate::pipeline::file_config;
+use slimkd::pipeline::Pipeline;
+
+/// The two thread pools: one thread and all threads.
+pub(super) struct Pools {
+    pub(super) one: rayon::ThreadPool,
+    pub(super) all: rayon::ThreadPool,
+}
+
+impl Pools {
+    pub(super) fn get(&self, all: bool) -> &rayon::ThreadPool {
+        if all { &self.all } else { &self.one }
+    }
+}
+
+/// A tree written and opened again.
+pub(super) struct Written {
+    pub(super) file: KdFile<AlignedBytes>,
+    pub(super) seconds: f64,
+}
+
+/// Serialises a tree (reordered) and opens the bytes.
+pub(super) fn write_tree(
+    name: &str,
+    label: &str,
+    tree: &TreeIr,
+    scene: &TriangleColumns,
+    pipeline: &Pipeline,
+) -> Result<Written, ReportError> {
+    let err = |source| ReportError::Format {
+        scene: name.to_string(),
+        tree: label.to_string(),
+        source,
+    };
+    let start = Instant::now();
+    let bytes = format::write_to_vec(tree, scene, &pipeline.write_options(scene)).map_err(err)?;
+    let seconds = start.elapsed().as_secs_f64();
+    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).map_err(err)?;
+    Ok(Written { file, seconds })
+}
 
 /// Table 1 for a tree: how many leaves hold each triangle, in intervals.
 pub fn duplication(tree: &TreeIr, scene: &TriangleColumns) -> Duplication {
@@ -167,23 +204,19 @@ pub(super) fn sweep_point(
     scene: &TriangleColumns,
     std_tree: &TreeIr,
     std_file: &KdFile<AlignedBytes>,
-    config: &BuildConfig,
+    pipeline: &Pipeline,
     params: SlimParams,
     cams: &[(String, Camera)],
     pools: &Pools,
     reps: usize,
 ) -> Result<SweepPoint, ReportError> {
     let start = Instant::now();
-    let (tree, slim_report) = pools
-        .all
-        .install(|| slim::slim(std_tree, scene, config, &params));
+    let pipeline = pipeline.slimmed(Some(params), Preset::Custom);
+    let slimmed = pools.all.install(|| pipeline.slim(std_tree, scene, None));
+    let (tree, slim_report, _) = slimmed.expect("the pipeline has a slim pass");
     let slim_s = start.elapsed().as_secs_f64();
     let label = format!("τ_occu {} τ_freq {}", params.tau_occu, params.tau_freq);
-    let cfg = FileConfig {
-        scene: SceneTag::new(name, scene),
-        ..file_config(config, scene.len(), Preset::Custom, Some(&params))
-    };
-    let written = write_tree(name, &label, &tree, scene, cfg)?;
+    let written = write_tree(name, &label, &tree, scene, &pipeline)?;
     drop(tree);
     let std_tracer = PacketTracer::new(std_file);
     let tracer = PacketTracer::new(&written.file);

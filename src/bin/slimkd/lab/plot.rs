@@ -13,23 +13,11 @@ use plotters::coord::Shift;
 use plotters::coord::types::RangedCoordf64;
 use plotters::element::DashedPathElement;
 use plotters::prelude::*;
-use std::fmt;
 
-/// A chart that could not be drawn.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct PlotError(pub String);
-
-impl fmt::Display for PlotError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "cannot draw the chart: {}", self.0)
-    }
-}
-
-impl std::error::Error for PlotError {}
-
-fn plot_err(e: impl fmt::Display) -> PlotError {
-    PlotError(e.to_string())
-}
+/// A chart that could not be drawn: the error of its SVG drawing area.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot draw the chart: {0}")]
+pub struct PlotError(#[from] DrawingAreaErrorKind<std::io::Error>);
 
 /// A chart of `f64` against `f64` drawn into an SVG string.
 type Chart<'a, 'b> = ChartContext<'a, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
@@ -48,8 +36,8 @@ fn draw_mesh(
         .x_label_formatter(&|x| format!("{x:.xd$}"))
         .y_label_formatter(&|y| format!("{y:.yd$}"))
         .light_line_style(WHITE.mix(0.0))
-        .draw()
-        .map_err(plot_err)
+        .draw()?;
+    Ok(())
 }
 
 /// A whole-figure chart on `root` (filled white): the caption, the plot
@@ -62,15 +50,14 @@ fn figure_chart<'a, 'b>(
     (xs, ys): (std::ops::Range<f64>, std::ops::Range<f64>),
     axes: (&str, &str),
 ) -> Result<Chart<'a, 'b>, PlotError> {
-    root.fill(&WHITE).map_err(plot_err)?;
+    root.fill(&WHITE)?;
     let decimals = (tick_decimals(&xs), tick_decimals(&ys));
     let mut chart = ChartBuilder::on(root)
         .caption(title, ("sans-serif", 18))
         .margin(16)
         .x_label_area_size(44)
         .y_label_area_size(y_label)
-        .build_cartesian_2d(xs, ys)
-        .map_err(plot_err)?;
+        .build_cartesian_2d(xs, ys)?;
     draw_mesh(&mut chart, axes, decimals)?;
     Ok(chart)
 }
@@ -85,8 +72,8 @@ fn draw_legend<'a, 'b: 'a>(
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .position(position)
-        .draw()
-        .map_err(plot_err)
+        .draw()?;
+    Ok(())
 }
 
 /// One point of a scatter plot with the text written next to it.
@@ -192,12 +179,10 @@ pub fn scatter_svg(
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
         let mut chart = figure_chart(&root, title, 56, (xs, ys), (x_desc, y_desc))?;
         let zero = BLACK.mix(0.5).stroke_width(1);
-        chart
-            .draw_series([
-                PathElement::new(vec![(0.0, y0), (0.0, y1)], zero),
-                PathElement::new(vec![(x0, 0.0), (x1, 0.0)], zero),
-            ])
-            .map_err(plot_err)?;
+        chart.draw_series([
+            PathElement::new(vec![(0.0, y0), (0.0, y1)], zero),
+            PathElement::new(vec![(x0, 0.0), (x1, 0.0)], zero),
+        ])?;
         for (i, s) in series.iter().enumerate() {
             let c = colour(i);
             let bars = s.points.iter().filter(finite).filter_map(|p| {
@@ -205,21 +190,20 @@ pub fn scatter_svg(
                 (lo.is_finite() && hi.is_finite())
                     .then(|| PathElement::new(vec![(p.x, lo), (p.x, hi)], c.stroke_width(1)))
             });
-            chart.draw_series(bars).map_err(plot_err)?;
+            chart.draw_series(bars)?;
             chart
                 .draw_series(s.points.iter().filter(finite).map(|p| {
                     EmptyElement::at((p.x, p.y))
                         + Circle::new((0, 0), 4, c.filled())
                         + Text::new(p.label.clone(), (6, -12), ("sans-serif", 11).into_font())
-                }))
-                .map_err(plot_err)?
+                }))?
                 .label(s.name.as_str())
                 .legend(move |(x, y)| Circle::new((x + 10, y), 4, c.filled()));
         }
         if !series.is_empty() {
             draw_legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
         }
-        root.present().map_err(plot_err)?;
+        root.present()?;
     }
     Ok(svg)
 }
@@ -289,8 +273,7 @@ pub fn front_svg(
         }
         let grey = RGBColor(110, 110, 110);
         chart
-            .draw_series([DashedPathElement::new(stairs, 6, 4, grey.stroke_width(2))])
-            .map_err(plot_err)?
+            .draw_series([DashedPathElement::new(stairs, 6, 4, grey.stroke_width(2))])?
             .label("Pareto front")
             .legend(move |(x, y)| {
                 DashedPathElement::new(vec![(x, y), (x + 20, y)], 6, 4, grey.stroke_width(2))
@@ -305,8 +288,7 @@ pub fn front_svg(
                 .map(|p| (p.x, p.y))
                 .collect();
             chart
-                .draw_series(plotters::series::LineSeries::new(pts, c.stroke_width(2)))
-                .map_err(plot_err)?
+                .draw_series(plotters::series::LineSeries::new(pts, c.stroke_width(2)))?
                 .label(line.name.as_str())
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
@@ -323,31 +305,25 @@ pub fn front_svg(
             let c = colour_of(k);
             let (lo, hi) = p.x_range;
             if lo.is_finite() && hi.is_finite() {
-                chart
-                    .draw_series([PathElement::new(
-                        vec![(lo, p.y), (hi, p.y)],
-                        c.stroke_width(1),
-                    )])
-                    .map_err(plot_err)?;
+                chart.draw_series([PathElement::new(
+                    vec![(lo, p.y), (hi, p.y)],
+                    c.stroke_width(1),
+                )])?;
             }
             let (radius, font) = if p.highlight {
                 (6, ("sans-serif", 14).into_font().style(FontStyle::Bold))
             } else {
                 (4, ("sans-serif", 11).into_font())
             };
-            chart
-                .draw_series([EmptyElement::at((p.x, p.y))
-                    + Circle::new((0, 0), radius, c.filled())
-                    + Text::new(p.label.clone(), (7, -14), font)])
-                .map_err(plot_err)?;
+            chart.draw_series([EmptyElement::at((p.x, p.y))
+                + Circle::new((0, 0), radius, c.filled())
+                + Text::new(p.label.clone(), (7, -14), font)])?;
             if p.highlight {
-                chart
-                    .draw_series([Circle::new((p.x, p.y), radius + 3, BLACK.stroke_width(2))])
-                    .map_err(plot_err)?;
+                chart.draw_series([Circle::new((p.x, p.y), radius + 3, BLACK.stroke_width(2))])?;
             }
         }
         draw_legend(&mut chart, SeriesLabelPosition::UpperRight)?;
-        root.present().map_err(plot_err)?;
+        root.present()?;
     }
     Ok(svg)
 }
@@ -396,40 +372,31 @@ fn line_panel(
         .margin(12)
         .x_label_area_size(40)
         .y_label_area_size(64)
-        .build_cartesian_2d(xs, 0.0..y_hi)
-        .map_err(plot_err)?;
+        .build_cartesian_2d(xs, 0.0..y_hi)?;
     draw_mesh(&mut chart, (x_desc, y_desc), (xd, yd))?;
     for (i, s) in panel.series.iter().enumerate() {
         let c = colour(i);
         let (width, radius) = line_style(i);
         let pts: Vec<(f64, f64)> = s.points.iter().filter(finite).copied().collect();
-        chart
-            .draw_series(plotters::series::LineSeries::new(
-                pts.iter().copied(),
-                c.stroke_width(width),
-            ))
-            .map_err(plot_err)?;
-        chart
-            .draw_series(pts.iter().map(|&p| Circle::new(p, radius, c.filled())))
-            .map_err(plot_err)?;
+        chart.draw_series(plotters::series::LineSeries::new(
+            pts.iter().copied(),
+            c.stroke_width(width),
+        ))?;
+        chart.draw_series(pts.iter().map(|&p| Circle::new(p, radius, c.filled())))?;
     }
     for (i, s) in panel.series.iter().enumerate() {
         let c = colour(i);
         let (width, _) = line_style(i);
         let y = 48 + 22 * i as i32;
-        legend_area
-            .draw(&PathElement::new(
-                vec![(8, y), (36, y)],
-                c.stroke_width(width),
-            ))
-            .map_err(plot_err)?;
-        legend_area
-            .draw(&Text::new(
-                s.name.clone(),
-                (42, y - 7),
-                ("sans-serif", 13).into_font(),
-            ))
-            .map_err(plot_err)?;
+        legend_area.draw(&PathElement::new(
+            vec![(8, y), (36, y)],
+            c.stroke_width(width),
+        ))?;
+        legend_area.draw(&Text::new(
+            s.name.clone(),
+            (42, y - 7),
+            ("sans-serif", 13).into_font(),
+        ))?;
     }
     Ok(())
 }
@@ -446,12 +413,12 @@ pub fn line_panels_svg(
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
-        root.fill(&WHITE).map_err(plot_err)?;
+        root.fill(&WHITE)?;
         let areas = root.split_evenly((n, 1));
         for (panel, area) in panels.iter().zip(&areas) {
             line_panel(area, panel, x_desc, y_desc)?;
         }
-        root.present().map_err(plot_err)?;
+        root.present()?;
     }
     Ok(svg)
 }

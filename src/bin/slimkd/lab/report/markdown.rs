@@ -1,7 +1,7 @@
 //! The report as Markdown: one function per table and figure.
 
 use super::*;
-use crate::stats::bytes::paper_layout_bytes_of;
+use slimkd::stats::bytes::paper_layout_bytes_of;
 
 /// A number with `prec` decimals, or `–` when it is not finite.
 fn num(x: f64, prec: usize) -> String {
@@ -55,7 +55,8 @@ fn md_table(header: &[&str], right: &[bool], rows: &[Vec<String>]) -> String {
 impl Report {
     /// The report as Markdown, as written to `report.md` (its figures
     /// linked as `report.figure5.svg`, `report.figure6.svg`): see
-    /// [`Report::markdown_for`].
+    /// [`Report::markdown_for`] (what the tests read).
+    #[cfg(test)]
     pub fn markdown(&self) -> String {
         self.markdown_for(Path::new("report.md"))
     }

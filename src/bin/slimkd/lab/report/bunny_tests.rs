@@ -1,17 +1,16 @@
-//! The report (`slimkd::stats::report`) on the shipped bunny: every table
+//! The report on the shipped bunny: every table
 //! against an independent computation, the frames against brute force, and
 //! the files it writes (Markdown, JSON, SVG figures; atomic, nothing left
 //! behind on failure).
 
-mod common;
-
-use common::{dir_entries, fresh_temp_dir};
+use crate::lab::report::front::{self, FrontGrid, FrontOptions, FrontSetting};
+use crate::lab::report::{self, Report, ReportError, ReportOptions, TreeKind};
+use crate::lab::test_dirs::{dir_entries, fresh_temp_dir};
 use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::{self, KdFile, TreeFigures, WriteOptions};
 use slimkd::render::{self, Camera, View};
 use slimkd::scene::{self, TriangleColumns};
 use slimkd::slim::{self, SlimParams};
-use slimkd::stats::report::{self, Report, ReportError, ReportOptions, TreeKind};
 use slimkd::trace::BruteForce;
 use slimkd::tree::{Node, TreeIr};
 use std::path::{Path, PathBuf};
@@ -596,4 +595,67 @@ fn losses_have_their_spread_and_viewless_scenes_warn() {
     let spread = &j["scenes"][0]["table3b"][0]["trees"][1]["loss_spread_pct"]["packet_all"];
     assert_eq!(spread["q1"].as_f64().unwrap(), v.loss[1][3].q1);
     assert_eq!(j["schema"], 1);
+}
+
+#[test]
+fn sweep_options_out_of_range_are_errors() {
+    let scene = slimkd::scene::load_obj(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny_npm.obj"),
+    )
+    .unwrap()
+    .0;
+    let std = FrontSetting {
+        label: "std".into(),
+        k_t: 15.0,
+        k_i: 20.0,
+        split_price: 0.0,
+        slim: None,
+        preset: None,
+    };
+    let options = |reps, threads, grid| FrontOptions {
+        scenes: vec![("bunny_npm".into(), scene.clone())],
+        views: Vec::new(),
+        size: (8, 8),
+        reps,
+        threads,
+        grid: Some(grid),
+    };
+    let grid = |points: Vec<usize>| FrontGrid {
+        settings: vec![std.clone()],
+        families: vec![front::FrontFamily {
+            name: "one".into(),
+            points,
+        }],
+    };
+    let run = |o: &FrontOptions| front::run_front(o, None, &mut |_| {});
+    for o in [
+        options(0, 1, grid(vec![0])),
+        options(1, 0, grid(vec![0])),
+        options(1, 1, grid(vec![0, 1])),
+        options(
+            1,
+            1,
+            FrontGrid {
+                settings: Vec::new(),
+                families: Vec::new(),
+            },
+        ),
+    ] {
+        assert!(matches!(run(&o), Err(ReportError::Options(_))));
+    }
+    // One setting: a front of one point, traced from the default camera.
+    let r = run(&options(1, 1, grid(vec![0]))).unwrap();
+    let s = &r.scenes[0];
+    assert_eq!(s.views, ["default"]);
+    assert_eq!(s.points.len(), 1);
+    assert!(s.points[0].on_front);
+}
+
+/// The figures of the default grid that `tests/sweep.rs` holds the
+/// sweep's JSON to.
+#[test]
+fn the_default_grid_is_the_one_the_cli_test_expects() {
+    assert_eq!(front::default_grid().settings.len(), 20);
+    assert_eq!(front::FRONT_KT, [10.0, 15.0, 20.0, 30.0, 45.0]);
+    assert_eq!(front::FRONT_SPLIT_PRICE, [0.0, 0.25, 0.5, 1.0, 8.0]);
 }

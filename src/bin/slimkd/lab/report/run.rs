@@ -1,43 +1,9 @@
 //! The experiment driver: build, slim, write and trace every scene.
 
-use super::tables::{duplication, measure_views, sweep_point};
+use super::tables::{Pools, duplication, measure_views, sweep_point, write_tree};
 use super::*;
-use crate::pipeline::file_config;
-use crate::progress::Progress;
-
-/// A tree written and opened again.
-pub(super) struct Written {
-    pub(super) file: KdFile<AlignedBytes>,
-    pub(super) seconds: f64,
-}
-
-/// Serialises a tree (reordered) and opens the bytes.
-pub(super) fn write_tree(
-    name: &str,
-    label: &str,
-    tree: &TreeIr,
-    scene: &TriangleColumns,
-    config: FileConfig,
-) -> Result<Written, ReportError> {
-    let err = |source| ReportError::Format {
-        scene: name.to_string(),
-        tree: label.to_string(),
-        source,
-    };
-    let start = Instant::now();
-    let bytes = format::write_to_vec(
-        tree,
-        scene,
-        &WriteOptions {
-            reorder: true,
-            config,
-        },
-    )
-    .map_err(err)?;
-    let seconds = start.elapsed().as_secs_f64();
-    let file = KdFile::from_bytes(format::aligned_copy(&bytes)).map_err(err)?;
-    Ok(Written { file, seconds })
-}
+use slimkd::pipeline::Pipeline;
+use slimkd::progress::Progress;
 
 /// The views of a scene among [`VIEW_IDS`], found by its name (or, for a
 /// file name or path, by its stem).
@@ -77,18 +43,6 @@ pub(super) fn cameras_of(
         vec![("default".to_string(), Camera::default_for(bounds, w, h))]
     } else {
         found
-    }
-}
-
-/// The two thread pools: one thread and all threads.
-pub(super) struct Pools {
-    pub(super) one: rayon::ThreadPool,
-    pub(super) all: rayon::ThreadPool,
-}
-
-impl Pools {
-    pub(super) fn get(&self, all: bool) -> &rayon::ThreadPool {
-        if all { &self.all } else { &self.one }
     }
 }
 
@@ -144,7 +98,8 @@ pub(crate) fn check_timing_options(
 }
 
 /// Builds, writes and traces every scene; `progress` gets one line per
-/// step.
+/// step (what the tests run; the command shows a bar too).
+#[cfg(test)]
 pub fn run(options: &ReportOptions, progress: &mut dyn FnMut(&str)) -> Result<Report, ReportError> {
     run_with_progress(options, None, progress)
 }
@@ -174,6 +129,7 @@ pub fn run_with_progress(
         None => (SWEEP_TAU_OCCU.to_vec(), SWEEP_TAU_FREQ.to_vec()),
     };
     let config = BuildConfig::default();
+    let base = Pipeline::new(config);
     let mut scenes = Vec::new();
     // Per scene: the std build, two slim passes, three files, four
     // measurements per view and the sweep's points.
@@ -199,13 +155,18 @@ pub fn run_with_progress(
         // The level builder is the fastest (the same tree as every other
         // builder), so the slim ratios of Table 4 are against the best std
         // build; the slim passes run on the same pool.
-        let std_tree = pools
-            .all
-            .install(|| build::build(scene, &config, Algorithm::Level, None))
-            .map_err(|source| ReportError::Build {
-                scene: name.clone(),
-                source,
-            })?;
+        let pipeline = Pipeline {
+            scene_name: Some(name.clone()),
+            ..base.clone()
+        };
+        let (std_tree, _) =
+            pools
+                .all
+                .install(|| pipeline.build(scene, None))
+                .map_err(|source| ReportError::Build {
+                    scene: name.clone(),
+                    source,
+                })?;
         let std_build_s = start.elapsed().as_secs_f64();
         let table1 = duplication(&std_tree, scene);
         let mut times = BuildTimes {
@@ -216,14 +177,14 @@ pub fn run_with_progress(
         let mut written = Vec::new();
         let mut hoisted = [0usize; 3];
         for (k, kind) in TreeKind::ALL.into_iter().enumerate() {
-            let slimmed = match kind.params(options.rule) {
+            let pipeline = pipeline.slimmed(kind.params(options.rule), kind.preset());
+            let slimmed = match pipeline.slim {
                 None => None,
-                Some(p) => {
+                Some(_) => {
                     steps.step(&format!("{name}: slim pass ({})", kind.name()));
                     let start = Instant::now();
-                    let (t, r) = pools
-                        .all
-                        .install(|| slim::slim(&std_tree, scene, &config, &p));
+                    let slimmed = pools.all.install(|| pipeline.slim(&std_tree, scene, None));
+                    let (t, r, _) = slimmed.expect("the pipeline has a slim pass");
                     times.slim_s[k - 1] = start.elapsed().as_secs_f64();
                     hoisted[k] = r.hoisted;
                     Some(t)
@@ -231,16 +192,7 @@ pub fn run_with_progress(
             };
             steps.step(&format!("{name}: writing {} file", kind.name()));
             let tree = slimmed.as_ref().unwrap_or(&std_tree);
-            let cfg = FileConfig {
-                scene: SceneTag::new(name, scene),
-                ..file_config(
-                    &config,
-                    scene.len(),
-                    kind.preset(),
-                    kind.params(options.rule).as_ref(),
-                )
-            };
-            let w = write_tree(name, kind.name(), tree, scene, cfg)?;
+            let w = write_tree(name, kind.name(), tree, scene, &pipeline)?;
             times.write_s[k] = w.seconds;
             written.push(w);
         }
@@ -285,7 +237,7 @@ pub fn run_with_progress(
                         scene,
                         &std_tree,
                         files[0],
-                        &config,
+                        &pipeline,
                         params,
                         &cams,
                         &pools,

@@ -42,34 +42,26 @@
 //! Percentages are `100·(1 − x/std)`: a positive reduction is a smaller
 //! tree, a positive loss a slower frame.
 
-mod front;
+pub(crate) mod front;
 mod json;
 mod markdown;
 mod run;
 mod tables;
 
-pub use front::{
-    FRONT_COARSEN, FRONT_JSON, FRONT_KT, FRONT_MARKDOWN, FRONT_SPLIT_PRICE, FRONT_TAUS,
-    FrontFamily, FrontGrid, FrontOptions, FrontPoint, FrontReport, FrontSetting, SceneFront,
-    default_grid, pareto_front, run_front,
-};
-pub use run::{run, run_with_progress};
-pub use tables::duplication;
+#[cfg(test)]
+pub use run::run;
+pub use run::run_with_progress;
 
-use super::plot::{self, LabelledPoint, LinePanel, LineSeries, ScatterSeries};
-use crate::build::{self, Algorithm, BuildConfig};
-use crate::format::{
-    self, AlignedBytes, FileConfig, FormatError, KdFile, Preset, SceneTag, TreeFigures,
-    WriteOptions,
-};
-use crate::geom::Aabb;
-use crate::render::{self, Camera, View};
-use crate::scene::TriangleColumns;
-use crate::slim::{self, HoistRule, SlimParams};
-use crate::trace::packet::{PacketTracer, SimdLevel};
-use crate::trace::{ClosestHit, Hit, Scalar};
-use crate::tree::{Node, TreeIr};
-use std::fmt;
+use crate::lab::plot::{self, LabelledPoint, LinePanel, LineSeries, ScatterSeries};
+use slimkd::build::{self, BuildConfig};
+use slimkd::format::{self, AlignedBytes, FormatError, KdFile, Preset, TreeFigures};
+use slimkd::geom::Aabb;
+use slimkd::render::{self, Camera, View};
+use slimkd::scene::TriangleColumns;
+use slimkd::slim::{HoistRule, SlimParams};
+use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::{ClosestHit, Hit, Scalar};
+use slimkd::tree::{Node, TreeIr};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -131,13 +123,16 @@ impl Default for ReportOptions {
 }
 
 /// Why a report could not be made.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum ReportError {
     /// An option out of range.
+    #[error("report: {0}")]
     Options(String),
     /// A thread pool could not be started.
-    ThreadPool(rayon::ThreadPoolBuildError),
+    #[error("report: cannot start threads: {0}")]
+    ThreadPool(#[source] rayon::ThreadPoolBuildError),
     /// A tree could not be written or read back as a `.kd` file.
+    #[error("report: {scene}: the {tree} tree as a .kd file: {source}")]
     Format {
         scene: String,
         tree: String,
@@ -145,44 +140,14 @@ pub enum ReportError {
     },
     /// Two trees or two traversal modes disagree on the hits of a frame,
     /// which must never happen (slim trees are exact).
+    #[error("report: hits differ: {0}")]
     Mismatch(String),
     /// The std tree of a scene could not be built.
+    #[error("report: {scene}: the std build failed: {source}")]
     Build {
         scene: String,
         source: build::BuildError,
     },
-}
-
-impl fmt::Display for ReportError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            ReportError::Options(m) => write!(f, "report: {m}"),
-            ReportError::ThreadPool(e) => write!(f, "report: cannot start threads: {e}"),
-            ReportError::Format {
-                scene,
-                tree,
-                source,
-            } => write!(
-                f,
-                "report: {scene}: the {tree} tree as a .kd file: {source}"
-            ),
-            ReportError::Mismatch(m) => write!(f, "report: hits differ: {m}"),
-            ReportError::Build { scene, source } => {
-                write!(f, "report: {scene}: the std build failed: {source}")
-            }
-        }
-    }
-}
-
-impl std::error::Error for ReportError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            ReportError::ThreadPool(e) => Some(e),
-            ReportError::Format { source, .. } => Some(source),
-            ReportError::Build { source, .. } => Some(source),
-            _ => None,
-        }
-    }
 }
 
 /// The three trees of Tables 3 and 4.
@@ -442,9 +407,9 @@ impl SceneReport {
 
     /// The paper's std: the std tree in the paper's layout (Wald 2004: 8
     /// bytes per node, empty leaves included, and 4 per leaf index,
-    /// `8·nodes + 4·refs`; [`super::bytes::paper_layout_bytes`]).
+    /// `8·nodes + 4·refs`; [`slimkd::stats::bytes::paper_layout_bytes`]).
     pub fn classic_std_bytes(&self) -> u64 {
-        super::bytes::paper_layout_bytes_of(&self.table3a[0].figures)
+        slimkd::stats::bytes::paper_layout_bytes_of(&self.table3a[0].figures)
     }
 
     /// Size reduction of `tree` against std in the same format, %.
@@ -500,7 +465,7 @@ pub fn rule_name(rule: HoistRule) -> &'static str {
     }
 }
 
-pub use crate::pipeline::median;
+pub use crate::lab::figures::median;
 
 const MIB: f64 = (1u64 << 20) as f64;
 
@@ -665,13 +630,13 @@ fn with_path(path: &Path, e: std::io::Error) -> std::io::Error {
     std::io::Error::new(e.kind(), format!("{}: {e}", path.display()))
 }
 
-/// Writes every file through a temporary file ([`crate::fsio::Staged`]);
+/// Writes every file through a temporary file ([`slimkd::fsio::Staged`]);
 /// renames only once all of them are written and synced. On failure, the
 /// temporary files not yet renamed go.
 fn write_all_atomically(files: &[(PathBuf, String)]) -> std::io::Result<()> {
     let mut staged = Vec::with_capacity(files.len());
     for (path, contents) in files {
-        let mut f = crate::fsio::Staged::create(path).map_err(|e| with_path(path, e))?;
+        let mut f = slimkd::fsio::Staged::create(path).map_err(|e| with_path(path, e))?;
         f.file()
             .write_all(contents.as_bytes())
             .and_then(|()| f.stage())
@@ -701,3 +666,6 @@ mod tests {
         assert_eq!(b(15001, None).label(), "> 15000");
     }
 }
+
+#[cfg(test)]
+mod bunny_tests;

@@ -20,12 +20,13 @@
 //! The result, a [`FrontReport`], renders as Markdown, JSON (documented in
 //! `docs/json-schema.md`) and one SVG chart per scene ([`FrontReport::write`]).
 
-use super::run::{cameras_of, check_timing_options, write_tree};
-use super::tables::check_hits;
+use super::run::{cameras_of, check_timing_options};
+use super::tables::{check_hits, write_tree};
 use super::*;
-use crate::pipeline::{JSON_SCHEMA, file_config};
-use crate::progress::Progress;
+use crate::lab::figures::JSON_SCHEMA;
 use serde::Serialize;
+use slimkd::pipeline::Pipeline;
+use slimkd::progress::Progress;
 
 /// `K_T` of the std trees of the `K_T` family (with the default `K_I`,
 /// 20): from two thirds of the default (15) to three times it. The SAH's
@@ -375,6 +376,12 @@ fn sweep_scene(
         config.sah.k_t = setting.k_t;
         config.sah.k_i = setting.k_i;
         config.sah.split_price = setting.split_price;
+        let preset = setting.preset.map_or(Preset::Custom, TreeKind::preset);
+        let pipeline = Pipeline {
+            scene_name: Some(name.to_string()),
+            ..Pipeline::new(config)
+        }
+        .slimmed(setting.slim, preset);
         let key = (setting.k_t, setting.k_i, setting.split_price);
         let base = match bases.iter().position(|(k, _, _)| *k == key) {
             Some(i) => i,
@@ -384,8 +391,8 @@ fn sweep_scene(
                     setting.k_t, setting.k_i, setting.split_price
                 ));
                 let start = Instant::now();
-                let tree = pool
-                    .install(|| build::build(scene, &config, Algorithm::Level, None))
+                let (tree, _) = pool
+                    .install(|| pipeline.build(scene, None))
                     .map_err(|source| ReportError::Build {
                         scene: name.to_string(),
                         source,
@@ -397,20 +404,16 @@ fn sweep_scene(
         let (std_tree, std_build_s) = (&bases[base].1, bases[base].2);
         let (slimmed, hoisted, slim_s) = match &setting.slim {
             None => (None, 0, 0.0),
-            Some(p) => {
+            Some(_) => {
                 step(&format!("{name}: slim pass ({})", setting.label));
                 let start = Instant::now();
-                let (t, r) = pool.install(|| slim::slim(std_tree, scene, &config, p));
+                let slimmed = pool.install(|| pipeline.slim(std_tree, scene, None));
+                let (t, r, _) = slimmed.expect("the setting has a slim pass");
                 (Some(t), r.hoisted, start.elapsed().as_secs_f64())
             }
         };
-        let preset = setting.preset.map_or(Preset::Custom, TreeKind::preset);
-        let cfg = FileConfig {
-            scene: SceneTag::new(name, scene),
-            ..file_config(&config, scene.len(), preset, setting.slim.as_ref())
-        };
         let tree = slimmed.as_ref().unwrap_or(std_tree);
-        let written = write_tree(name, &setting.label, tree, scene, cfg)?;
+        let written = write_tree(name, &setting.label, tree, scene, &pipeline)?;
         let figures = written.file.figures();
         points.push(FrontPoint {
             setting: setting.clone(),

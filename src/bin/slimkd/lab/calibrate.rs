@@ -6,7 +6,7 @@
 //! one `K_I`), so that the ratio of steps to tests per ray varies, writes
 //! each as `.kd` bytes (Morton-reordered, as `build --reorder` does) and
 //! traces primary rays from the scene's views and ambient-occlusion rays
-//! from their hits ([`crate::trace::rays::secondary_rays`]) through each,
+//! from their hits ([`slimkd::trace::rays::secondary_rays`]) through each,
 //! as single rays and as 16-ray packets. Each combination is a
 //! [`Sample`]: its time per ray (the median over the repetitions, the
 //! trees interleaved within each repetition so that drift in the machine's
@@ -29,15 +29,36 @@
 //! counts what contention does to the caches, and a pool thread's short
 //! spin for work at the end of a batch.)
 
-use crate::build::{self, BuildConfig, BuildError};
-use crate::format::{self, AlignedBytes, KdFile, WriteOptions};
-use crate::geom::Ray;
-use crate::pipeline::median;
-use crate::render::{self, Camera, View};
-use crate::scene::TriangleColumns;
-use crate::trace::packet::PacketTracer;
-use crate::trace::rays::{self, Query};
-use crate::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
+use crate::lab::figures::median;
+use slimkd::build::{self, BuildConfig, BuildError};
+use slimkd::format::{AlignedBytes, FormatError, KdFile};
+use slimkd::geom::Ray;
+use slimkd::pipeline::Pipeline;
+use slimkd::render::{self, Camera, View};
+use slimkd::scene::TriangleColumns;
+use slimkd::trace::packet::PacketTracer;
+use slimkd::trace::rays::{self, Query};
+use slimkd::trace::{self as tr, ClosestHit, Hit, Scalar, TraceStats};
+
+/// Why a scene could not be measured: one of its trees could not be
+/// built or written as a `.kd` image.
+#[derive(Debug, thiserror::Error)]
+pub enum CalibrateError {
+    /// The build with `k_t` failed.
+    #[error("{scene}: the build with K_T {k_t}: {source}")]
+    Build {
+        scene: String,
+        k_t: f64,
+        source: BuildError,
+    },
+    /// The tree of `k_t` could not be written or opened as a `.kd` image.
+    #[error("{scene}: the tree of K_T {k_t} as a .kd file: {source}")]
+    Format {
+        scene: String,
+        k_t: f64,
+        source: FormatError,
+    },
+}
 
 /// The `K_T` values trees are built with by default (with `K_I` 20: from
 /// a third of today's ratio to four times it; the steps per ray vary by a
@@ -224,7 +245,7 @@ pub fn measure_scene(
     views: &[View],
     options: &CalibrateOptions,
     progress: &mut dyn FnMut(&str),
-) -> Result<SceneMeasurement, String> {
+) -> Result<SceneMeasurement, CalibrateError> {
     let threads = rayon::current_num_threads();
     let mut files: Vec<KdFile<AlignedBytes>> = Vec::new();
     let mut trees = Vec::new();
@@ -236,18 +257,22 @@ pub fn measure_scene(
         let mut config = BuildConfig::default();
         config.sah.k_t = k_t;
         config.sah.k_i = options.k_i;
-        let tree = build::build(scene, &config, build::Algorithm::Level, None)
-            .map_err(|e: BuildError| format!("{name}: the build with K_T {k_t}: {e}"))?;
-        let bytes = format::write_to_vec(
-            &tree,
-            scene,
-            &WriteOptions {
-                reorder: true,
-                ..Default::default()
-            },
-        )
-        .and_then(|b| KdFile::from_bytes(format::aligned_copy(&b)))
-        .map_err(|e| format!("{name}: the tree of K_T {k_t} as a .kd file: {e}"))?;
+        let pipeline = Pipeline::new(config);
+        let (tree, _) = pipeline
+            .build(scene, None)
+            .map_err(|source| CalibrateError::Build {
+                scene: name.to_string(),
+                k_t,
+                source,
+            })?;
+        let bytes =
+            pipeline
+                .write_image(&tree, scene)
+                .map_err(|source| CalibrateError::Format {
+                    scene: name.to_string(),
+                    k_t,
+                    source,
+                })?;
         trees.push(TreeFiguresOf {
             k_t,
             nodes: bytes.figures().nodes(),
@@ -338,14 +363,14 @@ pub fn measure_scene(
                     };
                     let i = k * per_tree + s * Mode::ALL.len() + m;
                     let mut seconds = 0.0;
-                    let cpu_start = crate::sys::process_cpu_seconds();
+                    let cpu_start = slimkd::sys::process_cpu_seconds();
                     for _ in 0..passes[i] {
                         seconds +=
                             rays::trace_batch(tracer, rays, set.query(), mode == Mode::Packet)
                                 .seconds;
                     }
                     let cpu = cpu_start
-                        .zip(crate::sys::process_cpu_seconds())
+                        .zip(slimkd::sys::process_cpu_seconds())
                         .map(|(a, b)| b - a);
                     if rep == 0 {
                         passes[i] = (MIN_SECONDS / seconds.max(1e-9)).ceil().max(1.0) as usize;
