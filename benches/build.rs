@@ -292,8 +292,7 @@ fn main() {
         .unwrap_or(level::DEFAULT_SMALL_THRESHOLD);
     let mem_budget = std::env::var("SLIMKD_MEM_BUDGET")
         .ok()
-        .map(|v| parse_size(&v).unwrap_or_else(|| panic!("SLIMKD_MEM_BUDGET: bad size {v:?}")))
-        .unwrap_or(u64::MAX);
+        .map(|v| parse_size(&v).unwrap_or_else(|| panic!("SLIMKD_MEM_BUDGET: bad size {v:?}")));
     let level_options = LevelOptions {
         small_threshold: threshold,
         mem_budget,
@@ -311,7 +310,7 @@ fn main() {
             .unwrap_or(level::DEFAULT_TINY_THRESHOLD),
         ..LevelOptions::default()
     };
-    if mem_budget != u64::MAX {
+    if let Some(mem_budget) = mem_budget {
         println!("note: level builder column budget {mem_budget} bytes");
     }
     let reps = if quick { 1 } else { REPS };

@@ -87,14 +87,11 @@ impl Pipeline {
     /// saves levels of scratch traffic) unless [`Pipeline::small`] says
     /// otherwise.
     pub fn level_options(&self) -> LevelOptions {
-        // `LevelOptions` spells "no budget" as `u64::MAX`; this is the
-        // one place that translates.
-        let mem_budget = self.mem_budget.unwrap_or(u64::MAX);
         let small_threshold = self.small.unwrap_or_else(|| {
-            LevelOptions::small_threshold_for_budget(mem_budget, rayon::current_num_threads())
+            LevelOptions::small_threshold_for_budget(self.mem_budget, rayon::current_num_threads())
         });
         LevelOptions {
-            mem_budget,
+            mem_budget: self.mem_budget,
             small_threshold,
             ..self.level.clone()
         }

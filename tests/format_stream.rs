@@ -108,7 +108,7 @@ fn streamed_files_equal_write_to_vec_under_a_memory_budget() {
     let dir = fresh_temp_dir("stream-budget");
     let scratch = fresh_temp_dir("stream-budget-scratch");
     let options = LevelOptions {
-        mem_budget: 1 << 16,
+        mem_budget: Some(1 << 16),
         scratch_dir: scratch.to_path_buf(),
         small_threshold: 64,
         ..LevelOptions::default()

@@ -24,7 +24,7 @@ fn is_empty_dir(d: &Path) -> bool {
     std::fs::read_dir(d).unwrap().next().is_none()
 }
 
-fn opts(threshold: usize, budget: u64, dir: &Path) -> LevelOptions {
+fn opts(threshold: usize, budget: Option<u64>, dir: &Path) -> LevelOptions {
     LevelOptions {
         small_threshold: threshold,
         mem_budget: budget,
@@ -50,7 +50,7 @@ fn check_with(scene: &TriangleColumns, config: &BuildConfig, options: &LevelOpti
         got, want,
         "level and Wald-Havran trees differ ({options:?})"
     );
-    if options.mem_budget == 0 && !scene.is_empty() {
+    if options.mem_budget == Some(0) && !scene.is_empty() {
         assert!(report.scratch.files > 0, "the mapped path ran");
     }
     assert!(
@@ -92,9 +92,9 @@ proptest! {
         // Every column in scratch; columns of a few hundred bytes in RAM
         // (levels in scratch cut into groups); everything in RAM.
         let budget = match budget {
-            0 => 0,
-            1 => grouping_budget(THRESHOLDS[t], scene.len(), 1500),
-            _ => u64::MAX,
+            0 => Some(0),
+            1 => Some(grouping_budget(THRESHOLDS[t], scene.len(), 1500)),
+            _ => None,
         };
         let new_events = if bucket { NewEvents::Bucket } else { NewEvents::SortMerge };
         let options = LevelOptions {
@@ -123,7 +123,7 @@ proptest! {
         let dir = fresh_temp_dir("prop-depth");
         let options = LevelOptions {
             tiny_threshold: TINY[tiny],
-            ..opts(THRESHOLDS[t], u64::MAX, &dir)
+            ..opts(THRESHOLDS[t], None, &dir)
         };
         check_with(&scene, &config, &options);
         std::fs::remove_dir_all(dir).unwrap();
@@ -133,7 +133,7 @@ proptest! {
     fn one_thread_and_two_threads_write_the_same_file(tris in grid_scene(60), t in 0..3usize) {
         let scene = columns(&tris);
         let dir = fresh_temp_dir("threads");
-        let o = opts([0, 4, 64][t], 0, &dir);
+        let o = opts([0, 4, 64][t], Some(0), &dir);
         let run = |n: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
             pool.install(|| level_build(&scene, &BuildConfig::default(), &o).0)
@@ -164,7 +164,7 @@ proptest! {
     ) {
         let scene = columns(&tris);
         let dir = fresh_temp_dir("float");
-        let options = LevelOptions { tiny_threshold: TINY[tiny], ..opts(THRESHOLDS[t], 0, &dir) };
+        let options = LevelOptions { tiny_threshold: TINY[tiny], ..opts(THRESHOLDS[t], Some(0), &dir) };
         check_with(&scene, &BuildConfig::default(), &options);
         std::fs::remove_dir_all(dir).unwrap();
     }
@@ -177,7 +177,7 @@ fn degenerate_scenes_build_the_same_tree() {
         let scene = columns(&tris);
         let want = build_checked(&scene, &BuildConfig::default());
         for &t in &THRESHOLDS {
-            for (budget, tiny) in [(0, 0), (u64::MAX, 16), (u64::MAX, 64)] {
+            for (budget, tiny) in [(Some(0), 0), (None, 16), (None, 64)] {
                 let options = LevelOptions {
                     tiny_threshold: tiny,
                     ..opts(t, budget, &dir)
@@ -185,7 +185,7 @@ fn degenerate_scenes_build_the_same_tree() {
                 let (got, _) = level_build(&scene, &BuildConfig::default(), &options);
                 assert_eq!(
                     got, want,
-                    "{name}: threshold {t}, budget {budget}, tiny {tiny}"
+                    "{name}: threshold {t}, budget {budget:?}, tiny {tiny}"
                 );
                 assert!(is_empty_dir(&dir), "{name}: scratch files left behind");
             }
@@ -198,7 +198,13 @@ fn degenerate_scenes_build_the_same_tree() {
 fn missing_scratch_dir_is_a_clear_error() {
     let dir = std::env::temp_dir().join(format!("slimkd-level-missing-{}", std::process::id()));
     let scene = columns(&[[v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0), v(0.0, 1.0, 0.0)]]);
-    let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &dir)).unwrap_err();
+    let err = level::build(
+        &scene,
+        &BuildConfig::default(),
+        None,
+        &opts(0, Some(0), &dir),
+    )
+    .unwrap_err();
     assert!(matches!(err, BuildError::NoDir { .. }), "{err:?}");
     let msg = err.to_string();
     assert!(msg.contains(&*dir.to_string_lossy()), "{msg}");
@@ -213,7 +219,13 @@ fn unwritable_scratch_dir_is_a_clear_error() {
     let parent = fresh_temp_dir("unwritable");
     let file = parent.join("not-a-dir");
     std::fs::write(&file, b"x").unwrap();
-    let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &file)).unwrap_err();
+    let err = level::build(
+        &scene,
+        &BuildConfig::default(),
+        None,
+        &opts(0, Some(0), &file),
+    )
+    .unwrap_err();
     assert!(err.to_string().contains(&*file.to_string_lossy()), "{err}");
     // A directory without write permission (effective unless running as
     // root): the error names the file it could not create.
@@ -224,7 +236,12 @@ fn unwritable_scratch_dir_is_a_clear_error() {
         std::fs::create_dir(&ro).unwrap();
         std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o555)).unwrap();
         // Root writes anyway; anyone else gets the error.
-        if let Err(e) = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &ro)) {
+        if let Err(e) = level::build(
+            &scene,
+            &BuildConfig::default(),
+            None,
+            &opts(0, Some(0), &ro),
+        ) {
             assert!(matches!(e, BuildError::File { .. }), "{e:?}");
             assert!(e.to_string().contains(&*ro.to_string_lossy()), "{e}");
         }
@@ -241,7 +258,7 @@ fn scratch_limit_mid_build_is_an_error_and_leaves_nothing() {
     let dir = fresh_temp_dir("limit");
     let o = LevelOptions {
         scratch_limit: Some(64 << 10),
-        ..opts(0, 0, &dir)
+        ..opts(0, Some(0), &dir)
     };
     let err = level::build(&scene, &BuildConfig::default(), None, &o).unwrap_err();
     assert!(matches!(err, BuildError::Limit { .. }), "{err:?}");
@@ -259,13 +276,16 @@ fn nexuiz_dieselpower_builds_the_same_tree() {
     want.validate(&scene).unwrap();
     let dir = fresh_temp_dir("nexuiz");
     for (t, budget) in [
-        (level::DEFAULT_SMALL_THRESHOLD, u64::MAX),
-        (0, u64::MAX),
-        (64, 1 << 20),
+        (level::DEFAULT_SMALL_THRESHOLD, None),
+        (0, None),
+        (64, Some(1 << 20)),
     ] {
         let (got, report) = level_build(&scene, &config, &opts(t, budget, &dir));
-        assert!(got == want, "threshold {t}, budget {budget}: trees differ");
-        if budget != u64::MAX {
+        assert!(
+            got == want,
+            "threshold {t}, budget {budget:?}: trees differ"
+        );
+        if budget.is_some() {
             assert!(report.scratch.files > 0);
             // The top levels (2.6 MB of columns at the root) go through
             // scratch, the levels below in groups.
@@ -339,7 +359,13 @@ fn full_disk_is_a_clear_error() {
     let dir = PathBuf::from(dir);
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
     let (scene, _) = slimkd::scene::load_obj(&path).unwrap();
-    let err = level::build(&scene, &BuildConfig::default(), None, &opts(0, 0, &dir)).unwrap_err();
+    let err = level::build(
+        &scene,
+        &BuildConfig::default(),
+        None,
+        &opts(0, Some(0), &dir),
+    )
+    .unwrap_err();
     assert!(matches!(err, BuildError::NoSpace { .. }), "{err:?}");
     assert!(err.to_string().contains(&*dir.to_string_lossy()), "{err}");
     assert!(is_empty_dir(&dir), "nothing is left behind");

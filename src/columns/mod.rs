@@ -45,8 +45,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) struct ScratchConfig {
     /// Bytes of columns kept in RAM at once; columns beyond it are mapped
-    /// files. `u64::MAX` keeps everything in RAM, 0 maps everything.
-    pub mem_budget: u64,
+    /// files. `None` keeps everything in RAM, `Some(0)` maps everything.
+    pub mem_budget: Option<u64>,
     /// The directory the scratch files are created in. It must exist; it
     /// is never created.
     pub dir: PathBuf,
@@ -58,7 +58,7 @@ pub(crate) struct ScratchConfig {
 impl Default for ScratchConfig {
     fn default() -> Self {
         ScratchConfig {
-            mem_budget: u64::MAX,
+            mem_budget: None,
             dir: std::env::temp_dir(),
             scratch_limit: None,
         }
@@ -253,7 +253,7 @@ impl Scratch {
     /// Checks that the scratch directory exists when a budget can send
     /// columns there, so a bad directory fails before any work is done.
     pub fn new(config: ScratchConfig) -> Result<Scratch, ColumnsError> {
-        if config.mem_budget != u64::MAX {
+        if config.mem_budget.is_some() {
             match std::fs::metadata(&config.dir) {
                 Ok(m) if m.is_dir() => {}
                 Ok(_) => {
@@ -283,9 +283,15 @@ impl Scratch {
         })
     }
 
-    /// The bytes of columns kept in RAM at once (`u64::MAX`: no budget).
-    pub fn mem_budget(&self) -> u64 {
+    /// The bytes of columns kept in RAM at once (`None`: no budget).
+    pub fn mem_budget(&self) -> Option<u64> {
         self.config.mem_budget
+    }
+
+    /// The budget as a bound to compare byte counts with: no budget is
+    /// no bound.
+    fn ram_limit(&self) -> u64 {
+        self.config.mem_budget.unwrap_or(u64::MAX)
     }
 
     /// What the columns made so far used, peaks included.
@@ -335,7 +341,7 @@ impl Scratch {
         if bytes == 0
             || before
                 .checked_add(bytes)
-                .is_some_and(|b| b <= self.config.mem_budget)
+                .is_some_and(|b| b <= self.ram_limit())
         {
             if bytes >= Pool::MIN_BYTES && align_of::<T>() <= 8 {
                 let v = self.words(bytes.div_ceil(8) as usize, before, zeroed);
@@ -407,7 +413,7 @@ impl Scratch {
     fn words(&self, words: usize, alive: u64, zeroed: bool) -> Vec<u64> {
         // Under a budget a buffer is made to measure: the headroom would
         // count against the budget and send other columns to files.
-        let capacity = if self.config.mem_budget == u64::MAX {
+        let capacity = if self.config.mem_budget.is_none() {
             words / 8 * Pool::HEADROOM + 1
         } else {
             words
@@ -416,7 +422,7 @@ impl Scratch {
             let got = p.take(words);
             if got.is_none() {
                 let need = alive.saturating_add(capacity as u64 * 8);
-                p.make_room(words, self.config.mem_budget.saturating_sub(need));
+                p.make_room(words, self.ram_limit().saturating_sub(need));
             }
             got
         });
@@ -466,8 +472,7 @@ impl Scratch {
         };
         let bytes = Pool::bytes_of(&v);
         let alive = self.ram.load(Ordering::Relaxed);
-        let within =
-            alive.saturating_add(pool.bytes).saturating_add(bytes) <= self.config.mem_budget;
+        let within = alive.saturating_add(pool.bytes).saturating_add(bytes) <= self.ram_limit();
         if within && pool.free.len() < Pool::MAX_BUFFERS {
             pool.bytes += bytes;
             pool.free.push(v);

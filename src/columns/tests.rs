@@ -17,7 +17,7 @@ fn scratch(
     scratch_limit: Option<u64>,
 ) -> Result<Scratch, ColumnsError> {
     Scratch::new(ScratchConfig {
-        mem_budget,
+        mem_budget: Some(mem_budget),
         dir: dir.to_path_buf(),
         scratch_limit,
     })

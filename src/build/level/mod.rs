@@ -199,7 +199,7 @@ fn run<T>(
     let reserve =
         options.finisher_reserve(small_threshold, scene.len(), rayon::current_num_threads());
     let scratch = Scratch::new(ScratchConfig {
-        mem_budget: options.mem_budget.saturating_sub(reserve),
+        mem_budget: options.mem_budget.map(|b| b.saturating_sub(reserve)),
         dir: options.scratch_dir.clone(),
         scratch_limit: options.scratch_limit,
     })?;
@@ -220,7 +220,7 @@ fn run<T>(
         // Under a budget the subtrees, most of the tree, are scratch files
         // too: held in anonymous memory they would grow past any budget.
         subs: SubStore::new(
-            (options.mem_budget != u64::MAX).then(|| Arc::from(options.scratch_dir.as_path())),
+            (options.mem_budget.is_some()).then(|| Arc::from(options.scratch_dir.as_path())),
         ),
         report: LevelReport {
             small_threshold: small_threshold as u64,
@@ -469,7 +469,7 @@ impl<'a> LevelBuilder<'a> {
             }
             let depth = l.depth;
             level = self.level(l, depth)?;
-            if self.scratch.mem_budget() != u64::MAX {
+            if self.scratch.mem_budget().is_some() {
                 crate::sys::release_free_heap();
             }
         }
@@ -493,7 +493,8 @@ impl<'a> LevelBuilder<'a> {
         // A level of small nodes alone is finished from its columns
         // where they are: copying it would only add a read and a write.
         let any_big = l.nodes.iter().any(|nd| nd.n >= self.small_threshold);
-        if self.cut.is_some() || budget == u64::MAX || l.nodes.len() < 2 || !mapped || !any_big {
+        let budget = budget?;
+        if self.cut.is_some() || l.nodes.len() < 2 || !mapped || !any_big {
             return None;
         }
         let max = budget / 3;

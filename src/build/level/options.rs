@@ -36,10 +36,10 @@ pub struct LevelOptions {
     /// Bytes of anonymous memory the build may hold: the finishers'
     /// working memory ([`FINISHER_BYTES_PER_REF`] a reference of
     /// `small_threshold`, a thread) and the level columns kept in RAM;
-    /// above it the columns are mapped scratch files. `u64::MAX` keeps
+    /// above it the columns are mapped scratch files. `None` keeps
     /// everything in RAM.
-    pub mem_budget: u64,
-    /// Where scratch files go; it must exist when `mem_budget` is finite.
+    pub mem_budget: Option<u64>,
+    /// Where scratch files go; it must exist when there is a `mem_budget`.
     pub scratch_dir: PathBuf,
     /// At most this many bytes of scratch files at once.
     pub scratch_limit: Option<u64>,
@@ -79,10 +79,10 @@ impl LevelOptions {
     /// a larger threshold saves whole levels of scratch traffic: on 12.4 M
     /// triangles under 1 GiB, 9.3 GB of scratch and 36.9 s at 2048, 6.4 GB
     /// and 32.9 s at 32768 (the same tree).
-    pub fn small_threshold_for_budget(mem_budget: u64, threads: usize) -> usize {
-        if mem_budget == u64::MAX {
+    pub fn small_threshold_for_budget(mem_budget: Option<u64>, threads: usize) -> usize {
+        let Some(mem_budget) = mem_budget else {
             return DEFAULT_SMALL_THRESHOLD;
-        }
+        };
         let per_thread = FINISHER_BYTES_PER_REF * threads.max(1) as u64;
         let fit = usize::try_from(mem_budget / 16 / per_thread).unwrap_or(usize::MAX);
         fit.clamp(DEFAULT_SMALL_THRESHOLD, MAX_BUDGET_SMALL_THRESHOLD)
@@ -92,7 +92,7 @@ impl LevelOptions {
     /// for nodes of up to `small` (and at most `n`) references; the level
     /// columns get the rest. Nothing without a budget.
     pub(crate) fn finisher_reserve(&self, small: usize, n: usize, threads: usize) -> u64 {
-        if self.mem_budget == u64::MAX {
+        if self.mem_budget.is_none() {
             return 0;
         }
         let refs = small.min(n) as u64;
@@ -105,7 +105,7 @@ impl Default for LevelOptions {
     fn default() -> Self {
         LevelOptions {
             small_threshold: DEFAULT_SMALL_THRESHOLD,
-            mem_budget: u64::MAX,
+            mem_budget: None,
             scratch_dir: std::env::temp_dir(),
             scratch_limit: None,
             status: None,
@@ -136,20 +136,20 @@ mod tests {
     #[test]
     fn the_budget_threshold_grows_with_the_budget_within_its_bounds() {
         let t = LevelOptions::small_threshold_for_budget;
-        assert_eq!(t(u64::MAX, 2), DEFAULT_SMALL_THRESHOLD);
-        assert_eq!(t(16 << 20, 2), DEFAULT_SMALL_THRESHOLD);
-        assert_eq!(t(0, 2), DEFAULT_SMALL_THRESHOLD);
+        assert_eq!(t(None, 2), DEFAULT_SMALL_THRESHOLD);
+        assert_eq!(t(Some(16 << 20), 2), DEFAULT_SMALL_THRESHOLD);
+        assert_eq!(t(Some(0), 2), DEFAULT_SMALL_THRESHOLD);
         // A sixteenth of 256 MiB over two finishers of 512 bytes a reference.
-        assert_eq!(t(256 << 20, 2), 16384);
-        assert_eq!(t(256 << 20, 1), 32768);
-        assert_eq!(t(64 << 30, 2), MAX_BUDGET_SMALL_THRESHOLD);
-        assert_eq!(t(256 << 20, 0), t(256 << 20, 1));
+        assert_eq!(t(Some(256 << 20), 2), 16384);
+        assert_eq!(t(Some(256 << 20), 1), 32768);
+        assert_eq!(t(Some(64 << 30), 2), MAX_BUDGET_SMALL_THRESHOLD);
+        assert_eq!(t(Some(256 << 20), 0), t(Some(256 << 20), 1));
     }
 
     #[test]
     fn the_finishers_reserve_covers_every_thread() {
         let budgeted = LevelOptions {
-            mem_budget: 1 << 30,
+            mem_budget: Some(1 << 30),
             ..LevelOptions::default()
         };
         let r = |small, n, threads| budgeted.finisher_reserve(small, n, threads);
