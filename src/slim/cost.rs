@@ -6,7 +6,7 @@
 //!
 //! [`SlimParams::cost_ratio`]: super::SlimParams::cost_ratio
 
-use super::work::{WNode, Work};
+use super::work::{Work, WorkNode};
 use crate::build::sah::SahParams;
 use crate::geom::Aabb;
 use crate::tree::{Node, TreeIr};
@@ -35,7 +35,7 @@ impl CostModel {
         let mut stack = vec![(node, cell)];
         while let Some((n, cell)) = stack.pop() {
             match work.nodes[n as usize] {
-                WNode::Inner {
+                WorkNode::Inner {
                     axis,
                     pos,
                     left,
@@ -47,7 +47,7 @@ impl CostModel {
                     stack.push((right, rc));
                     stack.push((left, lc));
                 }
-                WNode::Leaf { count, .. } => cost += self.leaf(count, &cell),
+                WorkNode::Leaf { count, .. } => cost += self.leaf(count, &cell),
             }
         }
         cost
