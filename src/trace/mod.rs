@@ -333,9 +333,17 @@ impl<'a, S: KdSource> Scalar<'a, S> {
     /// the best level it has ([`SimdLevel::usable`]); for the tests of
     /// every level's copy.
     pub fn with_level(src: &'a S, level: SimdLevel) -> Self {
+        Self::on(src, SimdLevel::usable(level))
+    }
+
+    /// Takes `src`'s walk to run on `level`, which this CPU must have
+    /// (the one constructor of both tracers; [`packet::PacketTracer`]
+    /// holds a `Scalar` for its single rays).
+    #[inline(always)]
+    pub(crate) fn on(src: &'a S, level: SimdLevel) -> Self {
         Scalar {
             walk: src.walk(),
-            level: SimdLevel::usable(level),
+            level,
         }
     }
 
@@ -603,6 +611,20 @@ pub(crate) fn ray_start<'a, W: Walk<'a>, const COUNT: bool>(
         t1,
         rp: RayPrecomp::new(ray),
     })
+}
+
+/// Component `k` of `v` (0, 1, or 2 for any other value), chosen by
+/// comparisons rather than by an index: in the lane loops it is a select,
+/// which they vectorise.
+#[inline(always)]
+pub(crate) fn select_axis<K: Copy + PartialEq + From<u8>>(v: [f32; 3], k: K) -> f32 {
+    if k == K::from(0) {
+        v[0]
+    } else if k == K::from(1) {
+        v[1]
+    } else {
+        v[2]
+    }
 }
 
 /// One ray, front to back, with a fixed-size stack of pending cells.
