@@ -189,6 +189,20 @@ pub fn double_area(tri: &[Vec3; 3]) -> f64 {
     e1.cross(e2).length()
 }
 
+/// Component `k` of `v` (0, 1, or 2 for any other value), chosen by
+/// comparisons rather than by an index: in the lane loops it is a select,
+/// which they vectorise.
+#[inline(always)]
+pub(crate) fn select_axis<K: Copy + PartialEq + From<u8>>(v: [f32; 3], k: K) -> f32 {
+    if k == K::from(0) {
+        v[0]
+    } else if k == K::from(1) {
+        v[1]
+    } else {
+        v[2]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -27,9 +27,9 @@
 
 use super::{
     Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, RayStart, SourceNode, TraceStats, Walk,
-    max_num, min_num, ray_start, select_axis, test_one, walk_pending, walk_ray,
+    max_num, min_num, ray_start, test_one, walk_pending, walk_ray,
 };
-use crate::geom::Ray;
+use crate::geom::{Ray, select_axis};
 use glam::Vec3;
 use std::mem::MaybeUninit;
 

@@ -613,20 +613,6 @@ pub(crate) fn ray_start<'a, W: Walk<'a>, const COUNT: bool>(
     })
 }
 
-/// Component `k` of `v` (0, 1, or 2 for any other value), chosen by
-/// comparisons rather than by an index: in the lane loops it is a select,
-/// which they vectorise.
-#[inline(always)]
-pub(crate) fn select_axis<K: Copy + PartialEq + From<u8>>(v: [f32; 3], k: K) -> f32 {
-    if k == K::from(0) {
-        v[0]
-    } else if k == K::from(1) {
-        v[1]
-    } else {
-        v[2]
-    }
-}
-
 /// One ray, front to back, with a fixed-size stack of pending cells.
 /// `ANY`: stop at the first hit in `(tmin, tmax)`; `COUNT`: add the work
 /// to `stats`.

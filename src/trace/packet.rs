@@ -35,11 +35,10 @@
 
 use super::{
     ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, NO_WORD, Scalar, SourceNode, TraceStats, Walk,
-    select_axis,
 };
 use crate::geom::{
-    Ray, RayPrecomp, edges_need_f64, intersect_triangle, scaled_distance, sheared_edges,
-    t_needs_f64,
+    Ray, RayPrecomp, edges_need_f64, intersect_triangle, scaled_distance, select_axis,
+    sheared_edges, t_needs_f64,
 };
 use crate::tree::TriId;
 use arrayvec::ArrayVec;
