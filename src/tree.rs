@@ -348,18 +348,22 @@ pub enum WalkFault {
 }
 
 /// Why [`TreeIr::validate`] refused a tree; the message names the node.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum TreeError {
     /// The tree has no node (an empty scene is one empty leaf).
+    #[error("no nodes")]
     NoNodes,
     /// More nodes than a [`NodeId`] can number.
+    #[error("too many nodes")]
     TooManyNodes,
     /// A node lies deeper than [`MAX_DEPTH`].
+    #[error("node {node} lies deeper than {MAX_DEPTH}")]
     TooDeep {
         /// The node, by pre-order index.
         node: usize,
     },
     /// A node is reached out of pre-order.
+    #[error("node {node} is not next in pre-order (expected {expected})")]
     NotInPreOrder {
         /// The node, by pre-order index.
         node: usize,
@@ -367,6 +371,7 @@ pub enum TreeError {
         expected: usize,
     },
     /// An inner node's axis is not 0, 1 or 2.
+    #[error("node {node}: axis {axis}")]
     BadAxis {
         /// The node, by pre-order index.
         node: usize,
@@ -374,6 +379,7 @@ pub enum TreeError {
         axis: u8,
     },
     /// A hoisted triangle is not in the scene.
+    #[error("node {node}: hoisted triangle {tri} out of range")]
     HoistedOutOfRange {
         /// The node, by pre-order index.
         node: usize,
@@ -381,6 +387,7 @@ pub enum TreeError {
         tri: u32,
     },
     /// A hoisted triangle does not overlap its node's cell.
+    #[error("node {node}: hoisted triangle {tri} does not overlap the cell")]
     HoistedOutsideCell {
         /// The node, by pre-order index.
         node: usize,
@@ -388,6 +395,7 @@ pub enum TreeError {
         tri: u32,
     },
     /// The right child is not in `(node + 1, end)`.
+    #[error("node {node}: right child {right} outside ({}, {end})", .node + 1)]
     RightChildOutside {
         /// The node, by pre-order index.
         node: usize,
@@ -397,6 +405,7 @@ pub enum TreeError {
         end: usize,
     },
     /// A split plane lies outside its node's cell.
+    #[error("node {node}: split {pos} outside its cell on axis {axis}")]
     SplitOutsideCell {
         /// The node, by pre-order index.
         node: usize,
@@ -406,11 +415,13 @@ pub enum TreeError {
         axis: usize,
     },
     /// A leaf is not the last node of its subtree range.
+    #[error("leaf {node} does not end its range")]
     LeafNotLast {
         /// The node, by pre-order index.
         node: usize,
     },
     /// A leaf's list does not start where the previous leaf's ends.
+    #[error("leaf {node}: list starts at {start}, expected {expected}")]
     LeafListStart {
         /// The node, by pre-order index.
         node: usize,
@@ -420,16 +431,19 @@ pub enum TreeError {
         expected: u32,
     },
     /// A leaf's list runs past the end of [`TreeIr::leaf_tris`].
+    #[error("leaf {node}: list out of range")]
     LeafListOutOfRange {
         /// The node, by pre-order index.
         node: usize,
     },
     /// A leaf's list is not strictly ascending.
+    #[error("leaf {node}: list not strictly ascending")]
     LeafListNotAscending {
         /// The node, by pre-order index.
         node: usize,
     },
     /// A leaf lists a triangle that is not in the scene.
+    #[error("leaf {node}: triangle {tri} out of range")]
     LeafTriOutOfRange {
         /// The node, by pre-order index.
         node: usize,
@@ -437,6 +451,7 @@ pub enum TreeError {
         tri: u32,
     },
     /// A leaf lists a triangle that does not overlap its cell.
+    #[error("leaf {node}: triangle {tri} does not overlap the cell")]
     LeafTriOutsideCell {
         /// The node, by pre-order index.
         node: usize,
@@ -444,75 +459,21 @@ pub enum TreeError {
         tri: u32,
     },
     /// Nodes that no path from the root reaches.
+    #[error("{count} nodes unreachable")]
     Unreachable {
         /// How many.
         count: usize,
     },
     /// [`TreeIr::leaf_tris`] has entries after the last leaf's list.
+    #[error("leaf_tris has entries no leaf lists")]
     UnlistedLeafTris,
     /// A triangle that no leaf or inner node holds.
+    #[error("triangle {tri} is in no leaf")]
     TriangleInNoLeaf {
         /// The triangle's id.
         tri: usize,
     },
 }
-
-impl std::fmt::Display for TreeError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match *self {
-            TreeError::NoNodes => write!(f, "no nodes"),
-            TreeError::TooManyNodes => write!(f, "too many nodes"),
-            TreeError::TooDeep { node } => write!(f, "node {node} lies deeper than {MAX_DEPTH}"),
-            TreeError::NotInPreOrder { node, expected } => write!(
-                f,
-                "node {node} is not next in pre-order (expected {expected})"
-            ),
-            TreeError::BadAxis { node, axis } => write!(f, "node {node}: axis {axis}"),
-            TreeError::HoistedOutOfRange { node, tri } => {
-                write!(f, "node {node}: hoisted triangle {tri} out of range")
-            }
-            TreeError::HoistedOutsideCell { node, tri } => write!(
-                f,
-                "node {node}: hoisted triangle {tri} does not overlap the cell"
-            ),
-            TreeError::RightChildOutside { node, right, end } => write!(
-                f,
-                "node {node}: right child {right} outside ({}, {end})",
-                node + 1
-            ),
-            TreeError::SplitOutsideCell { node, pos, axis } => {
-                write!(
-                    f,
-                    "node {node}: split {pos} outside its cell on axis {axis}"
-                )
-            }
-            TreeError::LeafNotLast { node } => write!(f, "leaf {node} does not end its range"),
-            TreeError::LeafListStart {
-                node,
-                start,
-                expected,
-            } => write!(
-                f,
-                "leaf {node}: list starts at {start}, expected {expected}"
-            ),
-            TreeError::LeafListOutOfRange { node } => write!(f, "leaf {node}: list out of range"),
-            TreeError::LeafListNotAscending { node } => {
-                write!(f, "leaf {node}: list not strictly ascending")
-            }
-            TreeError::LeafTriOutOfRange { node, tri } => {
-                write!(f, "leaf {node}: triangle {tri} out of range")
-            }
-            TreeError::LeafTriOutsideCell { node, tri } => {
-                write!(f, "leaf {node}: triangle {tri} does not overlap the cell")
-            }
-            TreeError::Unreachable { count } => write!(f, "{count} nodes unreachable"),
-            TreeError::UnlistedLeafTris => write!(f, "leaf_tris has entries no leaf lists"),
-            TreeError::TriangleInNoLeaf { tri } => write!(f, "triangle {tri} is in no leaf"),
-        }
-    }
-}
-
-impl std::error::Error for TreeError {}
 
 /// A consumer of a tree in canonical pre-order, one node at a time: what
 /// a builder hands its tree to when the whole [`TreeIr`] need not exist

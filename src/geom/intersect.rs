@@ -23,6 +23,7 @@
 
 use super::Ray;
 use glam::Vec3;
+use std::ops::{Add, Mul, Sub};
 
 /// Per-ray constants of the watertight test: the axis permutation that makes
 /// `kz` the dominant direction axis, and the shear `(sx, sy, sz)`.
@@ -105,7 +106,7 @@ fn watertight(
     let a = pick(tri[0] - rp.origin);
     let b = pick(tri[1] - rp.origin);
     let c = pick(tri[2] - rp.origin);
-    let [u, v, w] = sheared_edges_f32(rp, a, b, c);
+    let [u, v, w] = sheared_edges(rp.sx, rp.sy, a, b, c);
     if edges_need_f64(u, v, w) {
         return watertight_f64(rp, tri, tmin, tmax);
     }
@@ -114,10 +115,7 @@ fn watertight(
     }
     // Not mixed and none below the normal range: `det` is nonzero.
     let det = u + v + w;
-    let az = rp.sz * a[2];
-    let bz = rp.sz * b[2];
-    let cz = rp.sz * c[2];
-    let t_scaled = u * az + v * bz + w * cz;
+    let t_scaled = scaled_distance(rp.sz, [u, v, w], a, b, c);
     let t = t_scaled / det;
     if t_needs_f64(det, t_scaled, t) {
         return watertight_f64(rp, tri, tmin, tmax);
@@ -193,6 +191,21 @@ fn sheared_f64(rp: &RayPrecomp, tri: &[Vec3; 3]) -> [f64; 4] {
     };
     let (a, b, c) = (pick(tri[0]), pick(tri[1]), pick(tri[2]));
     let (sx, sy, sz) = (f64::from(rp.sx), f64::from(rp.sy), f64::from(rp.sz));
+    let [u, v, w] = sheared_edges(sx, sy, a, b, c);
+    let t_scaled = scaled_distance(sz, [u, v, w], a, b, c);
+    [u, v, w, t_scaled]
+}
+
+/// The edge functions `[e0, e1, e2]` of the permuted vertices `a`, `b`,
+/// `c` (relative to the origin) sheared by `(sx, sy)`: `e_i` is opposite
+/// vertex `i`. The one copy of this arithmetic: the `f32` test, its `f64`
+/// redo and each lane of the packet kernel run it, so that they agree bit
+/// for bit (`F` is `f32` or `f64`; plain operations, never fused).
+#[inline(always)]
+pub(crate) fn sheared_edges<F>(sx: F, sy: F, a: [F; 3], b: [F; 3], c: [F; 3]) -> [F; 3]
+where
+    F: Copy + Sub<Output = F> + Mul<Output = F>,
+{
     let ax = a[0] - sx * a[2];
     let ay = a[1] - sy * a[2];
     let bx = b[0] - sx * b[2];
@@ -202,25 +215,21 @@ fn sheared_f64(rp: &RayPrecomp, tri: &[Vec3; 3]) -> [f64; 4] {
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
-    let t_scaled = u * (sz * a[2]) + v * (sz * b[2]) + w * (sz * c[2]);
-    [u, v, w, t_scaled]
+    [u, v, w]
 }
 
-/// The edge functions `[e0, e1, e2]` of the sheared, permuted vertices
-/// `a`, `b`, `c` (relative to the origin), in `f32`: `e_i` is opposite
-/// vertex `i`.
+/// The scaled distance `t · det` of the edge functions `[u, v, w]`
+/// ([`sheared_edges`]) of the vertices `a`, `b`, `c`: their `z` scaled by
+/// `sz` and weighted, in this order, by every copy of the test.
 #[inline(always)]
-fn sheared_edges_f32(rp: &RayPrecomp, a: [f32; 3], b: [f32; 3], c: [f32; 3]) -> [f32; 3] {
-    let ax = a[0] - rp.sx * a[2];
-    let ay = a[1] - rp.sy * a[2];
-    let bx = b[0] - rp.sx * b[2];
-    let by = b[1] - rp.sy * b[2];
-    let cx = c[0] - rp.sx * c[2];
-    let cy = c[1] - rp.sy * c[2];
-    let u = cx * by - cy * bx;
-    let v = ax * cy - ay * cx;
-    let w = bx * ay - by * ax;
-    [u, v, w]
+pub(crate) fn scaled_distance<F>(sz: F, [u, v, w]: [F; 3], a: [F; 3], b: [F; 3], c: [F; 3]) -> F
+where
+    F: Copy + Add<Output = F> + Mul<Output = F>,
+{
+    let az = sz * a[2];
+    let bz = sz * b[2];
+    let cz = sz * c[2];
+    u * az + v * bz + w * cz
 }
 
 /// The watertight test's edge functions `[e0, e1, e2]` for this ray and
@@ -233,12 +242,9 @@ pub fn edge_functions(rp: &RayPrecomp, tri: &[Vec3; 3]) -> [f32; 3] {
     let a = pick(tri[0] - rp.origin);
     let b = pick(tri[1] - rp.origin);
     let c = pick(tri[2] - rp.origin);
-    let [u, v, w] = sheared_edges_f32(rp, a, b, c);
+    let [u, v, w] = sheared_edges(rp.sx, rp.sy, a, b, c);
     let det = u + v + w;
-    let az = rp.sz * a[2];
-    let bz = rp.sz * b[2];
-    let cz = rp.sz * c[2];
-    let t_scaled = u * az + v * bz + w * cz;
+    let t_scaled = scaled_distance(rp.sz, [u, v, w], a, b, c);
     if edges_need_f64(u, v, w) || t_needs_f64(det, t_scaled, t_scaled / det) {
         let [u, v, w, _] = sheared_f64(rp, tri);
         let det = u + v + w;

@@ -14,7 +14,7 @@ mod intersect;
 pub(crate) use clip::clip_split;
 pub use clip::clip_triangle;
 pub use intersect::{RayPrecomp, edge_functions, intersect_ray_triangle, intersect_triangle};
-pub(crate) use intersect::{edges_need_f64, t_needs_f64};
+pub(crate) use intersect::{edges_need_f64, scaled_distance, sheared_edges, t_needs_f64};
 
 use glam::Vec3;
 
@@ -187,6 +187,20 @@ pub fn double_area(tri: &[Vec3; 3]) -> f64 {
     let e1 = tri[1].as_dvec3() - a;
     let e2 = tri[2].as_dvec3() - a;
     e1.cross(e2).length()
+}
+
+/// Component `k` of `v` (0, 1, or 2 for any other value), chosen by
+/// comparisons rather than by an index: in the lane loops it is a select,
+/// which they vectorise.
+#[inline(always)]
+pub(crate) fn select_axis<K: Copy + PartialEq + From<u8>>(v: [f32; 3], k: K) -> f32 {
+    if k == K::from(0) {
+        v[0]
+    } else if k == K::from(1) {
+        v[1]
+    } else {
+        v[2]
+    }
 }
 
 #[cfg(test)]

@@ -8,7 +8,6 @@
 //! in the target directory, syncs it and renames it onto the target, so a failed write
 //! never leaves a partial image or a stray temporary file behind.
 
-use std::fmt;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -27,9 +26,10 @@ pub struct Frame {
 }
 
 /// An error raised while writing an image file.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum ImageError {
     /// The file system refused an operation on `path`.
+    #[error("cannot write {}: {source}", .path.display())]
     Io {
         /// The image file.
         path: PathBuf,
@@ -37,6 +37,7 @@ pub enum ImageError {
         source: std::io::Error,
     },
     /// The encoder rejected the frame or failed for a reason other than I/O.
+    #[error("cannot encode {}: {message}", .path.display())]
     Encode {
         /// The image file.
         path: PathBuf,
@@ -44,35 +45,14 @@ pub enum ImageError {
         message: String,
     },
     /// The extension of `path` is neither `.png` nor `.exr`.
+    #[error(
+        "cannot write {}: unknown image extension (expected .png or .exr)",
+        .path.display()
+    )]
     UnknownExtension {
         /// The file asked for.
         path: PathBuf,
     },
-}
-
-impl fmt::Display for ImageError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Self::Io { path, source } => write!(f, "cannot write {}: {source}", path.display()),
-            Self::Encode { path, message } => {
-                write!(f, "cannot encode {}: {message}", path.display())
-            }
-            Self::UnknownExtension { path } => write!(
-                f,
-                "cannot write {}: unknown image extension (expected .png or .exr)",
-                path.display()
-            ),
-        }
-    }
-}
-
-impl std::error::Error for ImageError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            Self::Io { source, .. } => Some(source),
-            _ => None,
-        }
-    }
 }
 
 /// Builds an `Io` error for `path`.

@@ -149,16 +149,19 @@ impl Camera {
 }
 
 /// Why [`Camera::check`] refused a camera.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
 pub enum CameraError {
     /// `eye`, `at` or `up` has a NaN or infinite coordinate.
+    #[error("the camera's eye, at and up must be finite")]
     NotFinite,
     /// The field of view is not in `(0, 180)` degrees.
+    #[error("fov {fov} is not in (0, 180)")]
     BadFov {
         /// The field of view given.
         fov: f64,
     },
     /// The image has no pixel.
+    #[error("image size {width}x{height} is empty")]
     EmptyImage {
         /// The width given.
         width: u32,
@@ -166,8 +169,13 @@ pub enum CameraError {
         height: u32,
     },
     /// `eye == at`: there is no view direction.
+    #[error("eye and at are the same point: no view direction")]
     SamePoint,
     /// `up` is zero or parallel to `dir = at - eye`.
+    #[error(
+        "up ({}, {}, {}) is zero or parallel to the view direction (at - eye = {}, {}, {})",
+        .up.x, .up.y, .up.z, .dir.x, .dir.y, .dir.z
+    )]
     UpParallel {
         /// The up vector given.
         up: DVec3,
@@ -175,26 +183,6 @@ pub enum CameraError {
         dir: DVec3,
     },
 }
-
-impl std::fmt::Display for CameraError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match *self {
-            CameraError::NotFinite => write!(f, "the camera's eye, at and up must be finite"),
-            CameraError::BadFov { fov } => write!(f, "fov {fov} is not in (0, 180)"),
-            CameraError::EmptyImage { width, height } => {
-                write!(f, "image size {width}x{height} is empty")
-            }
-            CameraError::SamePoint => write!(f, "eye and at are the same point: no view direction"),
-            CameraError::UpParallel { up, dir: d } => write!(
-                f,
-                "up ({}, {}, {}) is zero or parallel to the view direction (at - eye = {}, {}, {})",
-                up.x, up.y, up.z, d.x, d.y, d.z
-            ),
-        }
-    }
-}
-
-impl std::error::Error for CameraError {}
 
 /// A line of a views file that [`parse_views`] refused: its number
 /// (1-based), what is wrong, and its text.
@@ -209,40 +197,33 @@ pub struct ViewsError {
 }
 
 /// What is wrong with a line of a views file.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum ViewProblem {
     /// The line has no first word (the scene's name).
+    #[error("no scene name")]
     NoSceneName,
     /// The line has no second word (the view's id).
+    #[error("no view id")]
     NoViewId,
     /// A later word is not `key=value`.
+    #[error("expected key=value")]
     NotKeyValue,
     /// The value of this key does not parse.
+    #[error("bad {0}")]
     Bad(&'static str),
     /// A key other than `eye`, `at`, `up` and `fov`.
+    #[error("unknown key `{}`", crate::text::escape_controls(.0))]
     UnknownKey(String),
     /// This key is missing.
+    #[error("missing {0}")]
     Missing(&'static str),
     /// The view's camera does not define rays.
-    Camera(CameraError),
+    #[error("{0}")]
+    Camera(#[source] CameraError),
 }
 
-impl std::fmt::Display for ViewProblem {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            ViewProblem::NoSceneName => write!(f, "no scene name"),
-            ViewProblem::NoViewId => write!(f, "no view id"),
-            ViewProblem::NotKeyValue => write!(f, "expected key=value"),
-            ViewProblem::Bad(key) => write!(f, "bad {key}"),
-            ViewProblem::UnknownKey(key) => {
-                write!(f, "unknown key `{}`", crate::text::escape_controls(key))
-            }
-            ViewProblem::Missing(key) => write!(f, "missing {key}"),
-            ViewProblem::Camera(e) => write!(f, "{e}"),
-        }
-    }
-}
-
+// Written by hand: the source is the camera error inside the problem
+// (none for the other problems), which a derive cannot say.
 impl std::fmt::Display for ViewsError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let text = crate::text::escape_controls(&self.text);

@@ -5,7 +5,7 @@
 //! the pass skip a rebuild. [`tree_bytes`] counts a whole tree in either
 //! [`ByteLayout`], for measurements of what hoisting saves.
 
-use super::work::{WNode, Work};
+use super::work::{Work, WorkNode};
 use crate::format::node::fits_leaf16;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, TreeIr, TriId};
@@ -127,14 +127,14 @@ impl ByteModel {
     /// The bytes of the contiguous subtree `work.nodes[node..node + size]`
     /// (whose root is an inner node).
     pub(super) fn subtree(&self, work: &Work, node: u32, size: u32) -> u64 {
-        let empty = |i: u32| matches!(work.nodes[i as usize], WNode::Leaf { count: 0, .. });
+        let empty = |i: u32| matches!(work.nodes[i as usize], WorkNode::Leaf { count: 0, .. });
         work.nodes[node as usize..(node + size) as usize]
             .iter()
             .map(|n| match *n {
-                WNode::Inner {
+                WorkNode::Inner {
                     t_ref, left, right, ..
                 } => self.inner(t_ref.is_some(), empty(left) && empty(right)),
-                WNode::Leaf { start, count } => self.leaf(work.leaf(start, count)),
+                WorkNode::Leaf { start, count } => self.leaf(work.leaf(start, count)),
             })
             .sum()
     }

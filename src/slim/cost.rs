@@ -6,10 +6,25 @@
 //!
 //! [`SlimParams::cost_ratio`]: super::SlimParams::cost_ratio
 
-use super::work::{WNode, Work};
+use super::work::{Work, WorkNode};
 use crate::build::sah::SahParams;
 use crate::geom::Aabb;
 use crate::tree::{Node, TreeIr};
+
+/// What the cost of a subtree reads of a node, in either tree form (the
+/// work tree's explicit children or pre-order's implicit left child).
+enum CostNode {
+    Inner {
+        axis: u8,
+        pos: f32,
+        hoisted: bool,
+        left: u32,
+        right: u32,
+    },
+    Leaf {
+        count: u32,
+    },
+}
 
 /// The traversal-step and triangle-test costs a subtree is priced with.
 #[derive(Clone, Copy, Debug)]
@@ -31,46 +46,63 @@ impl CostModel {
 
     /// The cost of the subtree of work node `node`, whose cell is `cell`.
     pub(super) fn work_subtree(&self, work: &Work, node: u32, cell: Aabb) -> f64 {
-        let mut cost = 0.0;
-        let mut stack = vec![(node, cell)];
-        while let Some((n, cell)) = stack.pop() {
-            match work.nodes[n as usize] {
-                WNode::Inner {
-                    axis,
-                    pos,
-                    left,
-                    right,
-                    t_ref,
-                } => {
-                    cost += self.inner(t_ref.is_some(), &cell);
-                    let (lc, rc) = cell.split(axis as usize, pos);
-                    stack.push((right, rc));
-                    stack.push((left, lc));
-                }
-                WNode::Leaf { count, .. } => cost += self.leaf(count, &cell),
-            }
-        }
-        cost
+        self.subtree(node, cell, |n| match work.nodes[n as usize] {
+            WorkNode::Inner {
+                axis,
+                pos,
+                left,
+                right,
+                t_ref,
+            } => CostNode::Inner {
+                axis,
+                pos,
+                hoisted: t_ref.is_some(),
+                left,
+                right,
+            },
+            WorkNode::Leaf { count, .. } => CostNode::Leaf { count },
+        })
     }
 
     /// The cost of a pre-order subtree (a rebuild's nodes) over `cell`.
     pub(super) fn nodes(&self, nodes: &[Node], cell: Aabb) -> f64 {
+        self.subtree(0, cell, |n| match nodes[n as usize] {
+            Node::Inner {
+                axis,
+                pos,
+                right,
+                t_ref,
+            } => CostNode::Inner {
+                axis,
+                pos,
+                hoisted: t_ref.is_some(),
+                left: n + 1,
+                right: right.0,
+            },
+            Node::Leaf { count, .. } => CostNode::Leaf { count },
+        })
+    }
+
+    /// The cost of the subtree of `root` over `cell`, for either tree form
+    /// (`node` reads one node): summed in pre-order, left child first.
+    fn subtree(&self, root: u32, cell: Aabb, node: impl Fn(u32) -> CostNode) -> f64 {
         let mut cost = 0.0;
-        let mut stack = vec![(0u32, cell)];
+        let mut stack = vec![(root, cell)];
         while let Some((n, cell)) = stack.pop() {
-            match nodes[n as usize] {
-                Node::Inner {
+            match node(n) {
+                CostNode::Inner {
                     axis,
                     pos,
+                    hoisted,
+                    left,
                     right,
-                    t_ref,
                 } => {
-                    cost += self.inner(t_ref.is_some(), &cell);
+                    cost += self.inner(hoisted, &cell);
                     let (lc, rc) = cell.split(axis as usize, pos);
-                    stack.push((right.0, rc));
-                    stack.push((n + 1, lc));
+                    stack.push((right, rc));
+                    stack.push((left, lc));
                 }
-                Node::Leaf { count, .. } => cost += self.leaf(count, &cell),
+                CostNode::Leaf { count } => cost += self.leaf(count, &cell),
             }
         }
         cost

@@ -134,11 +134,11 @@ use crate::sys::lap;
 use crate::tree::{Node, TreeIr, TriId};
 use bytes::ByteModel;
 use oracle::analyze;
-use pass::{Ctx, Outcome, Pick, Todo, find_picks, rebuild_pick};
+use pass::{Outcome, Pick, SlimInputs, Todo, find_picks, rebuild_pick};
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
-use work::{WNode, Work};
+use work::{Work, WorkNode};
 
 /// Rebuilds a subtree from scratch, as Algorithm 1 does: the triangles
 /// `tris` (ascending), each clipped to `cell`, built by the sweep builder
@@ -243,7 +243,7 @@ pub fn slim_with_progress(
         }
         _ => None,
     };
-    let ctx = Ctx {
+    let inputs = SlimInputs {
         scene,
         params,
         sa_root: tree.bounds.surface_area(),
@@ -269,7 +269,7 @@ pub fn slim_with_progress(
         phases.passes += 1;
         let picks: Vec<Pick> = todo
             .par_drain(..)
-            .flat_map_iter(|sub| find_picks(&work, sub, &ctx))
+            .flat_map_iter(|sub| find_picks(&work, sub, &inputs))
             .collect();
         phases.analysis_s += lap(&mut clock);
         let outcomes: Vec<(Outcome, usize)> = picks
@@ -282,7 +282,7 @@ pub fn slim_with_progress(
                         Vec::new(),
                     )
                 },
-                |(builder, tris, refs), p| rebuild_pick(&work, p, &ctx, builder, tris, refs),
+                |(builder, tris, refs), p| rebuild_pick(&work, p, &inputs, builder, tris, refs),
             )
             .collect();
         phases.rebuild_s += lap(&mut clock);
@@ -321,12 +321,12 @@ pub fn slim_with_progress(
             .collect();
         let bases = work.append_all(trees);
         for ((p, base), (right, size)) in at.into_iter().zip(bases).zip(sizes) {
-            let WNode::Inner { axis, pos, .. } = work.nodes[base as usize] else {
+            let WorkNode::Inner { axis, pos, .. } = work.nodes[base as usize] else {
                 unreachable!("hoisted subtrees have an inner root");
             };
             // The fresh root's split, with the hoisted triangle, at the
             // pick's node; the fresh root itself stays unreachable.
-            work.nodes[p.at.node as usize] = WNode::Inner {
+            work.nodes[p.at.node as usize] = WorkNode::Inner {
                 axis,
                 pos,
                 left: base + 1,

@@ -6,7 +6,7 @@
 //! subtrees.
 
 use super::SlimParams;
-use super::work::{WNode, Work};
+use super::work::{Work, WorkNode};
 use crate::geom::Aabb;
 use crate::tree::TriId;
 use rayon::prelude::*;
@@ -145,7 +145,7 @@ impl Counts<'_> {
         merged: &mut Vec<Cand>,
     ) {
         let (left, right) = match self.work.nodes[node as usize] {
-            WNode::Leaf { start, count } => {
+            WorkNode::Leaf { start, count } => {
                 let leaf = first_leaf as usize;
                 let occu = self.leaf_prefix.sum(leaf, leaf + 1);
                 out.extend(self.work.leaf(start, count).iter().map(|t| Cand {
@@ -155,7 +155,7 @@ impl Counts<'_> {
                 }));
                 return;
             }
-            WNode::Inner { left, right, .. } => (left, right),
+            WorkNode::Inner { left, right, .. } => (left, right),
         };
         let size_l = right - left;
         let size_r = size - 1 - size_l;
@@ -267,13 +267,13 @@ fn fill(
     keys: &mut [u64],
 ) {
     match work.nodes[node as usize] {
-        WNode::Leaf { start, count } => {
+        WorkNode::Leaf { start, count } => {
             w[0] = occupancy_weight(&cell, sa_root);
             for (k, t) in keys.iter_mut().zip(work.leaf(start, count)) {
                 *k = key(t.0, first_leaf);
             }
         }
-        WNode::Inner {
+        WorkNode::Inner {
             axis,
             pos,
             left,

@@ -7,7 +7,7 @@ use super::SlimParams;
 use super::bytes::{ByteModel, min_subtree_bytes};
 use super::cost::CostModel;
 use super::oracle::{Analysis, analyze};
-use super::work::{WNode, Work};
+use super::work::{Work, WorkNode};
 use crate::build::level::SubtreeBuilder;
 use crate::geom::{Aabb, clip_triangle};
 use crate::progress::Progress;
@@ -42,7 +42,7 @@ impl Todo {
         analysis: Option<Arc<Analysis>>,
         progress: Option<&Progress>,
     ) -> [Todo; 2] {
-        let WNode::Inner {
+        let WorkNode::Inner {
             axis,
             pos,
             left,
@@ -87,12 +87,12 @@ pub(super) struct Pick {
 ///
 /// The progress weight of every node walked and not picked is done here;
 /// the picks carry theirs on.
-pub(super) fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
+pub(super) fn find_picks(work: &Work, sub: Todo, inputs: &SlimInputs) -> Vec<Pick> {
     let mut picks = Vec::new();
-    if sub.t2rn >= ctx.params.max_t2rn
-        || !matches!(work.nodes[sub.node as usize], WNode::Inner { .. })
+    if sub.t2rn >= inputs.params.max_t2rn
+        || !matches!(work.nodes[sub.node as usize], WorkNode::Inner { .. })
     {
-        Progress::add(ctx.progress, sub.weight);
+        Progress::add(inputs.progress, sub.weight);
         return picks;
     }
     let analysis = match &sub.analysis {
@@ -102,15 +102,15 @@ pub(super) fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
             sub.node,
             sub.size,
             sub.cell,
-            ctx.sa_root,
-            ctx.params,
-            ctx.scene.len(),
+            inputs.sa_root,
+            inputs.params,
+            inputs.scene.len(),
         )),
     };
     let mut stack = vec![sub];
     while let Some(mut at) = stack.pop() {
-        if !matches!(work.nodes[at.node as usize], WNode::Inner { .. }) {
-            Progress::add(ctx.progress, at.weight);
+        if !matches!(work.nodes[at.node as usize], WorkNode::Inner { .. }) {
+            Progress::add(inputs.progress, at.weight);
             continue;
         }
         if let Some(tri) = analysis.pick(at.node) {
@@ -118,7 +118,7 @@ pub(super) fn find_picks(work: &Work, sub: Todo, ctx: &Ctx) -> Vec<Pick> {
             picks.push(Pick { at, tri });
             continue;
         }
-        let [l, r] = at.children(work, at.t2rn, None, ctx.progress);
+        let [l, r] = at.children(work, at.t2rn, None, inputs.progress);
         stack.push(r);
         stack.push(l);
     }
@@ -139,8 +139,8 @@ pub(super) enum Outcome {
     Skipped,
 }
 
-/// The fixed inputs of a run.
-pub(super) struct Ctx<'a> {
+/// The fixed inputs of a slim run, shared by every pick of every pass.
+pub(super) struct SlimInputs<'a> {
     pub(super) scene: &'a TriangleColumns,
     pub(super) params: &'a SlimParams,
     pub(super) sa_root: f64,
@@ -156,7 +156,7 @@ pub(super) struct Ctx<'a> {
 pub(super) fn rebuild_pick(
     work: &Work,
     p: &Pick,
-    ctx: &Ctx,
+    inputs: &SlimInputs,
     builder: &mut SubtreeBuilder,
     tris: &mut Vec<TriId>,
     refs: &mut Vec<(TriId, Aabb)>,
@@ -173,11 +173,11 @@ pub(super) fn rebuild_pick(
         if !clipped {
             clipped = true;
             refs.extend(tris.iter().filter_map(|&t| {
-                clip_triangle(&ctx.scene.tri(t.0), &p.at.cell).map(|bounds| (t, bounds))
+                clip_triangle(&inputs.scene.tri(t.0), &p.at.cell).map(|bounds| (t, bounds))
             }));
         }
     };
-    let old = ctx
+    let old = inputs
         .bytes
         .as_ref()
         .map(|m| m.subtree(work, p.at.node, p.at.size));
@@ -208,14 +208,14 @@ pub(super) fn rebuild_pick(
     else {
         return (Outcome::Rejected, tris.len());
     };
-    let new = ctx.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
+    let new = inputs.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
     let outcome = if matches!(nodes[0], Node::Leaf { .. }) {
         Outcome::Cancelled
     } else if let (Some(new), Some(old)) = (new, old)
         && new >= old
     {
         Outcome::Rejected
-    } else if let (Some((model, per_byte)), Some(new), Some(old)) = (&ctx.price, new, old)
+    } else if let (Some((model, per_byte)), Some(new), Some(old)) = (&inputs.price, new, old)
         && model.nodes(nodes, p.at.cell) + model.hoisted(&p.at.cell)
             - model.work_subtree(work, p.at.node, p.at.cell)
             > per_byte * (old - new) as f64

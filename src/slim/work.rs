@@ -12,7 +12,7 @@ use std::borrow::Borrow;
 /// A mutable tree with explicit children, so that subtrees can be replaced
 /// without renumbering; turned back into canonical pre-order at the end.
 #[derive(Clone, Copy, Debug)]
-pub(super) enum WNode {
+pub(super) enum WorkNode {
     Inner {
         axis: u8,
         pos: f32,
@@ -32,7 +32,7 @@ pub(super) enum WNode {
 /// nodes whose leaves' triangles are a contiguous range of `tris`; only a
 /// hoisting node's children lie in another block.
 pub(super) struct Work {
-    pub(super) nodes: Vec<WNode>,
+    pub(super) nodes: Vec<WorkNode>,
     pub(super) tris: Vec<TriId>,
 }
 
@@ -51,7 +51,7 @@ impl Work {
             t += tree.leaf_tris.len();
         }
         let (n0, t0) = (self.nodes.len(), self.tris.len());
-        self.nodes.resize(n, WNode::Leaf { start: 0, count: 0 });
+        self.nodes.resize(n, WorkNode::Leaf { start: 0, count: 0 });
         self.tris.resize(t, TriId(0));
         // Cut the new tails into one slice per tree.
         let mut slices = Vec::with_capacity(trees.len());
@@ -78,14 +78,14 @@ impl Work {
                             pos,
                             right,
                             t_ref,
-                        } => WNode::Inner {
+                        } => WorkNode::Inner {
                             axis,
                             pos,
                             left: base + i as u32 + 1,
                             right: base + right.0,
                             t_ref,
                         },
-                        Node::Leaf { start, count } => WNode::Leaf {
+                        Node::Leaf { start, count } => WorkNode::Leaf {
                             start: tri_base + start,
                             count,
                         },
@@ -102,11 +102,11 @@ impl Work {
         let mut n = node;
         let start = loop {
             match self.nodes[n as usize] {
-                WNode::Inner { left, .. } => n = left,
-                WNode::Leaf { start, .. } => break start,
+                WorkNode::Inner { left, .. } => n = left,
+                WorkNode::Leaf { start, .. } => break start,
             }
         };
-        let WNode::Leaf { start: s, count } = self.nodes[(node + size - 1) as usize] else {
+        let WorkNode::Leaf { start: s, count } = self.nodes[(node + size - 1) as usize] else {
             unreachable!("the last node of a subtree in pre-order is a leaf");
         };
         (start as usize, (s + count) as usize)
@@ -129,7 +129,7 @@ impl Work {
                 *right = NodeId(me as u32);
             }
             match self.nodes[w as usize] {
-                WNode::Inner {
+                WorkNode::Inner {
                     axis,
                     pos,
                     left,
@@ -145,7 +145,7 @@ impl Work {
                     stack.push((right, Some(me)));
                     stack.push((left, None));
                 }
-                WNode::Leaf { start, count } => {
+                WorkNode::Leaf { start, count } => {
                     let s = out.leaf_tris.len() as u32;
                     out.leaf_tris.extend_from_slice(self.leaf(start, count));
                     out.nodes.push(Node::Leaf { start: s, count });

@@ -29,7 +29,7 @@ use super::{
     Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, RayStart, SourceNode, TraceStats, Walk,
     max_num, min_num, ray_start, test_one, walk_pending, walk_ray,
 };
-use crate::geom::Ray;
+use crate::geom::{Ray, select_axis};
 use glam::Vec3;
 use std::mem::MaybeUninit;
 
@@ -202,20 +202,8 @@ pub(crate) fn walk_from<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     for i in 0..len {
         let f = ctx.flags[i];
         let k = f & 3;
-        let o = if k == 0 {
-            org[0]
-        } else if k == 1 {
-            org[1]
-        } else {
-            org[2]
-        };
-        let iv = if k == 0 {
-            inv[0]
-        } else if k == 1 {
-            inv[1]
-        } else {
-            inv[2]
-        };
+        let o = select_axis(org, k);
+        let iv = select_axis(inv, k);
         let pos = ctx.pos[i];
         let ts = (pos - o) * iv;
         let sibling_left = f & 4 != 0;

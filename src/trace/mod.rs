@@ -333,9 +333,17 @@ impl<'a, S: KdSource> Scalar<'a, S> {
     /// the best level it has ([`SimdLevel::usable`]); for the tests of
     /// every level's copy.
     pub fn with_level(src: &'a S, level: SimdLevel) -> Self {
+        Self::on(src, SimdLevel::usable(level))
+    }
+
+    /// Takes `src`'s walk to run on `level`, which this CPU must have
+    /// (the one constructor of both tracers; [`packet::PacketTracer`]
+    /// holds a `Scalar` for its single rays).
+    #[inline(always)]
+    pub(crate) fn on(src: &'a S, level: SimdLevel) -> Self {
         Scalar {
             walk: src.walk(),
-            level: SimdLevel::usable(level),
+            level,
         }
     }
 

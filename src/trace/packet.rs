@@ -33,8 +33,13 @@
 // Lane loops index several arrays by lane: the form LLVM vectorises.
 #![allow(clippy::needless_range_loop)]
 
-use super::{ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, NO_WORD, SourceNode, TraceStats, Walk};
-use crate::geom::{Ray, RayPrecomp, edges_need_f64, intersect_triangle, t_needs_f64};
+use super::{
+    ClosestHit, Hit, KdSource, MARGIN, MAX_STACK, NO_WORD, Scalar, SourceNode, TraceStats, Walk,
+};
+use crate::geom::{
+    Ray, RayPrecomp, edges_need_f64, intersect_triangle, scaled_distance, select_axis,
+    sheared_edges, t_needs_f64,
+};
 use crate::tree::TriId;
 use arrayvec::ArrayVec;
 use glam::Vec3;
@@ -135,20 +140,11 @@ impl Packet {
             let swap = d_kz < 0.0;
             let kx = if swap { k2 } else { k1 };
             let ky = if swap { k1 } else { k2 };
-            let pick = |k: u8| {
-                if k == 0 {
-                    x
-                } else if k == 1 {
-                    y
-                } else {
-                    z
-                }
-            };
             p.kx[i] = kx;
             p.ky[i] = ky;
             p.kz[i] = kz;
-            p.sx[i] = pick(kx) / d_kz;
-            p.sy[i] = pick(ky) / d_kz;
+            p.sx[i] = select_axis([x, y, z], kx) / d_kz;
+            p.sy[i] = select_axis([x, y, z], ky) / d_kz;
             p.sz[i] = 1.0 / d_kz;
         }
         p
@@ -268,22 +264,10 @@ fn lane_test(
     b: [f32; 3],
     c: [f32; 3],
 ) -> (f32, bool, bool) {
-    let (sx, sy, sz) = (p.sx[i], p.sy[i], p.sz[i]);
-    let ax = a[0] - sx * a[2];
-    let ay = a[1] - sy * a[2];
-    let bx = b[0] - sx * b[2];
-    let by = b[1] - sy * b[2];
-    let cx = c[0] - sx * c[2];
-    let cy = c[1] - sy * c[2];
-    let u = cx * by - cy * bx;
-    let v = ax * cy - ay * cx;
-    let w = bx * ay - by * ax;
+    let [u, v, w] = sheared_edges(p.sx[i], p.sy[i], a, b, c);
     let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
     let det = u + v + w;
-    let az = sz * a[2];
-    let bz = sz * b[2];
-    let cz = sz * c[2];
-    let t_scaled = u * az + v * bz + w * cz;
+    let t_scaled = scaled_distance(p.sz[i], [u, v, w], a, b, c);
     let t = t_scaled / det;
     // Exactly where the scalar test leaves `f32` (`mixed` is only read
     // where no edge needs `f64`, as there).
@@ -340,11 +324,11 @@ fn bits<const MASKS: bool>(b: [bool; LANES]) -> u16 {
 
 pub use crate::simd::SimdLevel;
 
-/// Packet traversal of any source; also answers single rays (scalar).
+/// Packet traversal of any source; also answers single rays (with the
+/// [`Scalar`] traverser it holds, on the same walk and level).
 pub struct PacketTracer<'a, S: KdSource + 'a> {
-    walk: S::Walk<'a>,
-    /// A level this CPU has ([`PacketTracer::with_level`]).
-    level: SimdLevel,
+    /// The walk and a level this CPU has ([`PacketTracer::with_level`]).
+    scalar: Scalar<'a, S>,
 }
 
 impl<'a, S: KdSource> PacketTracer<'a, S> {
@@ -365,14 +349,13 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
             SimdLevel::Baseline
         };
         PacketTracer {
-            walk: src.walk(),
-            level,
+            scalar: Scalar::on(src, level),
         }
     }
 
     /// The instruction set the packets run on.
     pub fn level(&self) -> SimdLevel {
-        self.level
+        self.scalar.level()
     }
 
     /// Traces up to 16 rays as a packet, closest hit (`ANY == false`) or
@@ -388,8 +371,8 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         if rays.is_empty() {
             return;
         }
-        let w = self.walk;
-        crate::simd_dispatch!(self.level, |WIDE| trace_rays::<_, ANY, COUNT, WIDE>(
+        let w = self.scalar.walk;
+        crate::simd_dispatch!(self.scalar.level, |WIDE| trace_rays::<_, ANY, COUNT, WIDE>(
             w, rays, out, stats
         ))
     }
@@ -411,37 +394,23 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
 
 impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
     fn closest_hit(&self, ray: &Ray) -> Hit {
-        let w = self.walk;
-        crate::simd_dispatch!(self.level, |_WIDE| {
-            super::walk_ray::<_, false, false>(w, ray, &mut TraceStats::default())
-        })
+        self.scalar.closest_hit(ray)
     }
 
     fn occluded(&self, ray: &Ray) -> bool {
-        let w = self.walk;
-        crate::simd_dispatch!(self.level, |_WIDE| {
-            super::walk_ray::<_, true, false>(w, ray, &mut TraceStats::default())
-        })
-        .is_hit()
+        self.scalar.occluded(ray)
     }
 
     fn locate_into(&self, point: Vec3, ctx: &mut super::HitContext) {
-        super::locate_into(self.walk, point, ctx);
+        self.scalar.locate_into(point, ctx);
     }
 
     fn closest_hit_from(&self, ctx: &super::HitContext, ray: &Ray) -> Hit {
-        let w = self.walk;
-        crate::simd_dispatch!(self.level, |_WIDE| {
-            super::context::walk_from::<_, false, false>(w, ctx, ray, &mut TraceStats::default())
-        })
+        self.scalar.closest_hit_from(ctx, ray)
     }
 
     fn occluded_from(&self, ctx: &super::HitContext, ray: &Ray) -> bool {
-        let w = self.walk;
-        crate::simd_dispatch!(self.level, |_WIDE| {
-            super::context::walk_from::<_, true, false>(w, ctx, ray, &mut TraceStats::default())
-        })
-        .is_hit()
+        self.scalar.occluded_from(ctx, ray)
     }
 
     fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {

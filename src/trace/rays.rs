@@ -13,7 +13,6 @@ use super::{ClosestHit, Hit, HitContext, TraceStats};
 use crate::geom::Ray;
 use glam::Vec3;
 use rayon::prelude::*;
-use std::fmt;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
@@ -30,13 +29,19 @@ pub const STREAM: usize = 256;
 pub const CHUNK: usize = 256;
 
 /// What is wrong with a ray file.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum RayFileError {
     /// The file could not be read.
+    #[error("{}: {}", .0.display(), .1)]
     Io(PathBuf, std::io::Error),
     /// The size is not a whole number of records.
+    #[error(
+        "{}: size {} bytes is not a multiple of {RECORD} (records are ox oy oz tmin dx dy dz tmax, f32)",
+        .0.display(), .1
+    )]
     Size(PathBuf, u64),
     /// Record `index` (from 0) is not a ray.
+    #[error("{}: ray {index}: {what}", .path.display())]
     Record {
         /// The ray file.
         path: PathBuf,
@@ -46,24 +51,6 @@ pub enum RayFileError {
         what: &'static str,
     },
 }
-
-impl fmt::Display for RayFileError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            RayFileError::Io(p, e) => write!(f, "{}: {e}", p.display()),
-            RayFileError::Size(p, n) => write!(
-                f,
-                "{}: size {n} bytes is not a multiple of {RECORD} (records are ox oy oz tmin dx dy dz tmax, f32)",
-                p.display()
-            ),
-            RayFileError::Record { path, index, what } => {
-                write!(f, "{}: ray {index}: {what}", path.display())
-            }
-        }
-    }
-}
-
-impl std::error::Error for RayFileError {}
 
 /// Parses ray records; `Err((index, what))` names the first bad record.
 pub fn parse_rays(bytes: &[u8]) -> Result<Vec<Ray>, (usize, &'static str)> {
