@@ -50,7 +50,7 @@ use std::path::Path;
 /// A node of the literal algorithm's tree: children are explicit indices,
 /// so that a subtree is replaced by pointing a node at new children.
 #[derive(Clone, Debug)]
-enum LNode {
+enum LiteralNode {
     Inner {
         axis: u8,
         pos: f32,
@@ -65,7 +65,7 @@ enum LNode {
 /// the vector, unreachable).
 #[derive(Default)]
 struct LTree {
-    nodes: Vec<LNode>,
+    nodes: Vec<LiteralNode>,
 }
 
 impl LTree {
@@ -80,14 +80,14 @@ impl LTree {
                     pos,
                     right,
                     t_ref,
-                } => LNode::Inner {
+                } => LiteralNode::Inner {
                     axis,
                     pos,
                     left: base + i + 1,
                     right: base + right.0 as usize,
                     t_ref,
                 },
-                Node::Leaf { start, count } => LNode::Leaf(ir.leaf(start, count).to_vec()),
+                Node::Leaf { start, count } => LiteralNode::Leaf(ir.leaf(start, count).to_vec()),
             });
         }
         base
@@ -96,8 +96,8 @@ impl LTree {
     /// Every leaf of the subtree under `n`, with its cell.
     fn leaves(&self, n: usize, cell: Aabb, out: &mut Vec<(Aabb, Vec<TriId>)>) {
         match &self.nodes[n] {
-            LNode::Leaf(tris) => out.push((cell, tris.clone())),
-            LNode::Inner {
+            LiteralNode::Leaf(tris) => out.push((cell, tris.clone())),
+            LiteralNode::Inner {
                 axis,
                 pos,
                 left,
@@ -115,8 +115,8 @@ impl LTree {
     /// with repetitions.
     fn triangles(&self, n: usize, out: &mut Vec<TriId>) {
         match &self.nodes[n] {
-            LNode::Leaf(tris) => out.extend_from_slice(tris),
-            LNode::Inner {
+            LiteralNode::Leaf(tris) => out.extend_from_slice(tris),
+            LiteralNode::Inner {
                 left, right, t_ref, ..
             } => {
                 out.extend(*t_ref);
@@ -131,8 +131,8 @@ impl LTree {
     /// [hoisted]) · SA` per inner node, `K_I · |leaf| · SA` per leaf.
     fn cost(&self, n: usize, cell: Aabb, sah: &SahParams, sum: &mut f64) {
         match &self.nodes[n] {
-            LNode::Leaf(tris) => *sum += sah.k_i * tris.len() as f64 * cell.surface_area(),
-            LNode::Inner {
+            LiteralNode::Leaf(tris) => *sum += sah.k_i * tris.len() as f64 * cell.surface_area(),
+            LiteralNode::Inner {
                 axis,
                 pos,
                 left,
@@ -160,7 +160,7 @@ impl LTree {
     /// in the file).
     fn bytes(&self, n: usize, file_id: &impl Fn(TriId) -> u32) -> u64 {
         match &self.nodes[n] {
-            LNode::Leaf(tris) => match tris.len() {
+            LiteralNode::Leaf(tris) => match tris.len() {
                 0 => 0,
                 1 => 8,
                 n => {
@@ -172,10 +172,11 @@ impl LTree {
                         }
                 }
             },
-            LNode::Inner {
+            LiteralNode::Inner {
                 left, right, t_ref, ..
             } => {
-                let is_empty = |c: usize| matches!(&self.nodes[c], LNode::Leaf(t) if t.is_empty());
+                let is_empty =
+                    |c: usize| matches!(&self.nodes[c], LiteralNode::Leaf(t) if t.is_empty());
                 8 + 8 * u64::from(t_ref.is_some())
                     + 8 * u64::from(is_empty(*left) && is_empty(*right))
                     + self.bytes(*left, file_id)
@@ -187,7 +188,7 @@ impl LTree {
     /// Writes the subtree under `n` in canonical pre-order.
     fn emit(&self, n: usize, out: &mut TreeIr) {
         match &self.nodes[n] {
-            LNode::Leaf(tris) => {
+            LiteralNode::Leaf(tris) => {
                 let start = out.leaf_tris.len() as u32;
                 out.leaf_tris.extend_from_slice(tris);
                 out.nodes.push(Node::Leaf {
@@ -195,7 +196,7 @@ impl LTree {
                     count: tris.len() as u32,
                 });
             }
-            LNode::Inner {
+            LiteralNode::Inner {
                 axis,
                 pos,
                 left,
@@ -257,7 +258,7 @@ fn literal_pick(tree: &LTree, n: usize, cell: Aabb, sa_root: f64, p: &SlimParams
 fn ir_bytes(ir: &TreeIr, file_id: &impl Fn(TriId) -> u32) -> u64 {
     let mut t = LTree::default();
     let root = t.append(ir);
-    let empty_root = matches!(&t.nodes[root], LNode::Leaf(tris) if tris.is_empty());
+    let empty_root = matches!(&t.nodes[root], LiteralNode::Leaf(tris) if tris.is_empty());
     t.bytes(root, file_id) + 8 * u64::from(empty_root)
 }
 
@@ -327,7 +328,7 @@ fn literal_slim(
         stack.push((root, std_tree.bounds, 0u32, 0u32));
     }
     while let Some((i, cell, depth, hoisted_above)) = stack.pop() {
-        if matches!(tree.nodes[i], LNode::Leaf(_)) {
+        if matches!(tree.nodes[i], LiteralNode::Leaf(_)) {
             continue;
         }
         let mut hoisted = hoisted_above;
@@ -385,7 +386,7 @@ fn literal_slim(
                 report.rebuilt_refs += tris.len();
                 // The fresh root becomes node `i`, holding `t`.
                 let base = tree.append(&fresh);
-                let LNode::Inner {
+                let LiteralNode::Inner {
                     axis,
                     pos,
                     left,
@@ -395,7 +396,7 @@ fn literal_slim(
                 else {
                     unreachable!("checked above");
                 };
-                tree.nodes[i] = LNode::Inner {
+                tree.nodes[i] = LiteralNode::Inner {
                     axis,
                     pos,
                     left,
@@ -407,7 +408,7 @@ fn literal_slim(
             }
         }
         if hoisted < p.max_t2rn {
-            let LNode::Inner {
+            let LiteralNode::Inner {
                 axis,
                 pos,
                 left,
@@ -419,7 +420,7 @@ fn literal_slim(
             };
             let (left_cell, right_cell) = cell.split(axis as usize, pos);
             for (child, child_cell) in [(right, right_cell), (left, left_cell)] {
-                if matches!(tree.nodes[child], LNode::Inner { .. }) {
+                if matches!(tree.nodes[child], LiteralNode::Inner { .. }) {
                     stack.push((child, child_cell, depth + 1, hoisted));
                 }
             }

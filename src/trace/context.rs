@@ -113,29 +113,22 @@ pub fn locate_into<'a, W: Walk<'a>>(walk: W, point: Vec3, ctx: &mut HitContext) 
     ctx.n_hoisted = 0;
     let mut node = 0u32;
     while ctx.len < CONTEXT_LEVELS {
-        let SourceNode::Inner {
-            axis,
-            pos,
-            left,
-            right,
-            t_ref,
-        } = walk.node(node)
-        else {
+        let SourceNode::Inner(n) = walk.node(node) else {
             break;
         };
-        let k = (axis & 3) as usize;
+        let k = (n.axis & 3) as usize;
         // A NaN coordinate goes right; any side is correct.
-        let go_left = k < 3 && p[k] <= pos;
+        let go_left = k < 3 && p[k] <= n.pos;
         let (next, sibling) = if go_left {
-            (left, right)
+            (n.left, n.right)
         } else {
-            (right, left)
+            (n.right, n.left)
         };
         let i = ctx.len;
-        ctx.pos[i] = pos;
-        ctx.flags[i] = u32::from(axis & 3) | (u32::from(!go_left) << 2);
+        ctx.pos[i] = n.pos;
+        ctx.flags[i] = u32::from(n.axis & 3) | (u32::from(!go_left) << 2);
         ctx.sibling[i] = sibling;
-        if let Some(t) = t_ref {
+        if let Some(t) = n.t_ref {
             ctx.hoisted[ctx.n_hoisted] = t;
             ctx.n_hoisted += 1;
         }

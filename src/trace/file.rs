@@ -2,7 +2,7 @@
 //! taken once per query, so that a node step is one load and a few bit
 //! operations on the raw 8-byte word (no decoded enum, no section lookup).
 
-use super::{LeafTris, SourceNode, Walk};
+use super::{InnerNode, LeafTris, SourceNode, Walk};
 use crate::format::node::{A_TYPE2, E_IDX16, E_IDX32, E_ONE, MAX_LEAF32};
 use crate::format::{KdFile, LeafIndices};
 use crate::geom::Aabb;
@@ -111,13 +111,13 @@ impl<'a> Walk<'a> for FileWalk<'a> {
             } else {
                 None
             };
-            return SourceNode::Inner {
+            return SourceNode::Inner(InnerNode {
                 axis: (w & 0b11) as u8,
                 pos: f32::from_bits(hi),
                 left,
                 right,
                 t_ref,
-            };
+            });
         }
         if w & A_TYPE2 != 0 {
             // A T-reference is never a child (validated); read as empty.

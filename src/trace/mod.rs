@@ -135,27 +135,33 @@ pub trait ClosestHit: Sync {
     }
 }
 
+/// An inner node as a traverser reads it: its split and children, in
+/// source numbering (a struct rather than enum fields, so that each walk
+/// names it once and reads its fields where it uses them).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InnerNode {
+    /// Split axis (0, 1, 2 for x, y, z).
+    pub axis: u8,
+    /// Split position on the axis.
+    pub pos: f32,
+    /// The child below the plane; an empty child without a node of its
+    /// own (a file's, see `format::node`) is `NO_WORD` (`u32::MAX`),
+    /// which [`Walk::node`] reads as an empty leaf without a load. (The
+    /// scalar walk visits it so: skipping it at the parent measured 2–4 %
+    /// more instructions for 1–3 % fewer steps; the packet walk skips
+    /// it.)
+    pub left: u32,
+    /// The child above the plane (`NO_WORD` likewise).
+    pub right: u32,
+    /// The hoisted triangle of a type II node.
+    pub t_ref: Option<u32>,
+}
+
 /// A node as a traverser sees it.
 #[derive(Clone, Copy, Debug)]
 pub enum SourceNode<'a> {
-    /// `t_ref` is a hoisted triangle (type II node), in source numbering.
-    Inner {
-        /// Split axis (0, 1, 2 for x, y, z).
-        axis: u8,
-        /// Split position on the axis.
-        pos: f32,
-        /// The child below the plane; an empty child without a node of its
-        /// own (a file's, see `format::node`) is `NO_WORD` (`u32::MAX`),
-        /// which [`Walk::node`] reads as an empty leaf without a load. (The
-        /// scalar walk visits it so: skipping it at the parent measured 2–4 %
-        /// more instructions for 1–3 % fewer steps; the packet walk skips
-        /// it.)
-        left: u32,
-        /// The child above the plane (`NO_WORD` likewise).
-        right: u32,
-        /// The hoisted triangle of a type II node.
-        t_ref: Option<u32>,
-    },
+    /// An inner node, with its hoisted triangle if it has one (type II).
+    Inner(InnerNode),
     /// A leaf and its triangles.
     Leaf(LeafTris<'a>),
 }
@@ -268,13 +274,13 @@ impl<'a> Walk<'a> for TreeTracer<'a> {
                 pos,
                 right,
                 t_ref,
-            } => SourceNode::Inner {
+            } => SourceNode::Inner(InnerNode {
                 axis,
                 pos,
                 left: n + 1,
                 right: right.0,
                 t_ref: t_ref.map(|t| t.0),
-            },
+            }),
             Node::Leaf { start, count } => {
                 SourceNode::Leaf(LeafTris::Ids(self.tree.leaf(start, count)))
             }
@@ -756,14 +762,8 @@ pub(crate) fn walk_pending<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
             stats.nodes += 1;
         }
         match src.node(node) {
-            SourceNode::Inner {
-                axis,
-                pos,
-                left,
-                right,
-                t_ref,
-            } => {
-                if let Some(tri) = t_ref {
+            SourceNode::Inner(n) => {
+                if let Some(tri) = n.t_ref {
                     // Early intersection (Choi et al. 2013, §4.2): a hoisted
                     // triangle is tested when its node is visited.
                     if COUNT {
@@ -778,15 +778,15 @@ pub(crate) fn walk_pending<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                 // branches: a predicted branch lets the next node's load
                 // start before the decision is computed (branch-free selects
                 // measured 1.9x slower on single rays).
-                let k = axis as usize;
+                let k = n.axis as usize;
                 let (o, d) = (org[k], dir[k]);
-                if o == pos {
+                if o == n.pos {
                     // The ray starts in the plane (or lies in it): both
                     // children over the same interval.
                     let (first, second) = if d <= 0.0 {
-                        (left, right)
+                        (n.left, n.right)
                     } else {
-                        (right, left)
+                        (n.right, n.left)
                     };
                     if first != NO_WORD {
                         if second != NO_WORD && sp < MAX_STACK {
@@ -802,7 +802,7 @@ pub(crate) fn walk_pending<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                     }
                     // Both empty: resume below.
                 } else {
-                    let ts = (pos - o) * inv[k];
+                    let ts = (n.pos - o) * inv[k];
                     // The side the ray starts on is a branch, not a select: each
                     // arm names its near and far child itself, so that the next
                     // node's load waits only on the prediction of this branch,
@@ -845,10 +845,10 @@ pub(crate) fn walk_pending<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
                             }
                         }};
                     }
-                    if o < pos {
-                        descend!(left, right);
+                    if o < n.pos {
+                        descend!(n.left, n.right);
                     } else {
-                        descend!(right, left);
+                        descend!(n.right, n.left);
                     }
                 }
             }

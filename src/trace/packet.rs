@@ -687,14 +687,8 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                 stats.lane_steps += u64::from(cur.mask.count_ones());
             }
             match src.node(cur.node) {
-                SourceNode::Inner {
-                    axis,
-                    pos,
-                    left,
-                    right,
-                    t_ref,
-                } => {
-                    if let Some(tri) = t_ref {
+                SourceNode::Inner(n) => {
+                    if let Some(tri) = n.t_ref {
                         if COUNT {
                             stats.hoisted += u64::from(cur.mask.count_ones());
                         }
@@ -708,8 +702,8 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             test_triangle::<_, ANY, M>(src, p, perm, tri, cur.mask, best);
                         }
                     }
-                    let k = axis as usize;
-                    let split = split_lanes::<M>(p, k, pos, &cur);
+                    let k = n.axis as usize;
+                    let split = split_lanes::<M>(p, k, n.pos, &cur);
                     let (l_mask, r_mask) = (split.left & cur.mask, split.right & cur.mask);
                     // The child most of the lanes that visit both meet
                     // first goes first (in a one-octant packet, all of
@@ -718,13 +712,13 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                     let left_first = 2 * (both & split.below).count_ones() >= both.count_ones();
                     let (first, second) = if left_first {
                         (
-                            (left, l_mask, &split.l_tmin, &split.l_tmax),
-                            (right, r_mask, &split.r_tmin, &split.r_tmax),
+                            (n.left, l_mask, &split.l_tmin, &split.l_tmax),
+                            (n.right, r_mask, &split.r_tmin, &split.r_tmax),
                         )
                     } else {
                         (
-                            (right, r_mask, &split.r_tmin, &split.r_tmax),
-                            (left, l_mask, &split.l_tmin, &split.l_tmax),
+                            (n.right, r_mask, &split.r_tmin, &split.r_tmax),
+                            (n.left, l_mask, &split.l_tmin, &split.l_tmax),
                         )
                     };
                     if second.1 != 0 && second.0 != NO_WORD {

@@ -94,14 +94,8 @@ pub fn occluded_stream<'a, W: Walk<'a>>(src: W, rays: &[Ray], out: &mut [bool]) 
             continue;
         }
         match src.node(node) {
-            SourceNode::Inner {
-                axis,
-                pos,
-                left,
-                right,
-                t_ref,
-            } => {
-                if let Some(tri) = t_ref {
+            SourceNode::Inner(n) => {
+                if let Some(tri) = n.t_ref {
                     let v = src.triangle(tri);
                     for k in part.clone() {
                         let i = arena[k].ray as usize;
@@ -110,7 +104,7 @@ pub fn occluded_stream<'a, W: Walk<'a>>(src: W, rays: &[Ray], out: &mut [bool]) 
                             .is_some_and(|t| t < r.tmax);
                     }
                 }
-                let ax = usize::from((axis & 3).min(2));
+                let ax = usize::from((n.axis & 3).min(2));
                 // The children's parts above this one, the left child's
                 // (taken first) on top.
                 lefts.clear();
@@ -121,7 +115,7 @@ pub fn occluded_stream<'a, W: Walk<'a>>(src: W, rays: &[Ray], out: &mut [bool]) 
                     if out[i] {
                         continue;
                     }
-                    let (l, r) = decide(&rays[i], inv[i], ax, pos, e);
+                    let (l, r) = decide(&rays[i], inv[i], ax, n.pos, e);
                     if let Some(l) = l {
                         lefts.push(l);
                     }
@@ -134,11 +128,11 @@ pub fn occluded_stream<'a, W: Walk<'a>>(src: W, rays: &[Ray], out: &mut [bool]) 
                 let left_from = arena.len();
                 arena.extend_from_slice(&lefts);
                 let left_to = arena.len();
-                if right != NO_WORD && left_from > right_from {
-                    stack.push((right, right_from, left_from));
+                if n.right != NO_WORD && left_from > right_from {
+                    stack.push((n.right, right_from, left_from));
                 }
-                if left != NO_WORD && left_to > left_from {
-                    stack.push((left, left_from, left_to));
+                if n.left != NO_WORD && left_to > left_from {
+                    stack.push((n.left, left_from, left_to));
                 }
             }
             SourceNode::Leaf(tris) => {
