@@ -8,6 +8,7 @@ use slimkd::slim::{HoistRule, SlimParams};
 use std::path::{Path, PathBuf};
 
 use crate::CmdResult;
+use crate::lab::calibrate::DEFAULT_KT_VALUES;
 
 #[derive(Parser)]
 #[command(
@@ -185,17 +186,17 @@ pub(crate) enum Command {
     /// Trace a ray file (closest hit or any hit) through a .kd file and
     /// print Mrays/s, hits and a checksum comparable with the Embree peer
     /// program's `--rays` mode.
-    Trace(Box<crate::trace::TraceArgs>),
+    Trace(Box<TraceArgs>),
     /// Measure the cost of a traversal step and of a ray–triangle test
     /// (trees built at several K_T, primary and AO rays, single and
     /// packets) and fit time = a·steps + b·tests + c per ray; prints a, b,
     /// c (ns), the implied K_T and R², per scene and pooled.
-    Calibrate(Box<crate::calibrate::CalibrateArgs>),
+    Calibrate(Box<CalibrateArgs>),
     /// Draw the trade-off front of tree bytes against trace time: trees
     /// over K_T and the hoisting thresholds (std, fast and small among
     /// them), primary packets timed in rounds; writes sweep.md, sweep.json
     /// and a chart per scene (SCENE.sweep.svg) with the Pareto front.
-    Sweep(Box<crate::sweep::SweepArgs>),
+    Sweep(Box<SweepArgs>),
 }
 
 /// The scenes and frames of a timed command (`report`, `sweep`): the
@@ -640,6 +641,99 @@ pub(crate) struct RenderArgs {
         next_help_heading = "Build (of a scene; a .kd file is built already)"
     )]
     pub(crate) build: BuildArgs,
+}
+
+#[derive(clap::Args)]
+pub struct TraceArgs {
+    /// A .kd file written by `slimkd build -o`.
+    pub file: PathBuf,
+    /// A ray file: 32-byte records `ox oy oz tmin dx dy dz tmax`, f32
+    /// little-endian, no header.
+    pub rays: PathBuf,
+    /// Any-hit queries: 1 when something lies in (tmin, tmax), else 0.
+    #[arg(long)]
+    pub occluded: bool,
+    /// Traversal: `single` ray at a time, `packet`s of 16 consecutive
+    /// rays, or single rays walked `from-hit`: from the context of their
+    /// origin (located once for a run of rays with the same origin, as
+    /// the shadow and AO rays of one hit point are; the location is
+    /// timed), or any-hit queries as a `stream` of 256 rays at a time
+    /// (--occluded only).
+    #[arg(long, value_enum, default_value = "packet")]
+    pub mode: TraceMode,
+    /// Worker threads (default: all cores).
+    #[arg(short = 'j', long)]
+    pub threads: Option<usize>,
+    /// Timed repetitions after one untimed warm-up; the median is reported.
+    #[arg(long, default_value_t = 5)]
+    pub reps: usize,
+    /// Also count the traversal's work per ray (nodes, leaves, triangle
+    /// tests), in an untimed pass of a counting traverser.
+    #[arg(long)]
+    pub stats: bool,
+    /// Write one little-endian f32 result per ray to this file.
+    #[arg(long)]
+    pub dump: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TraceMode {
+    Single,
+    Packet,
+    FromHit,
+    Stream,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct CalibrateArgs {
+    /// OBJ files or scene caches (.kds), or `default` (the embedded scene,
+    /// also when none is given).
+    pub(crate) scenes: Vec<PathBuf>,
+    /// Views file; each scene is matched by its name, the file's stem
+    /// (views 1–3). Without it the embedded views are used; a scene
+    /// without views is traced from the default camera.
+    #[arg(long)]
+    pub(crate) views: Option<PathBuf>,
+    /// Primary rays per scene, split over its views; about as many
+    /// ambient-occlusion rays go with them.
+    #[arg(long, default_value_t = 1 << 16, value_parser = parse_positive)]
+    pub(crate) rays_per_scene: usize,
+    /// Timed repetitions after one warm-up (at least 1); the median is
+    /// fitted.
+    #[arg(long, default_value_t = 7, value_parser = parse_positive)]
+    pub(crate) reps: usize,
+    /// The K_T values the trees are built with, comma-separated (at least
+    /// two distinct).
+    #[arg(long, value_delimiter = ',', value_parser = parse_cost,
+          default_values_t = DEFAULT_KT_VALUES.to_vec())]
+    pub(crate) kt: Vec<f64>,
+    /// K_I of every tree; the implied K_T is scaled to it.
+    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
+    pub(crate) ki: f64,
+    /// Worker threads (default: all cores).
+    #[arg(short = 'j', long, value_parser = parse_positive)]
+    pub(crate) threads: Option<usize>,
+}
+
+#[derive(clap::Args)]
+#[command(
+    mut_arg("scenes", |a| a.help("OBJ files or scene caches (.kds), or `default` (the embedded scene)")),
+    mut_arg("views", |a| a.help("Views file; each scene is matched by its name, the file's stem (views 1–3). Without it the embedded views are used; a scene without views is traced from the default camera")),
+    mut_arg("size", |a| a.help("Frame size WxH of every view")),
+    mut_arg("reps", |a| a.help("Timed rounds after a warm-up (at least 1); min, median and max are kept")),
+)]
+pub(crate) struct SweepArgs {
+    #[command(flatten)]
+    pub(crate) timed: TimedScenesArgs,
+    /// Threads of the builds and the tracing (at least 1). The default, 2,
+    /// keeps the figures comparable across machines and with the
+    /// measurements in docs/perf-notes.md.
+    #[arg(short = 'j', long, default_value_t = 2, value_parser = parse_positive)]
+    pub(crate) threads: usize,
+    /// The directory sweep.md, sweep.json and the charts (SCENE.sweep.svg)
+    /// are written into; it must exist.
+    #[arg(short = 'o', long, default_value = ".")]
+    pub(crate) output: PathBuf,
 }
 
 /// A usage error: the command line asks for something impossible or

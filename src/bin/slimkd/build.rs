@@ -4,13 +4,13 @@
 
 use crate::args::{BuildArgs, BuilderArg, NewEventsArg, OutputFlags, check_output_dir};
 use crate::json::{
-    BuildCmdJson, BuildJson, CellsJson, MemoryJson, SceneJson, TreeJson, WrittenJson, print_json,
+    BuildCmdJson, BuildJson, CellsJson, LevelJson, MemoryJson, SceneJson, SlimJson, TreeJson,
+    WrittenJson, print_json,
 };
+use crate::kd_file::{self, open_kd};
 use crate::lab::figures::FiguresJson;
 use crate::lab::report;
 use crate::progress_bar::{si, with_bar};
-use crate::render;
-use crate::render::open_kd;
 use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE, DEFAULT_SCENE_NAME, pool};
 use slimkd::build::{Algorithm, BuildConfig, level};
 use slimkd::format;
@@ -37,6 +37,21 @@ impl Loaded {
     /// the `.kd` header call it).
     pub(crate) fn name(&self) -> String {
         scene_name(&self.path)
+    }
+}
+
+/// The JSON of a loaded scene is made here, next to `Loaded`, so that
+/// `json` names no command module.
+impl SceneJson {
+    pub(crate) fn of(loaded: &Loaded) -> SceneJson {
+        SceneJson {
+            scene: loaded.path.display().to_string(),
+            scene_name: loaded.name(),
+            triangles: loaded.scene.len(),
+            vertices: loaded.scene.positions().len(),
+            dropped_degenerate: loaded.summary.dropped_degenerate,
+            load_s: loaded.seconds,
+        }
     }
 }
 
@@ -74,7 +89,7 @@ pub(crate) fn load(path: &Path, quiet: bool) -> CmdResult<Loaded> {
     } else {
         let progress = Progress::default();
         let (s, m) = with_bar(quiet, "loading", &progress, &String::new, || {
-            let no_mmap = render::NO_MMAP.load(std::sync::atomic::Ordering::Relaxed);
+            let no_mmap = kd_file::NO_MMAP.load(std::sync::atomic::Ordering::Relaxed);
             if no_mmap && scene::SceneFormat::of_path(path) == Some(scene::SceneFormat::Cache) {
                 return Ok(scene::read_scene_cache(path)?);
             }
@@ -101,6 +116,63 @@ pub(crate) struct Built {
     pub(crate) slim: Option<(SlimParams, SlimReport, SlimPhases)>,
     pub(crate) level: Option<level::LevelReport>,
     pub(crate) builder: &'static str,
+}
+
+/// The JSON of a build is made here, next to `Built`, so that `json`
+/// names no command module.
+impl BuildJson {
+    pub(crate) fn of(built: &Built) -> BuildJson {
+        let slim = built.slim.as_ref();
+        BuildJson {
+            builder: built.builder,
+            build_s: built.seconds,
+            std_build_s: built.std_seconds,
+            k_t: built.pipeline.config.sah.k_t,
+            k_i: built.pipeline.config.sah.k_i,
+            lambda_empty: built.pipeline.config.sah.lambda_empty,
+            split_price: built.pipeline.config.sah.split_price,
+            preset: built.pipeline.preset.name(),
+            hoisted: slim.map_or(0, |(_, r, _)| r.hoisted),
+            tau_occu: slim.map(|(p, _, _)| p.tau_occu),
+            tau_freq: slim.map(|(p, _, _)| p.tau_freq),
+            max_t2rn: slim.map(|(p, _, _)| p.max_t2rn),
+            coarsen: slim.map(|(p, _, _)| p.coarsen),
+            cost_ratio: slim.and_then(|(p, _, _)| Some(p.cost_ratio).filter(|r| r.is_finite())),
+            hoist_rule: slim.map(|(p, _, _)| report::rule_name(p.rule)),
+            level: built.level.as_ref().map(|r| LevelJson {
+                sah_s: r.phases.sah_s,
+                classify_clip_s: r.phases.classify_clip_s,
+                events_s: r.phases.events_s,
+                leaves_s: r.phases.leaves_s,
+                small_nodes_s: r.phases.small_s,
+                setup_s: r.phases.setup_s,
+                assemble_s: r.phases.assemble_s,
+                levels: r.levels as u64,
+                groups: r.groups,
+                small_nodes: r.small_nodes,
+                small_threshold: r.small_threshold,
+                finisher_reserve_bytes: r.finisher_reserve_bytes,
+                start_rss_anon_bytes: r.start_rss_anon_bytes,
+                peak_rss_anon_bytes: r.peak_rss_anon_bytes,
+                peak_rss_file_bytes: r.peak_rss_file_bytes,
+                scratch_bytes_written: r.scratch.file_bytes_total,
+                cpu_s: r.cpu_s,
+            }),
+            slim: slim.map(|(_, r, ph)| SlimJson {
+                hoisted: r.hoisted,
+                cancelled: r.cancelled,
+                rejected: r.rejected,
+                priced: r.priced,
+                rebuilds: r.rebuilds,
+                rebuilt_refs: r.rebuilt_refs as u64,
+                passes: ph.passes,
+                analysis_s: ph.analysis_s,
+                rebuild_s: ph.rebuild_s,
+                apply_s: ph.apply_s,
+                assemble_s: ph.assemble_s,
+            }),
+        }
+    }
 }
 
 /// The pipeline of the build flags for `loaded`'s scene (the name its

@@ -2,44 +2,13 @@
 //! test on this machine's traverser, fitted per scene and pooled
 //! ([`crate::lab::calibrate`]).
 
-use crate::args::{OutputFlags, Usage, parse_cost, parse_positive};
+use crate::args::{CalibrateArgs, OutputFlags, Usage};
 use crate::build::load;
 use crate::json::print_json;
 use crate::lab::calibrate::{self as cal, Fit, Mode, SceneMeasurement};
 use crate::{CmdResult, DEFAULT_ARG, pool};
 use serde::Serialize;
 use std::path::PathBuf;
-
-#[derive(clap::Args)]
-pub(crate) struct CalibrateArgs {
-    /// OBJ files or scene caches (.kds), or `default` (the embedded scene,
-    /// also when none is given).
-    pub(crate) scenes: Vec<PathBuf>,
-    /// Views file; each scene is matched by its name, the file's stem
-    /// (views 1–3). Without it the embedded views are used; a scene
-    /// without views is traced from the default camera.
-    #[arg(long)]
-    pub(crate) views: Option<PathBuf>,
-    /// Primary rays per scene, split over its views; about as many
-    /// ambient-occlusion rays go with them.
-    #[arg(long, default_value_t = 1 << 16, value_parser = parse_positive)]
-    pub(crate) rays_per_scene: usize,
-    /// Timed repetitions after one warm-up (at least 1); the median is
-    /// fitted.
-    #[arg(long, default_value_t = 7, value_parser = parse_positive)]
-    pub(crate) reps: usize,
-    /// The K_T values the trees are built with, comma-separated (at least
-    /// two distinct).
-    #[arg(long, value_delimiter = ',', value_parser = parse_cost,
-          default_values_t = cal::DEFAULT_KT_VALUES.to_vec())]
-    pub(crate) kt: Vec<f64>,
-    /// K_I of every tree; the implied K_T is scaled to it.
-    #[arg(long, value_parser = parse_cost, default_value_t = slimkd::build::sah::SahParams::default().k_i)]
-    pub(crate) ki: f64,
-    /// Worker threads (default: all cores).
-    #[arg(short = 'j', long, value_parser = parse_positive)]
-    pub(crate) threads: Option<usize>,
-}
 
 /// `slimkd calibrate --json`.
 #[derive(Serialize)]

@@ -4,7 +4,7 @@ use crate::CmdResult;
 use crate::args::{OutputFlags, Usage, check_output_dir};
 use crate::build::load;
 use crate::json::{FileJson, SceneJson, print_json};
-use crate::render::{expect_kd, open_kd};
+use crate::kd_file::{expect_kd, open_kd};
 use serde::Serialize;
 use slimkd::format::{self, Section};
 use slimkd::scene::{self};

@@ -3,9 +3,7 @@
 //! everywhere (docs/json-schema.md lists every key, its meaning and unit).
 
 use crate::CmdResult;
-use crate::build::{Built, Loaded};
 use crate::lab::figures::{FiguresJson, JSON_SCHEMA, NodeCounts, StorageJson};
-use crate::lab::report;
 use serde::Serialize;
 use slimkd::stats::TreeStats;
 
@@ -42,19 +40,6 @@ pub(crate) struct SceneJson {
     pub(crate) load_s: f64,
 }
 
-impl SceneJson {
-    pub(crate) fn of(loaded: &Loaded) -> SceneJson {
-        SceneJson {
-            scene: loaded.path.display().to_string(),
-            scene_name: loaded.name(),
-            triangles: loaded.scene.len(),
-            vertices: loaded.scene.positions().len(),
-            dropped_degenerate: loaded.summary.dropped_degenerate,
-            load_s: loaded.seconds,
-        }
-    }
-}
-
 /// A built tree's figures.
 #[derive(Serialize)]
 pub(crate) struct TreeJson {
@@ -84,38 +69,38 @@ impl TreeJson {
 
 #[derive(Serialize)]
 pub(crate) struct LevelJson {
-    sah_s: f64,
-    classify_clip_s: f64,
-    events_s: f64,
-    leaves_s: f64,
-    small_nodes_s: f64,
-    setup_s: f64,
-    assemble_s: f64,
-    levels: u64,
-    groups: u64,
-    small_nodes: u64,
-    small_threshold: u64,
-    finisher_reserve_bytes: u64,
-    start_rss_anon_bytes: u64,
-    peak_rss_anon_bytes: u64,
-    peak_rss_file_bytes: u64,
-    scratch_bytes_written: u64,
-    cpu_s: f64,
+    pub(crate) sah_s: f64,
+    pub(crate) classify_clip_s: f64,
+    pub(crate) events_s: f64,
+    pub(crate) leaves_s: f64,
+    pub(crate) small_nodes_s: f64,
+    pub(crate) setup_s: f64,
+    pub(crate) assemble_s: f64,
+    pub(crate) levels: u64,
+    pub(crate) groups: u64,
+    pub(crate) small_nodes: u64,
+    pub(crate) small_threshold: u64,
+    pub(crate) finisher_reserve_bytes: u64,
+    pub(crate) start_rss_anon_bytes: u64,
+    pub(crate) peak_rss_anon_bytes: u64,
+    pub(crate) peak_rss_file_bytes: u64,
+    pub(crate) scratch_bytes_written: u64,
+    pub(crate) cpu_s: f64,
 }
 
 #[derive(Serialize)]
 pub(crate) struct SlimJson {
-    hoisted: usize,
-    cancelled: usize,
-    rejected: usize,
-    priced: usize,
-    rebuilds: usize,
-    rebuilt_refs: u64,
-    passes: u32,
-    analysis_s: f64,
-    rebuild_s: f64,
-    apply_s: f64,
-    assemble_s: f64,
+    pub(crate) hoisted: usize,
+    pub(crate) cancelled: usize,
+    pub(crate) rejected: usize,
+    pub(crate) priced: usize,
+    pub(crate) rebuilds: usize,
+    pub(crate) rebuilt_refs: u64,
+    pub(crate) passes: u32,
+    pub(crate) analysis_s: f64,
+    pub(crate) rebuild_s: f64,
+    pub(crate) apply_s: f64,
+    pub(crate) assemble_s: f64,
 }
 
 /// How a tree was built.
@@ -140,61 +125,6 @@ pub(crate) struct BuildJson {
     pub(crate) hoist_rule: Option<&'static str>,
     pub(crate) level: Option<LevelJson>,
     pub(crate) slim: Option<SlimJson>,
-}
-
-impl BuildJson {
-    pub(crate) fn of(built: &Built) -> BuildJson {
-        let slim = built.slim.as_ref();
-        BuildJson {
-            builder: built.builder,
-            build_s: built.seconds,
-            std_build_s: built.std_seconds,
-            k_t: built.pipeline.config.sah.k_t,
-            k_i: built.pipeline.config.sah.k_i,
-            lambda_empty: built.pipeline.config.sah.lambda_empty,
-            split_price: built.pipeline.config.sah.split_price,
-            preset: built.pipeline.preset.name(),
-            hoisted: slim.map_or(0, |(_, r, _)| r.hoisted),
-            tau_occu: slim.map(|(p, _, _)| p.tau_occu),
-            tau_freq: slim.map(|(p, _, _)| p.tau_freq),
-            max_t2rn: slim.map(|(p, _, _)| p.max_t2rn),
-            coarsen: slim.map(|(p, _, _)| p.coarsen),
-            cost_ratio: slim.and_then(|(p, _, _)| Some(p.cost_ratio).filter(|r| r.is_finite())),
-            hoist_rule: slim.map(|(p, _, _)| report::rule_name(p.rule)),
-            level: built.level.as_ref().map(|r| LevelJson {
-                sah_s: r.phases.sah_s,
-                classify_clip_s: r.phases.classify_clip_s,
-                events_s: r.phases.events_s,
-                leaves_s: r.phases.leaves_s,
-                small_nodes_s: r.phases.small_s,
-                setup_s: r.phases.setup_s,
-                assemble_s: r.phases.assemble_s,
-                levels: r.levels as u64,
-                groups: r.groups,
-                small_nodes: r.small_nodes,
-                small_threshold: r.small_threshold,
-                finisher_reserve_bytes: r.finisher_reserve_bytes,
-                start_rss_anon_bytes: r.start_rss_anon_bytes,
-                peak_rss_anon_bytes: r.peak_rss_anon_bytes,
-                peak_rss_file_bytes: r.peak_rss_file_bytes,
-                scratch_bytes_written: r.scratch.file_bytes_total,
-                cpu_s: r.cpu_s,
-            }),
-            slim: slim.map(|(_, r, ph)| SlimJson {
-                hoisted: r.hoisted,
-                cancelled: r.cancelled,
-                rejected: r.rejected,
-                priced: r.priced,
-                rebuilds: r.rebuilds,
-                rebuilt_refs: r.rebuilt_refs as u64,
-                passes: ph.passes,
-                analysis_s: ph.analysis_s,
-                rebuild_s: ph.rebuild_s,
-                apply_s: ph.apply_s,
-                assemble_s: ph.assemble_s,
-            }),
-        }
-    }
 }
 
 /// A `.kd` file written.

@@ -10,6 +10,7 @@ mod calibrate;
 mod cells;
 mod info;
 mod json;
+mod kd_file;
 mod lab;
 mod main_job;
 mod progress_bar;
@@ -171,7 +172,7 @@ fn main() -> ExitCode {
         }
     }
     let ui = cli.out;
-    render::NO_MMAP.store(cli.no_mmap, std::sync::atomic::Ordering::Relaxed);
+    kd_file::NO_MMAP.store(cli.no_mmap, std::sync::atomic::Ordering::Relaxed);
     let result = match cli.command {
         // In a pool of its own: rayon's global pool panics where it cannot
         // start its threads, a pool built here is an error.
@@ -234,7 +235,7 @@ fn given_build_flags(sub: &clap::ArgMatches) -> Vec<String> {
 }
 
 /// `slimkd trace`, its usage checked first.
-fn cmd_trace(args: &trace::TraceArgs, ui: OutputFlags) -> CmdResult<()> {
+fn cmd_trace(args: &args::TraceArgs, ui: OutputFlags) -> CmdResult<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
@@ -244,7 +245,7 @@ fn cmd_trace(args: &trace::TraceArgs, ui: OutputFlags) -> CmdResult<()> {
     if let Some(d) = &args.dump {
         check_output_dir(d)?;
     }
-    render::expect_kd(&args.file, "trace")?;
+    kd_file::expect_kd(&args.file, "trace")?;
     let pool = pool(args.threads)?;
     trace::cmd_trace(args, ui, pool).map_err(|e| {
         match e.downcast::<slimkd::format::FormatError>() {

@@ -8,8 +8,8 @@
 use crate::args::OutputFlags;
 use crate::build::{Loaded, build_tree, load, print_scene_line, print_summary};
 use crate::json::{AoJson, SceneJson, print_json};
+use crate::kd_file::open_kd;
 use crate::lab::figures::{self, FiguresJson};
-use crate::render::open_kd;
 use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE_NAME, DEFAULT_VIEWS};
 use slimkd::build::BuildConfig;
 use slimkd::format::{self, Preset};

@@ -2,33 +2,11 @@
 //! over families of settings ([`crate::lab::report::front::run_front`]).
 
 use crate::CmdResult;
-use crate::args::{OutputFlags, TimedScenesArgs, parse_positive};
+use crate::args::{OutputFlags, SweepArgs};
 use crate::build::load_all;
 use crate::json::print_json;
 use crate::lab::report;
 use crate::progress_bar::with_step_log;
-use std::path::PathBuf;
-
-#[derive(clap::Args)]
-#[command(
-    mut_arg("scenes", |a| a.help("OBJ files or scene caches (.kds), or `default` (the embedded scene)")),
-    mut_arg("views", |a| a.help("Views file; each scene is matched by its name, the file's stem (views 1–3). Without it the embedded views are used; a scene without views is traced from the default camera")),
-    mut_arg("size", |a| a.help("Frame size WxH of every view")),
-    mut_arg("reps", |a| a.help("Timed rounds after a warm-up (at least 1); min, median and max are kept")),
-)]
-pub(crate) struct SweepArgs {
-    #[command(flatten)]
-    pub(crate) timed: TimedScenesArgs,
-    /// Threads of the builds and the tracing (at least 1). The default, 2,
-    /// keeps the figures comparable across machines and with the
-    /// measurements in docs/perf-notes.md.
-    #[arg(short = 'j', long, default_value_t = 2, value_parser = parse_positive)]
-    pub(crate) threads: usize,
-    /// The directory sweep.md, sweep.json and the charts (SCENE.sweep.svg)
-    /// are written into; it must exist.
-    #[arg(short = 'o', long, default_value = ".")]
-    pub(crate) output: PathBuf,
-}
 
 /// `slimkd sweep --json`: the files written and the sweep's own JSON
 /// (what `sweep.json` holds).

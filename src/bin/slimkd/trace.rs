@@ -8,53 +8,11 @@ use slimkd::trace::packet::PacketTracer;
 use slimkd::trace::rays::{self, Query};
 use slimkd::trace::{self as tr, ClosestHit, Hit, KdSource, Scalar, TraceStats};
 use std::io::Write;
-use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::CmdResult;
-use crate::args::OutputFlags;
+use crate::args::{OutputFlags, TraceArgs, TraceMode};
 use crate::json::print_json;
-
-#[derive(clap::Args)]
-pub struct TraceArgs {
-    /// A .kd file written by `slimkd build -o`.
-    pub file: PathBuf,
-    /// A ray file: 32-byte records `ox oy oz tmin dx dy dz tmax`, f32
-    /// little-endian, no header.
-    pub rays: PathBuf,
-    /// Any-hit queries: 1 when something lies in (tmin, tmax), else 0.
-    #[arg(long)]
-    pub occluded: bool,
-    /// Traversal: `single` ray at a time, `packet`s of 16 consecutive
-    /// rays, or single rays walked `from-hit`: from the context of their
-    /// origin (located once for a run of rays with the same origin, as
-    /// the shadow and AO rays of one hit point are; the location is
-    /// timed), or any-hit queries as a `stream` of 256 rays at a time
-    /// (--occluded only).
-    #[arg(long, value_enum, default_value = "packet")]
-    pub mode: TraceMode,
-    /// Worker threads (default: all cores).
-    #[arg(short = 'j', long)]
-    pub threads: Option<usize>,
-    /// Timed repetitions after one untimed warm-up; the median is reported.
-    #[arg(long, default_value_t = 5)]
-    pub reps: usize,
-    /// Also count the traversal's work per ray (nodes, leaves, triangle
-    /// tests), in an untimed pass of a counting traverser.
-    #[arg(long)]
-    pub stats: bool,
-    /// Write one little-endian f32 result per ray to this file.
-    #[arg(long)]
-    pub dump: Option<PathBuf>,
-}
-
-#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum TraceMode {
-    Single,
-    Packet,
-    FromHit,
-    Stream,
-}
 
 /// `slimkd trace --json`.
 #[derive(Serialize)]
@@ -90,7 +48,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         return Err("--reps must be at least 1".into());
     }
     let start = Instant::now();
-    let file = crate::render::open_kd(&args.file, slimkd::format::Check::Header)?;
+    let file = crate::kd_file::open_kd(&args.file, slimkd::format::Check::Header)?;
     let open_ms = start.elapsed().as_secs_f64() * 1e3;
     let rays = rays::read_rays(&args.rays)?;
     let query = if args.occluded {
