@@ -119,7 +119,8 @@ pub struct Ray {
     pub origin: Vec3,
     /// Its direction (any length but zero; `t` is in units of it).
     pub dir: Vec3,
-    /// Start of the interval, exclusive.
+    /// Start of the interval, exclusive; at least 0 (the traversers walk
+    /// the part of the line ahead of the origin).
     pub tmin: f32,
     /// End of the interval, inclusive for closest hits (any-hit queries
     /// exclude it).

@@ -70,6 +70,9 @@ pub struct HitContext {
     /// The hoisted triangles on the path, `hoisted[..n_hoisted]`.
     hoisted: [u32; CONTEXT_LEVELS],
     n_hoisted: usize,
+    /// The cell record of [`ropes`](super::ropes) that holds the point
+    /// (`u32::MAX` for none).
+    pub(crate) cell: u32,
 }
 
 impl Default for HitContext {
@@ -83,6 +86,7 @@ impl Default for HitContext {
             sibling: [NO_WORD; CONTEXT_LEVELS],
             hoisted: [0; CONTEXT_LEVELS],
             n_hoisted: 0,
+            cell: u32::MAX,
         }
     }
 }
@@ -91,6 +95,16 @@ impl HitContext {
     /// Whether the context was made in the tree `walk` views.
     pub fn belongs_to<'a, W: Walk<'a>>(&self, walk: &W) -> bool {
         self.tag != (0, 0) && self.tag == walk.tag()
+    }
+
+    /// Names no path and no cell (what [`HitContext::default`] holds,
+    /// without rewriting its 1 KiB).
+    pub(crate) fn clear(&mut self) {
+        self.tag = (0, 0);
+        self.start = NO_WORD;
+        self.len = 0;
+        self.n_hoisted = 0;
+        self.cell = u32::MAX;
     }
 }
 
@@ -108,9 +122,8 @@ pub fn locate<'a, W: Walk<'a>>(walk: W, point: Vec3) -> HitContext {
 #[inline]
 pub fn locate_into<'a, W: Walk<'a>>(walk: W, point: Vec3, ctx: &mut HitContext) {
     let p = point.to_array();
+    ctx.clear();
     ctx.tag = walk.tag();
-    ctx.len = 0;
-    ctx.n_hoisted = 0;
     let mut node = 0u32;
     while ctx.len < CONTEXT_LEVELS {
         let SourceNode::Inner(n) = walk.node(node) else {

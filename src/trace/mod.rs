@@ -26,6 +26,7 @@ pub mod context;
 mod file;
 pub mod packet;
 pub mod rays;
+pub mod ropes;
 pub mod stream;
 
 pub use context::{HitContext, locate, locate_into};

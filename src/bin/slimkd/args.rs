@@ -657,8 +657,10 @@ pub struct TraceArgs {
     /// rays, or single rays walked `from-hit`: from the context of their
     /// origin (located once for a run of rays with the same origin, as
     /// the shadow and AO rays of one hit point are; the location is
-    /// timed), or any-hit queries as a `stream` of 256 rays at a time
-    /// (--occluded only).
+    /// timed), single rays walked leaf to leaf by `ropes` from the cell of
+    /// their origin (located as from-hit's; the ropes are built after
+    /// opening, untimed, and reported apart; std trees only), or any-hit
+    /// queries as a `stream` of 256 rays at a time (--occluded only).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).
@@ -681,6 +683,7 @@ pub enum TraceMode {
     Single,
     Packet,
     FromHit,
+    Ropes,
     Stream,
 }
 

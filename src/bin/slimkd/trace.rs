@@ -6,6 +6,7 @@ use serde::Serialize;
 use slimkd::fsio;
 use slimkd::trace::packet::PacketTracer;
 use slimkd::trace::rays::{self, Query};
+use slimkd::trace::ropes::{RopeTracer, Ropes};
 use slimkd::trace::{self as tr, ClosestHit, Hit, KdSource, Scalar, TraceStats};
 use std::io::Write;
 use std::time::Instant;
@@ -29,7 +30,17 @@ struct TraceJson {
     hits: u64,
     checksum: f64,
     open_ms: f64,
+    /// `--mode ropes`: the ropes' build and size, apart from the tree's.
+    ropes: Option<RopesJson>,
     stats: Option<TraceStatsJson>,
+}
+
+#[derive(Serialize)]
+struct RopesJson {
+    build_ms: f64,
+    bytes: usize,
+    bytes_per_tri: f64,
+    cells: usize,
 }
 
 #[derive(Serialize)]
@@ -62,10 +73,30 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     }
     let scalar = Scalar::new(&file);
     let packet = PacketTracer::new(&file);
-    let tracer: &dyn ClosestHit = if packets { &packet } else { &scalar };
+    let ropes_start = Instant::now();
+    let ropes = match args.mode {
+        TraceMode::Ropes => {
+            Some(Ropes::new(file.walk()).map_err(|e| format!("{}: {e}", args.file.display()))?)
+        }
+        _ => None,
+    };
+    let ropes_json = ropes.as_ref().map(|r| RopesJson {
+        build_ms: ropes_start.elapsed().as_secs_f64() * 1e3,
+        bytes: r.bytes(),
+        bytes_per_tri: r.bytes() as f64 / file.triangles().len().max(1) as f64,
+        cells: r.cells(),
+    });
+    let rope_tracer = ropes.as_ref().map(|r| RopeTracer::new(&file, r));
+    let tracer: &dyn ClosestHit = match (&rope_tracer, packets) {
+        (Some(r), _) => r,
+        (None, true) => &packet,
+        (None, false) => &scalar,
+    };
     let (rates, last) = pool.install(|| {
         let batch = || match args.mode {
-            TraceMode::FromHit => rays::trace_batch_from_hit(tracer, &rays, query),
+            TraceMode::FromHit | TraceMode::Ropes => {
+                rays::trace_batch_from_hit(tracer, &rays, query)
+            }
             TraceMode::Stream => rays::trace_batch_stream(&file, &rays, rays::STREAM),
             _ => rays::trace_batch(tracer, &rays, query, packets),
         };
@@ -82,6 +113,12 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         let count = |r: &[slimkd::geom::Ray], out: &mut [Hit], s: &mut TraceStats| {
             if packets {
                 packet.trace_counted(r, any, out, s);
+            } else if let Some(rt) = &rope_tracer {
+                let mut ctx = slimkd::trace::context::HitContext::default();
+                for (ray, h) in r.iter().zip(out.iter_mut()) {
+                    rt.locate_into(ray.origin, &mut ctx);
+                    *h = rt.trace_from_counted(&ctx, ray, any, s);
+                }
             } else if args.mode == TraceMode::FromHit {
                 for (ray, h) in r.iter().zip(out.iter_mut()) {
                     let ctx = tr::locate(file.walk(), ray.origin);
@@ -125,6 +162,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         TraceMode::Single => "single",
         TraceMode::Packet => "packet",
         TraceMode::FromHit => "from-hit",
+        TraceMode::Ropes => "ropes",
         TraceMode::Stream => "stream",
     };
     let query_name = if args.occluded { "occluded" } else { "closest" };
@@ -153,6 +191,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                 hits: last.hits(query),
                 checksum: last.checksum(query),
                 open_ms,
+                ropes: ropes_json,
                 stats: stats.as_ref().map(|(s, _)| TraceStatsJson {
                     rays: s.rays,
                     nodes_per_ray: per_ray(s, s.nodes),
@@ -173,6 +212,12 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
             last.hits(query),
             last.checksum(query)
         );
+        if let Some(r) = &ropes_json {
+            println!(
+                "ropes: {} cells, {:.1} bytes/triangle (not in the tree's bytes), built in {:.0} ms",
+                r.cells, r.bytes_per_tri, r.build_ms
+            );
+        }
         if let Some((s, _)) = &stats {
             if packets {
                 println!(
