@@ -325,15 +325,15 @@ pub(crate) fn walk_ropes<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     if !(inside && ray.tmin >= 0.0 && ropes.tag == src.tag()) {
         return walk_ray::<W, ANY, COUNT>(src, ray, stats);
     }
-    let Some(RayStart {
+    let Some(start) = ray_start::<W, COUNT>(src, ray, stats) else {
+        return Hit::MISS;
+    };
+    let RayStart {
         inv_dir,
         t0,
         t1,
         rp,
-    }) = ray_start::<W, COUNT>(src, ray, stats)
-    else {
-        return Hit::MISS;
-    };
+    } = start;
     let dir = ray.dir.to_array();
     let inv = inv_dir.to_array();
     // The face a ray leaves a cell by on each axis (+∞ and −∞ inverses,
