@@ -365,7 +365,7 @@ fn trace_matches_brute_force_in_every_mode() {
         .map(|(i, _)| i as f64)
         .sum();
     assert!(hits > 100 && occ_hits < hits, "{hits} {occ_hits}");
-    for mode in ["single", "packet"] {
+    for mode in ["single", "packet", "from-hit", "ropes"] {
         let dump = dir.join(format!("{mode}.f32"));
         let j = json(&slimkd(&[
             "trace",
@@ -386,6 +386,11 @@ fn trace_matches_brute_force_in_every_mode() {
         assert_eq!(j["checksum"].as_f64().unwrap(), sum);
         assert!(j["mrays_per_s"].as_f64().unwrap() > 0.0);
         assert!(j["stats"]["nodes_per_ray"].as_f64().unwrap() > 1.0);
+        // Ropes are reported apart from the tree, and only in their mode.
+        assert_eq!(
+            j["ropes"]["cells"].as_u64().unwrap_or(0) > 0,
+            mode == "ropes"
+        );
         let bytes = std::fs::read(&dump).unwrap();
         let got: Vec<f32> = bytes
             .chunks_exact(4)
@@ -407,6 +412,30 @@ fn trace_matches_brute_force_in_every_mode() {
         assert_eq!(j["hits"], occ_hits);
         assert_eq!(j["checksum"].as_f64().unwrap(), occ_sum);
     }
+    // Ropes of a slim tree: exit 1, the file named and why.
+    let slim_kd = dir.join("slim.kd");
+    let out = slimkd(&[
+        "build",
+        scene_path.to_str().unwrap(),
+        "-o",
+        slim_kd.to_str().unwrap(),
+        "--preset",
+        "small",
+    ]);
+    assert!(out.status.success());
+    let out = slimkd(&[
+        "trace",
+        slim_kd.to_str().unwrap(),
+        ray_file.to_str().unwrap(),
+        "--mode",
+        "ropes",
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("slim.kd") && err.contains("--preset std"),
+        "{err}"
+    );
     // A bad ray file: exit 1, the file and the record named.
     let mut bytes = slimkd::trace::rays::ray_bytes(&rays[..3]);
     bytes[2 * 32 + 16..2 * 32 + 20].copy_from_slice(&f32::NAN.to_le_bytes());
