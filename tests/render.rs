@@ -264,7 +264,8 @@ fn ao_frames_match_brute_force_in_every_mode() {
     use slimkd::format::{self, KdFile, WriteOptions};
     use slimkd::render::{AoOptions, Secondary};
     use slimkd::trace::packet::PacketTracer;
-    use slimkd::trace::{ClosestHit, Scalar};
+    use slimkd::trace::ropes::{RopeTracer, Ropes};
+    use slimkd::trace::{ClosestHit, KdSource, Scalar};
     let views =
         render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
             .unwrap();
@@ -296,7 +297,9 @@ fn ao_frames_match_brute_force_in_every_mode() {
         assert!(want.times.ao_occluded > 0 && want.times.ao_occluded < want.times.ao_rays);
         let scalar = Scalar::new(&file);
         let packet = PacketTracer::new(&file);
-        let tracers: [&dyn ClosestHit; 2] = [&scalar, &packet];
+        let ropes = Ropes::new(file.walk()).unwrap();
+        let rope_tracer = RopeTracer::new(&file, &ropes);
+        let tracers: [&dyn ClosestHit; 3] = [&scalar, &packet, &rope_tracer];
         for tracer in tracers {
             for secondary in [Secondary::Single, Secondary::Packet, Secondary::FromHit] {
                 let got = render::trace_ao_frame(
@@ -350,6 +353,30 @@ fn cli_ao_frame_reports_each_ray_kind() {
         assert!(ao[key].as_f64().unwrap() >= 0.0, "{key}");
     }
     assert!(out.exists());
+    // By ropes: the same picture, the mode named.
+    let by_ropes = dir.join("ropes.png");
+    let run = slimkd(&[
+        "render",
+        "default",
+        "--view",
+        "1",
+        "--size",
+        "64x48",
+        "--shading",
+        "ao",
+        "--spp",
+        "2",
+        "--secondary",
+        "ropes",
+        "--json",
+        "-o",
+        by_ropes.to_str().unwrap(),
+    ]);
+    assert_eq!(common::json(&run)["ao"]["secondary"], "ropes");
+    assert_eq!(
+        std::fs::read(&by_ropes).unwrap(),
+        std::fs::read(&out).unwrap()
+    );
     // --spp without --shading ao is a usage error.
     let run = slimkd(&["render", "default", "--spp", "4"]);
     assert_eq!(run.status.code(), Some(2));

@@ -358,6 +358,11 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         self.scalar.level()
     }
 
+    /// The scalar traverser its single rays run on.
+    pub(crate) fn scalar(&self) -> &Scalar<'a, S> {
+        &self.scalar
+    }
+
     /// Traces up to 16 rays as a packet, closest hit (`ANY == false`) or
     /// any hit in `(tmin, tmax)`, adding the work to `stats` when
     /// `COUNT`.

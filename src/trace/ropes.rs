@@ -27,6 +27,7 @@
 //! trees keep [`context`](super::context)'s walk.
 
 use super::context::HitContext;
+use super::packet::PacketTracer;
 use super::{
     ClosestHit, Hit, InnerNode, KdSource, MARGIN, NO_WORD, RayStart, Scalar, SourceNode,
     TraceStats, Walk, max_num, ray_start, test_one, walk_cells, walk_ray,
@@ -289,21 +290,29 @@ impl Ropes {
     /// left, as [`super::locate_into`] sends it).
     pub(crate) fn locate<'a, W: Walk<'a>>(&self, walk: W, point: Vec3) -> u32 {
         let p = point.to_array();
-        let mut t = self.target(walk, None, 0, false);
-        let mut steps = walk.step_limit();
-        loop {
-            let n = match t {
-                Target::Cell(c) => return c,
-                Target::Node(n) if steps > 0 => n,
-                _ => return NONE,
-            };
-            steps -= 1;
-            let SourceNode::Inner(i) = walk.node(n) else {
-                return NONE;
+        let ids = self.slot.len();
+        if ids == 0 {
+            return 0;
+        }
+        // Each node decoded once: a leaf names its record, an empty child
+        // its parent's (as `target` numbers them).
+        let mut n = 0u32;
+        for _ in 0..walk.step_limit() {
+            let i = match walk.node(n) {
+                SourceNode::Inner(i) => i,
+                SourceNode::Leaf(_) => return self.slot[n as usize],
             };
             let k = usize::from(i.axis & 3).min(2);
-            t = self.target(walk, Some(&i), n, p[k] > i.pos || p[k].is_nan());
+            let right = p[k] > i.pos || p[k].is_nan();
+            let child = if right { i.right } else { i.left };
+            if (child as usize) < ids {
+                n = child;
+            } else {
+                let left_empty = (i.left as usize) >= ids;
+                return self.slot[n as usize] + u32::from(right && left_empty);
+            }
         }
+        NONE
     }
 }
 
@@ -466,11 +475,12 @@ pub(crate) fn walk_ropes<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     )
 }
 
-/// A tracer whose `_from` queries walk by ropes: single rays and packets
-/// as [`Scalar`] and [`PacketTracer`](super::packet::PacketTracer) trace
-/// them, a context located as a cell record.
+/// A tracer whose `_from` queries walk by ropes, a context located as a
+/// cell record; its other queries are a [`PacketTracer`]'s (single rays
+/// from the root, batches in packets), so that a renderer traces its
+/// primary rays in packets and its secondary rays from their hit's cell.
 pub struct RopeTracer<'a, S: KdSource + 'a> {
-    scalar: Scalar<'a, S>,
+    packet: PacketTracer<'a, S>,
     ropes: &'a Ropes,
 }
 
@@ -480,18 +490,22 @@ impl<'a, S: KdSource> RopeTracer<'a, S> {
     /// then walks from the root).
     pub fn new(src: &'a S, ropes: &'a Ropes) -> Self {
         RopeTracer {
-            scalar: Scalar::new(src),
+            packet: PacketTracer::new(src),
             ropes,
         }
     }
 
     /// [`RopeTracer::new`] compiled for `level` where this CPU has it
-    /// ([`Scalar::with_level`]); for the tests of every level's copy.
+    /// ([`PacketTracer::with_level`]); for the tests of every level's copy.
     pub fn with_level(src: &'a S, ropes: &'a Ropes, level: crate::simd::SimdLevel) -> Self {
         RopeTracer {
-            scalar: Scalar::with_level(src, level),
+            packet: PacketTracer::with_level(src, level),
             ropes,
         }
+    }
+
+    fn scalar(&self) -> &Scalar<'a, S> {
+        self.packet.scalar()
     }
 
     /// [`ClosestHit::closest_hit_from`] with its work added to `stats`.
@@ -502,7 +516,7 @@ impl<'a, S: KdSource> RopeTracer<'a, S> {
         any: bool,
         stats: &mut TraceStats,
     ) -> Hit {
-        let (w, cell) = (self.scalar.walk, ctx.cell);
+        let (w, cell) = (self.scalar().walk, ctx.cell);
         if any {
             walk_ropes::<_, true, true>(w, self.ropes, cell, ray, stats)
         } else {
@@ -513,30 +527,38 @@ impl<'a, S: KdSource> RopeTracer<'a, S> {
 
 impl<'a, S: KdSource> ClosestHit for RopeTracer<'a, S> {
     fn closest_hit(&self, ray: &Ray) -> Hit {
-        self.scalar.closest_hit(ray)
+        self.packet.closest_hit(ray)
     }
 
     fn occluded(&self, ray: &Ray) -> bool {
-        self.scalar.occluded(ray)
+        self.packet.occluded(ray)
+    }
+
+    fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
+        self.packet.closest_hit_n(rays, out)
+    }
+
+    fn occluded_n(&self, rays: &[Ray], out: &mut [bool]) {
+        self.packet.occluded_n(rays, out)
     }
 
     /// Locates the cell record only: the context's root path is left
     /// unset (a [`Scalar`] given it walks from the root).
     fn locate_into(&self, point: Vec3, ctx: &mut HitContext) {
         ctx.clear();
-        ctx.cell = CELL | self.ropes.locate(self.scalar.walk, point);
+        ctx.cell = CELL | self.ropes.locate(self.scalar().walk, point);
     }
 
     fn closest_hit_from(&self, ctx: &HitContext, ray: &Ray) -> Hit {
-        let (w, ropes, cell) = (self.scalar.walk, self.ropes, ctx.cell);
-        crate::simd_dispatch!(self.scalar.level, |_WIDE| {
+        let (w, ropes, cell) = (self.scalar().walk, self.ropes, ctx.cell);
+        crate::simd_dispatch!(self.scalar().level, |_WIDE| {
             walk_ropes::<_, false, false>(w, ropes, cell, ray, &mut TraceStats::default())
         })
     }
 
     fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
-        let (w, ropes, cell) = (self.scalar.walk, self.ropes, ctx.cell);
-        crate::simd_dispatch!(self.scalar.level, |_WIDE| {
+        let (w, ropes, cell) = (self.scalar().walk, self.ropes, ctx.cell);
+        crate::simd_dispatch!(self.scalar().level, |_WIDE| {
             walk_ropes::<_, true, false>(w, ropes, cell, ray, &mut TraceStats::default())
         })
         .is_hit()

@@ -554,6 +554,9 @@ pub(crate) enum SecondaryArg {
     Packet,
     /// One ray at a time from the context of its hit point.
     FromHit,
+    /// One ray at a time leaf to leaf by ropes from the cell of its hit
+    /// point (std trees; primary rays in packets).
+    Ropes,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -622,8 +625,10 @@ pub(crate) struct RenderArgs {
     pub(crate) spp: Option<u32>,
     /// How `--shading ao` traces its shadow and AO rays: `packet` (the
     /// default: 16 at a time, in packets with `--mode packet`), `single`
-    /// (one at a time from the root) or `from-hit` (one at a time from the
-    /// context of the hit point, one per pixel).
+    /// (one at a time from the root), `from-hit` (one at a time from the
+    /// context of the hit point, one per pixel) or `ropes` (one at a time
+    /// leaf to leaf from the cell of the hit point, by ropes built after
+    /// opening and reported apart; std trees, `--mode packet`).
     #[arg(long, value_enum)]
     pub(crate) secondary: Option<SecondaryArg>,
     /// Traversal mode: 4×4 packets (the default, as the main job), single

@@ -22,7 +22,8 @@ use slimkd::render::{
 use slimkd::scene::TriangleColumns;
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
-use slimkd::trace::{BruteForce, ClosestHit, Scalar, TreeTracer};
+use slimkd::trace::ropes::{RopeTracer, Ropes};
+use slimkd::trace::{BruteForce, ClosestHit, KdSource, Scalar, TreeTracer};
 use std::path::Path;
 use std::time::Instant;
 
@@ -179,7 +180,23 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
             }),
             Source::File { .. } => None,
         };
-        let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode) {
+        let use_ropes = args.secondary == Some(SecondaryArg::Ropes);
+        if use_ropes && args.mode != ModeArg::Packet {
+            return Err(Usage("--secondary ropes traces its primary rays in packets (--mode packet)".into()).into());
+        }
+        let ropes_start = Instant::now();
+        let ropes = match (&source, use_ropes) {
+            (_, false) => None,
+            (Source::Built { .. }, true) => Some(Ropes::new(tree_tracer.as_ref().expect("built").walk())),
+            (Source::File { file, .. }, true) => Some(Ropes::new(file.walk())),
+        }
+        .transpose()
+        .map_err(|e| format!("{}: {e}", args.scene.display()))?;
+        let ropes_ms = ropes_start.elapsed().as_secs_f64() * 1e3;
+        let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode, &ropes) {
+            (Source::Built { .. }, _, Some(r)) => Box::new(RopeTracer::new(tree_tracer.as_ref().expect("built"), r)),
+            (Source::File { file, .. }, _, Some(r)) => Box::new(RopeTracer::new(file, r)),
+            _ => match (&source, args.mode) {
             (_, ModeArg::Brute) => Box::new(BruteForce(columns.expect("columns for brute force"))),
             (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar::new(tree_tracer.as_ref().expect("built"))),
             (Source::Built { .. }, ModeArg::Packet) => {
@@ -187,7 +204,22 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
             }
             (Source::File { file, .. }, ModeArg::Single) => Box::new(Scalar::new(file)),
             (Source::File { file, .. }, ModeArg::Packet) => Box::new(PacketTracer::new(file)),
+            },
         };
+        if let Some(r) = &ropes
+            && !ui.quiet
+            && !ui.json
+        {
+            let tris = match &source {
+                Source::File { file, .. } => file.triangles().len(),
+                Source::Built { loaded, .. } => loaded.scene.len(),
+            };
+            eprintln!(
+                "ropes      {} cells, {:.1} bytes/triangle (not in the tree's bytes), built in {ropes_ms:.0} ms",
+                r.cells(),
+                r.bytes() as f64 / tris.max(1) as f64
+            );
+        }
         let mut rates = Vec::new();
         let mut last: Option<HitBuffer> = None;
         let mut ao_reps: Vec<AoTimes> = Vec::new();
@@ -197,7 +229,8 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
             secondary: match args.secondary.unwrap_or(SecondaryArg::Packet) {
                 SecondaryArg::Single => Secondary::Single,
                 SecondaryArg::Packet => Secondary::Packet,
-                SecondaryArg::FromHit => Secondary::FromHit,
+                // A rope tracer's contexts are its cells.
+                SecondaryArg::FromHit | SecondaryArg::Ropes => Secondary::FromHit,
             },
         };
         for rep in 0..args.reps {
@@ -257,7 +290,13 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
                 (buf, frame)
             }
         };
-        let ao = (!ao_reps.is_empty()).then(|| AoJson::of(&ao_options, &ao_reps));
+        let ao = (!ao_reps.is_empty()).then(|| {
+            let mut ao = AoJson::of(&ao_options, &ao_reps);
+            if use_ropes {
+                ao.secondary = "ropes";
+            }
+            ao
+        });
         if let Some(out) = &args.output {
             render::write_image(out, &frame)?;
         }
