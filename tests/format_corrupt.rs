@@ -10,7 +10,7 @@ mod common;
 use common::kd::*;
 use glam::Vec3;
 use slimkd::format::node::{self, LEAF16_LIMIT, NodeWord};
-use slimkd::format::{FormatError, HEADER_SIZE, KdFile, Section, aligned_copy};
+use slimkd::format::{FormatError, HEADER_SIZE, KdFile, NodeFault, Section, aligned_copy};
 use slimkd::geom::{Aabb, Ray};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{self, ClosestHit, Hit};
@@ -1026,9 +1026,15 @@ fn corrupt_targeted_edits() {
                 set_u64(b, H_LEAVES, f.leaves + 1);
                 fix_header_crc(b);
             },
-            Is(
-                |e| matches!(e, FormatError::Node { message, .. } if message.contains("words after the tree")),
-            ),
+            Is(|e| {
+                matches!(
+                    e,
+                    FormatError::Node {
+                        fault: NodeFault::Unreferenced,
+                        ..
+                    }
+                )
+            }),
         );
         add(
             "a word after the tree",
@@ -1111,9 +1117,15 @@ fn corrupt_targeted_edits() {
                 "one triangle in a 4-byte leaf",
                 &|b| set_word(b, l, node::encode_leaf32(1, 0)),
                 if f.idx32 > 0 {
-                    Is(
-                        |e| matches!(e, FormatError::Node { message, .. } if message.contains("one-triangle leaf with an index entry")),
-                    )
+                    Is(|e| {
+                        matches!(
+                            e,
+                            FormatError::Node {
+                                fault: NodeFault::OneTriangleLeafWithIndex,
+                                ..
+                            }
+                        )
+                    })
                 } else {
                     node_err
                 },
@@ -1122,9 +1134,15 @@ fn corrupt_targeted_edits() {
                 "one triangle in a 2-byte leaf",
                 &|b| set_word(b, l, node::encode_leaf16(1, 0, 0)),
                 if f.idx16 > 0 {
-                    Is(
-                        |e| matches!(e, FormatError::Node { message, .. } if message.contains("2-byte-mode leaf of 1")),
-                    )
+                    Is(|e| {
+                        matches!(
+                            e,
+                            FormatError::Node {
+                                fault: NodeFault::Leaf16Count(1),
+                                ..
+                            }
+                        )
+                    })
                 } else {
                     node_err
                 },
@@ -1379,8 +1397,8 @@ fn an_empty_leaf_word_must_start_at_0() {
         set_word(&mut b, 3, node::encode_leaf32(0, start));
         fix_all_crcs(&mut b);
         match KdFile::from_bytes_checked(aligned_copy(&b)) {
-            Err(FormatError::Node { index: 3, message }) => {
-                assert!(message.contains("empty leaf"), "{message}")
+            Err(FormatError::Node { index: 3, fault }) => {
+                assert_eq!(fault, NodeFault::EmptyLeafWithWord, "{fault}")
             }
             Err(e) => panic!("start {start}: wrong error {e}"),
             Ok(_) => panic!("start {start}: accepted"),

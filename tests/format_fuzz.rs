@@ -43,7 +43,7 @@ use proptest::test_runner::{Config, FileFailurePersistence, TestRunner};
 use slimkd::build::sah::{Side, Split};
 use slimkd::build::{BuildConfig, Placement, TriRef, classify, clip_straddler};
 use slimkd::format::node::{self, LEAF16_LIMIT, MAX_NODES, NodeWord};
-use slimkd::format::{self, FormatError, KdFile, Section, WriteOptions, aligned_copy};
+use slimkd::format::{self, FormatError, KdFile, NodeFault, Section, WriteOptions, aligned_copy};
 use slimkd::geom::{Aabb, Ray, RayPrecomp, intersect_triangle};
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, SlimParams};
@@ -1150,8 +1150,11 @@ fn set_split(b: &mut [u8], slot: usize, pos: f32) {
 
 fn expect_split_error(r: Result<KdFile<format::AlignedBytes>, FormatError>, slot: usize) {
     match r {
-        Err(FormatError::Node { index, message }) if index == slot as u64 => {
-            assert!(message.contains("outside the node's cell"), "{message}")
+        Err(FormatError::Node { index, fault }) if index == slot as u64 => {
+            assert!(
+                matches!(fault, NodeFault::SplitOutsideCell { .. }),
+                "{fault}"
+            )
         }
         Err(e) => panic!("node {slot}: wrong error {e}"),
         Ok(_) => panic!("node {slot}: a split outside its cell was accepted"),
@@ -1198,8 +1201,11 @@ fn split_at_minus_flt_max_is_rejected() {
         *pos = -f32::MAX;
     }
     match format::write_to_vec(&bad, &scene, &WriteOptions::default()) {
-        Err(FormatError::Node { index: 0, message }) => {
-            assert!(message.contains("outside the node's cell"), "{message}")
+        Err(FormatError::Node { index: 0, fault }) => {
+            assert!(
+                matches!(fault, NodeFault::SplitOutsideCell { .. }),
+                "{fault}"
+            )
         }
         other => panic!(
             "the writer wrote a split outside its cell: {:?}",

@@ -6,7 +6,7 @@ mod common;
 
 use common::kd::*;
 use slimkd::format::node::{self, NodeWord};
-use slimkd::format::{FormatError, KdFile, aligned_copy};
+use slimkd::format::{FormatError, KdFile, NodeFault, aligned_copy};
 
 /// The node slots of the leaves of `file` with their words, in slot order.
 fn leaves(bytes: &[u8]) -> Vec<(usize, NodeWord)> {
@@ -310,8 +310,8 @@ fn shared_subtrees_end_at_the_step_limit_and_are_refused_by_validate() {
     let leaves: u64 = file.leaf_depth_histogram().iter().sum();
     assert!(leaves <= limit, "{leaves} leaves counted");
     match file.validate() {
-        Err(FormatError::Node { message, .. }) => {
-            assert!(message.contains("pre-order"), "{message}")
+        Err(FormatError::Node { fault, .. }) => {
+            assert!(matches!(fault, NodeFault::NotPreOrder { .. }), "{fault}")
         }
         Err(e) => panic!("wrong error: {e}"),
         Ok(()) => panic!("a DAG passed the full check"),

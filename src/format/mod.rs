@@ -245,12 +245,12 @@ pub enum FormatError {
         problem: SectionError,
     },
     /// A node word that is malformed or points outside the file.
-    #[error("node {index}: {message}")]
+    #[error("node {index}: {fault}")]
     Node {
         /// The node's slot.
         index: u64,
         /// What is wrong.
-        message: String,
+        fault: NodeFault,
     },
     /// A section's CRC-32 does not match the section table's.
     #[error("section {section}: checksum mismatch (stored {expected:#010x}, computed {got:#010x})")]
@@ -301,6 +301,121 @@ pub enum SectionError {
     /// (or the end of the file).
     #[error("non-zero padding after the section")]
     Padding,
+}
+
+/// What is wrong with a node ([`FormatError::Node`]): of a file's word
+/// (the validator, the streaming writer) or of a tree being written.
+#[derive(Clone, Copy, Debug, PartialEq, thiserror::Error)]
+pub enum NodeFault {
+    /// A word no node type decodes to ([`node::decode`]'s reason).
+    #[error("{0}")]
+    Word(&'static str),
+    /// A split axis other than 0, 1, 2.
+    #[error("axis {0}")]
+    Axis(u8),
+    /// A NaN or infinite split position.
+    #[error("split position is not finite")]
+    SplitNotFinite,
+    /// A split outside the cell the splits above make.
+    #[error("split {pos:?} on axis {axis} outside the node's cell [{min:?}, {max:?}]")]
+    SplitOutsideCell {
+        /// The split position.
+        pos: f32,
+        /// Its axis.
+        axis: usize,
+        /// The cell's extent on that axis.
+        min: f32,
+        /// The cell's extent on that axis.
+        max: f32,
+    },
+    /// Deeper than the header's maximum depth.
+    #[error("deeper than the header's maximum depth")]
+    TooDeep,
+    /// A right child slot at or before its parent.
+    #[error("right child slot {0} is not after the node")]
+    RightChildNotAfter(u64),
+    /// A T-reference to a triangle the file does not hold.
+    #[error("T-reference to triangle {tri} of {n_tris}")]
+    TRefOutOfRange {
+        /// The triangle.
+        tri: u64,
+        /// The file's triangles.
+        n_tris: u64,
+    },
+    /// A type II node whose next word is not a T-reference.
+    #[error("type II node without its T-reference")]
+    MissingTRef,
+    /// A T-reference word where a child is expected.
+    #[error("a T-reference where a child is expected")]
+    TRefAsChild,
+    /// A leaf triangle the file does not hold.
+    #[error("triangle {tri} of {n_tris}")]
+    TriangleOutOfRange {
+        /// The triangle.
+        tri: u64,
+        /// The file's triangles.
+        n_tris: u64,
+    },
+    /// A leaf's index range past its index section.
+    #[error("leaf range {start}+{count} outside {array}")]
+    LeafRangeOutside {
+        /// The range's first entry.
+        start: u64,
+        /// Its entries.
+        count: u64,
+        /// The section (`idx32`, `idx16`).
+        array: &'static str,
+    },
+    /// A leaf's index range overlapping another leaf's.
+    #[error("leaf range overlaps another leaf's range in {0}")]
+    LeafRangeOverlap(&'static str),
+    /// A word for an empty leaf whose parent says it has none.
+    #[error("an empty leaf with a word (its parent's slot field says it is empty)")]
+    EmptyLeafWithWord,
+    /// A one-triangle leaf stored with an index entry.
+    #[error("a one-triangle leaf with an index entry")]
+    OneTriangleLeafWithIndex,
+    /// A 2-byte-mode leaf of a count that mode does not store.
+    #[error("a 2-byte-mode leaf of {0} triangles")]
+    Leaf16Count(u64),
+    /// A node away from the slot its parent names.
+    #[error(
+        "not in pre-order: the next node is expected at {expected}, its parent's slot field says {slot}"
+    )]
+    NotPreOrder {
+        /// The slot the pre-order pass reached.
+        expected: u64,
+        /// The slot the parent names.
+        slot: u64,
+    },
+    /// A child slot past the node words.
+    #[error("a child slot outside the {0} node words")]
+    ChildSlotOutside(u64),
+    /// A word no inner node reaches.
+    #[error("not referenced by any inner node (words after the tree)")]
+    Unreferenced,
+    /// A streamed node after the tree is complete.
+    #[error("a node after the whole tree")]
+    AfterTree,
+    /// A streamed tree that ended with children still expected.
+    #[error("the tree ended before it was complete")]
+    Incomplete,
+    /// A tree being written: a child index past its nodes.
+    #[error("a child outside the {0} nodes")]
+    ChildOutside(u64),
+    /// A tree being written: a node two parents name.
+    #[error("reached twice (not a tree)")]
+    ReachedTwice,
+    /// A tree being written: a leaf's list past the listed triangles.
+    #[error("leaf list {start}+{count} outside the {listed} listed triangles")]
+    LeafListOutside {
+        /// The list's first entry.
+        start: u64,
+        /// Its entries.
+        count: u64,
+        /// The tree's listed triangles.
+        listed: u64,
+    },
 }
 
 /// Which limit of the format a tree is over ([`FormatError::TooLarge`]).

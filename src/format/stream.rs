@@ -14,7 +14,7 @@ use super::write::{
     Entries, SectionSink, WINDOW, Words, WriteOptions, check_scene, finish_kd, flush_to, leaf_word,
     new_id, renumbering,
 };
-use super::{FormatError, HEADER_SIZE, HeaderError, Limit, Section, TreeFigures};
+use super::{FormatError, HEADER_SIZE, HeaderError, Limit, NodeFault, Section, TreeFigures};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{MAX_DEPTH, PreOrderSink, SinkStop, TriId};
@@ -173,10 +173,10 @@ impl StreamWriter<'_> {
         })
     }
 
-    fn bad_node(i: usize, message: String) -> FormatError {
+    fn bad_node(i: usize, fault: NodeFault) -> FormatError {
         FormatError::Node {
             index: i as u64,
-            message,
+            fault,
         }
     }
 
@@ -215,7 +215,7 @@ impl StreamWriter<'_> {
         } else {
             self.stack
                 .pop()
-                .ok_or_else(|| Self::bad_node(i, "a node after the whole tree".into()))?
+                .ok_or_else(|| Self::bad_node(i, NodeFault::AfterTree))?
         };
         if p.depth > MAX_DEPTH {
             return Err(FormatError::TooLarge(Limit::Depth));
@@ -255,16 +255,21 @@ impl StreamWriter<'_> {
         self.count += 1;
         let p = self.place(i, false)?.expect("an inner node has a word");
         if axis > 2 {
-            return Err(Self::bad_node(i, format!("axis {axis}")));
+            return Err(Self::bad_node(i, NodeFault::Axis(axis)));
         }
         if !pos.is_finite() {
-            return Err(Self::bad_node(i, "split position is not finite".into()));
+            return Err(Self::bad_node(i, NodeFault::SplitNotFinite));
         }
         let k = usize::from(axis);
         if !(pos >= p.cell.min[k] && pos <= p.cell.max[k]) {
             return Err(Self::bad_node(
                 i,
-                format!("split {pos:?} on axis {k} outside the node's cell"),
+                NodeFault::SplitOutsideCell {
+                    pos,
+                    axis: k,
+                    min: p.cell.min[k],
+                    max: p.cell.max[k],
+                },
             ));
         }
         let slot = self.words.len();
@@ -423,7 +428,7 @@ fn write_streamed<T, E: From<FormatError>>(
     if w.count == 0 || !w.stack.is_empty() {
         return Err(FormatError::Node {
             index: w.count as u64,
-            message: "the tree ended before it was complete".into(),
+            fault: NodeFault::Incomplete,
         }
         .into());
     }

@@ -3,7 +3,7 @@
 //! header's counts, the indices, the geometry).
 
 use super::node::{self, LEAF16_LIMIT, NodeWord};
-use super::{FormatError, HeaderError, KdFile, TreeFigures};
+use super::{FormatError, HeaderError, KdFile, NodeFault, TreeFigures};
 use crate::geom::Aabb;
 use crate::tree::MAX_DEPTH;
 use glam::Vec3;
@@ -59,8 +59,8 @@ struct Expect {
     may_be_empty: bool,
 }
 
-fn node_err(index: u64, message: String) -> FormatError {
-    FormatError::Node { index, message }
+fn node_err(index: u64, fault: NodeFault) -> FormatError {
+    FormatError::Node { index, fault }
 }
 
 /// The state of the pass over the nodes: what it counted so far, and the
@@ -93,25 +93,24 @@ impl NodePass<'_> {
         pending: &mut Vec<Expect>,
     ) -> Result<usize, FormatError> {
         if axis > 2 {
-            return Err(node_err(i as u64, "axis 3".into()));
+            return Err(node_err(i as u64, NodeFault::Axis(3)));
         }
         let k = usize::from(axis);
         let cell = e.cell;
         if !(pos >= cell.min[k] && pos <= cell.max[k]) {
             return Err(node_err(
                 i as u64,
-                format!(
-                    "split {pos:?} on axis {k} outside the node's cell [{:?}, {:?}]",
-                    cell.min[k], cell.max[k]
-                ),
+                NodeFault::SplitOutsideCell {
+                    pos,
+                    axis: k,
+                    min: cell.min[k],
+                    max: cell.max[k],
+                },
             ));
         }
         let depth = e.depth + 1;
         if depth > MAX_DEPTH || depth > self.max_depth {
-            return Err(node_err(
-                i as u64,
-                "deeper than the header's maximum depth".into(),
-            ));
+            return Err(node_err(i as u64, NodeFault::TooDeep));
         }
         if t_ref {
             self.t_reference(i)?;
@@ -142,10 +141,7 @@ impl NodePass<'_> {
             pending.push(child(right, right_cell, false));
             pending.push(child(first, left_cell, false));
         } else {
-            return Err(node_err(
-                i as u64,
-                format!("right child slot {right} is not after the node"),
-            ));
+            return Err(node_err(i as u64, NodeFault::RightChildNotAfter(right)));
         }
         Ok(first as usize)
     }
@@ -157,12 +153,12 @@ impl NodePass<'_> {
             Some(Ok(NodeWord::TRef { tri })) if u64::from(tri) < n_tris => Ok(()),
             Some(Ok(NodeWord::TRef { tri })) => Err(node_err(
                 i as u64 + 1,
-                format!("T-reference to triangle {tri} of {n_tris}"),
+                NodeFault::TRefOutOfRange {
+                    tri: u64::from(tri),
+                    n_tris,
+                },
             )),
-            _ => Err(node_err(
-                i as u64,
-                "type II node without its T-reference".into(),
-            )),
+            _ => Err(node_err(i as u64, NodeFault::MissingTRef)),
         }
     }
 
@@ -171,23 +167,21 @@ impl NodePass<'_> {
     /// another leaf claimed.
     fn leaf(&mut self, i: usize, e: &Expect, word: NodeWord) -> Result<(), FormatError> {
         let n_tris = self.n_tris;
-        let overlap = |array: &str| {
-            node_err(
-                i as u64,
-                format!("leaf range overlaps another leaf's range in {array}"),
-            )
-        };
+        let overlap = |array: &'static str| node_err(i as u64, NodeFault::LeafRangeOverlap(array));
         match word {
             NodeWord::Inner { .. } => unreachable!("inner nodes go to `NodePass::inner`"),
             NodeWord::TRef { .. } => {
-                return Err(node_err(
-                    i as u64,
-                    "a T-reference where a child is expected".into(),
-                ));
+                return Err(node_err(i as u64, NodeFault::TRefAsChild));
             }
             NodeWord::Leaf1 { tri } => {
                 if u64::from(tri) >= n_tris {
-                    return Err(node_err(i as u64, format!("triangle {tri} of {n_tris}")));
+                    return Err(node_err(
+                        i as u64,
+                        NodeFault::TriangleOutOfRange {
+                            tri: u64::from(tri),
+                            n_tris,
+                        },
+                    ));
                 }
                 self.seen.one_leaves += 1;
             }
@@ -196,21 +190,18 @@ impl NodePass<'_> {
                 if end > self.cover32.len {
                     return Err(node_err(
                         i as u64,
-                        format!("leaf range {start}+{count} outside idx32"),
+                        NodeFault::LeafRangeOutside {
+                            start: u64::from(start),
+                            count: u64::from(count),
+                            array: "idx32",
+                        },
                     ));
                 }
                 if count == 0 && (start != 0 || !e.may_be_empty) {
-                    return Err(node_err(
-                        i as u64,
-                        "an empty leaf with a word (its parent's slot field says it is empty)"
-                            .into(),
-                    ));
+                    return Err(node_err(i as u64, NodeFault::EmptyLeafWithWord));
                 }
                 if count == 1 {
-                    return Err(node_err(
-                        i as u64,
-                        "a one-triangle leaf with an index entry".into(),
-                    ));
+                    return Err(node_err(i as u64, NodeFault::OneTriangleLeafWithIndex));
                 }
                 if !self.cover32.claim(u64::from(start), u64::from(count)) {
                     return Err(overlap("idx32"));
@@ -225,14 +216,15 @@ impl NodePass<'_> {
                 if count >= LEAF16_LIMIT || end > self.cover16.len {
                     return Err(node_err(
                         i as u64,
-                        format!("leaf range {start}+{count} outside idx16"),
+                        NodeFault::LeafRangeOutside {
+                            start: u64::from(start),
+                            count: u64::from(count),
+                            array: "idx16",
+                        },
                     ));
                 }
                 if count < 2 {
-                    return Err(node_err(
-                        i as u64,
-                        format!("a 2-byte-mode leaf of {count} triangles"),
-                    ));
+                    return Err(node_err(i as u64, NodeFault::Leaf16Count(u64::from(count))));
                 }
                 if !self.cover16.claim(u64::from(start), u64::from(count)) {
                     return Err(overlap("idx16"));
@@ -245,7 +237,10 @@ impl NodePass<'_> {
                 {
                     return Err(node_err(
                         i as u64,
-                        format!("triangle {} of {n_tris}", base + u64::from(low)),
+                        NodeFault::TriangleOutOfRange {
+                            tri: base + u64::from(low),
+                            n_tris,
+                        },
                     ));
                 }
             }
@@ -270,19 +265,16 @@ impl NodePass<'_> {
             if e.slot != i as u64 {
                 return Err(node_err(
                     i as u64,
-                    format!(
-                        "not in pre-order: the next node is expected at {i}, its parent's slot field says {}",
-                        e.slot
-                    ),
+                    NodeFault::NotPreOrder {
+                        expected: i as u64,
+                        slot: e.slot,
+                    },
                 ));
             }
             let Some(&w) = self.words.get(i) else {
-                return Err(node_err(
-                    i as u64,
-                    format!("a child slot outside the {n} node words"),
-                ));
+                return Err(node_err(i as u64, NodeFault::ChildSlotOutside(n)));
             };
-            let decoded = node::decode(w).map_err(|m| node_err(i as u64, m.to_string()))?;
+            let decoded = node::decode(w).map_err(|m| node_err(i as u64, NodeFault::Word(m)))?;
             if let NodeWord::Inner {
                 axis,
                 t_ref,
@@ -297,10 +289,7 @@ impl NodePass<'_> {
             }
         }
         if i as u64 != n {
-            return Err(node_err(
-                i as u64,
-                "not referenced by any inner node (words after the tree)".into(),
-            ));
+            return Err(node_err(i as u64, NodeFault::Unreferenced));
         }
         Ok(())
     }

@@ -2,7 +2,9 @@
 
 use super::header::{Header, HeaderError, SectionEntry, is_finite_box};
 use super::node::{self, MAX_LEAF32, MAX_NODES};
-use super::{FileConfig, FormatError, HEADER_SIZE, Limit, SECTION_ALIGN, Section, TreeFigures};
+use super::{
+    FileConfig, FormatError, HEADER_SIZE, Limit, NodeFault, SECTION_ALIGN, Section, TreeFigures,
+};
 use crate::geom::Aabb;
 use crate::scene::TriangleColumns;
 use crate::tree::{Node, TreeIr, TriId, WalkFault};
@@ -162,9 +164,9 @@ fn layout(
         figures: TreeFigures::default(),
         max_depth: 0,
     };
-    let bad_node = |i: usize, message: String| FormatError::Node {
+    let bad_node = |i: usize, fault: NodeFault| FormatError::Node {
         index: i as u64,
-        message,
+        fault,
     };
     let bad_tri = |i: usize, t: TriId| FormatError::Index {
         section: "tree",
@@ -176,10 +178,8 @@ fn layout(
     // make the loop run away.
     let n_nodes = tree.nodes.len();
     let walk_fault = |fault: WalkFault| match fault {
-        WalkFault::Missing { node } => {
-            bad_node(node, format!("a child outside the {n_nodes} nodes"))
-        }
-        WalkFault::ReachedTwice { node } => bad_node(node, "reached twice (not a tree)".into()),
+        WalkFault::Missing { node } => bad_node(node, NodeFault::ChildOutside(n_nodes as u64)),
+        WalkFault::ReachedTwice { node } => bad_node(node, NodeFault::ReachedTwice),
         WalkFault::TooDeep { .. } => FormatError::TooLarge(Limit::Depth),
     };
     let is_empty_leaf = |i: usize| matches!(tree.nodes.get(i), Some(Node::Leaf { count: 0, .. }));
@@ -216,17 +216,22 @@ fn layout(
                 right,
             } => {
                 if axis > 2 {
-                    return Err(bad_node(i, format!("axis {axis}")));
+                    return Err(bad_node(i, NodeFault::Axis(axis)));
                 }
                 if !pos.is_finite() {
-                    return Err(bad_node(i, "split position is not finite".into()));
+                    return Err(bad_node(i, NodeFault::SplitNotFinite));
                 }
                 let k = usize::from(axis);
                 let cell = place.cell;
                 if !(pos >= cell.min[k] && pos <= cell.max[k]) {
                     return Err(bad_node(
                         i,
-                        format!("split {pos:?} on axis {k} outside the node's cell"),
+                        NodeFault::SplitOutsideCell {
+                            pos,
+                            axis: k,
+                            min: cell.min[k],
+                            max: cell.max[k],
+                        },
                     ));
                 }
                 // The slot field is filled in by the right child.
@@ -268,10 +273,11 @@ fn layout(
                     .ok_or_else(|| {
                         bad_node(
                             i,
-                            format!(
-                                "leaf list {start}+{count} outside the {} listed triangles",
-                                tree.leaf_tris.len()
-                            ),
+                            NodeFault::LeafListOutside {
+                                start: u64::from(start),
+                                count: u64::from(count),
+                                listed: tree.leaf_tris.len() as u64,
+                            },
                         )
                     })?;
                 if let Some(&t) = list.iter().find(|t| t.0 as usize >= n_tris) {
