@@ -196,15 +196,11 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
         let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode, &ropes) {
             (Source::Built { .. }, _, Some(r)) => Box::new(RopeTracer::new(tree_tracer.as_ref().expect("built"), r)),
             (Source::File { file, .. }, _, Some(r)) => Box::new(RopeTracer::new(file, r)),
-            _ => match (&source, args.mode) {
-            (_, ModeArg::Brute) => Box::new(BruteForce(columns.expect("columns for brute force"))),
-            (Source::Built { .. }, ModeArg::Single) => Box::new(Scalar::new(tree_tracer.as_ref().expect("built"))),
-            (Source::Built { .. }, ModeArg::Packet) => {
-                Box::new(PacketTracer::new(tree_tracer.as_ref().expect("built")))
-            }
-            (Source::File { file, .. }, ModeArg::Single) => Box::new(Scalar::new(file)),
-            (Source::File { file, .. }, ModeArg::Packet) => Box::new(PacketTracer::new(file)),
-            },
+            (_, ModeArg::Brute, None) => Box::new(BruteForce(columns.expect("columns for brute force"))),
+            (Source::Built { .. }, ModeArg::Single, None) => Box::new(Scalar::new(tree_tracer.as_ref().expect("built"))),
+            (Source::Built { .. }, ModeArg::Packet, None) => Box::new(PacketTracer::new(tree_tracer.as_ref().expect("built"))),
+            (Source::File { file, .. }, ModeArg::Single, None) => Box::new(Scalar::new(file)),
+            (Source::File { file, .. }, ModeArg::Packet, None) => Box::new(PacketTracer::new(file)),
         };
         if let Some(r) = &ropes
             && !ui.quiet
