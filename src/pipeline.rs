@@ -73,9 +73,17 @@ impl Pipeline {
         }
     }
 
-    /// The same pipeline with the slim pass `slim` recorded as `preset`.
+    /// The same pipeline with the slim pass `slim` recorded as `preset`,
+    /// and the pass's split price ([`SlimParams::split_price`]), if it has
+    /// one, in the build configuration: the std tree the pass starts from
+    /// must be built by this pipeline, not taken from another.
     pub fn slimmed(&self, slim: Option<SlimParams>, preset: Preset) -> Pipeline {
+        let mut config = self.config;
+        if let Some(mu) = slim.and_then(|p| p.split_price) {
+            config.sah.split_price = mu;
+        }
         Pipeline {
+            config,
             slim,
             preset,
             ..self.clone()

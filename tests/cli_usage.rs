@@ -139,6 +139,31 @@ fn hoisting_flags_with_std_need_both_thresholds() {
     assert!(help.contains("fast τ_occu 0.9, τ_freq 0.7"), "{help}");
 }
 
+/// The slim presets build at their own split price (fast 1.5, small 2),
+/// which `--split-price` replaces; the paper's settings and hoisting on
+/// the std preset keep std's (0.5). The file records the price built with.
+#[test]
+fn presets_build_at_their_split_price() {
+    let dir = fresh_temp_dir("preset_price");
+    let scene = bunny();
+    let kd = dir.join("t.kd");
+    let price = |flags: &[&str]| {
+        let mut args = vec!["build", &scene, "-o", kd.to_str().unwrap(), "--json"];
+        args.extend_from_slice(flags);
+        let built = json(&slimkd(&args));
+        let info = json(&slimkd(&["info", kd.to_str().unwrap(), "--json"]));
+        assert_eq!(built["split_price"], info["split_price"], "{flags:?}");
+        built["split_price"].as_f64().unwrap()
+    };
+    assert_eq!(price(&[]), 0.5);
+    assert_eq!(price(&["--preset", "fast"]), 1.5);
+    assert_eq!(price(&["--preset", "small"]), 2.0);
+    assert_eq!(price(&["--preset", "small", "--tau-occu", "0.3"]), 2.0);
+    assert_eq!(price(&["--preset", "small", "--split-price", "0.25"]), 0.25);
+    assert_eq!(price(&["--preset", "fast", "--hoist-rule", "paper"]), 0.5);
+    assert_eq!(price(&["--tau-occu", "0.3", "--tau-freq", "0.2"]), 0.5);
+}
+
 /// A rebuild's K_T factor below 1, NaN or infinite is a usage error.
 #[test]
 fn coarsen_below_one_is_a_usage_error() {

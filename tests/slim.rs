@@ -631,6 +631,8 @@ fn params_strategy() -> impl Strategy<Value = SlimParams> {
             rule: RULES[rule],
             coarsen: 1.0 + 0.5 * f64::from(c),
             cost_ratio: COST_RATIOS[r],
+            // The pass reads the configuration's price, never this.
+            split_price: None,
         })
 }
 
@@ -974,6 +976,7 @@ fn slim_hits_on_shipped_bunny() {
         rule: HoistRule::Paper,
         coarsen: 1.0,
         cost_ratio: f64::INFINITY,
+        split_price: None,
     };
     for p in PRESETS.into_iter().chain([aggressive]) {
         let (tree, _) = slim::slim(&std, &scene, &config(), &p);
@@ -1016,7 +1019,7 @@ proptest! {
         let std = std_tree(&scene);
         for max_t2rn in 0..5 {
             for rule in RULES {
-                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule, coarsen: 1.0, cost_ratio: f64::INFINITY };
+                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule, coarsen: 1.0, cost_ratio: f64::INFINITY, split_price: None };
                 let (tree, report) = slim::slim(&std, &scene, &config(), &p);
                 prop_assert!(max_t2_on_path(&tree) <= max_t2rn, "{:?}", p);
                 prop_assert_eq!(report.hoisted, tree.n_t_inner());
@@ -1535,6 +1538,7 @@ fn small_disjoint_triangles_are_not_hoisted() {
             rule: HoistRule::Paper,
             coarsen: 1.0,
             cost_ratio: f64::INFINITY,
+            split_price: None,
         };
         for p in [PAPER_FAST_BYTES, half] {
             let (tree, report) = slim_checked(&std, &scene, &p);

@@ -199,17 +199,16 @@ fn sweep_tree_bytes_are_the_written_files() {
         ("fast", &["--preset", "fast"][..]),
         ("small", &["--preset", "small"][..]),
         ("K_T 30", &["--kt", "30"][..]),
+        // small's split price, coarsening and price rule, other thresholds.
         (
-            "0.3/0.2 c2",
+            "0.3/0.2 c2 p0.05 μ2",
             &[
+                "--preset",
+                "small",
                 "--tau-occu",
                 "0.3",
                 "--tau-freq",
                 "0.2",
-                "--max-t2rn",
-                "16",
-                "--coarsen",
-                "2",
             ][..],
         ),
     ] {

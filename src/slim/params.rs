@@ -69,16 +69,28 @@ pub struct SlimParams {
     /// leaf tests, 4.5 % slower packets than std; at 0.01, with rebuilds
     /// at 1.5 × `K_T`, it is within 1.3 % of std there and 35 % smaller).
     pub cost_ratio: f64,
+    /// The split price `μ` of the preset's tree (`build::sah::SahParams::
+    /// split_price`): [`Pipeline::slimmed`] puts it into the build
+    /// configuration, so that the std tree the pass starts from and its
+    /// rebuilds are built with it. `None`: the configuration's. The pass
+    /// itself ([`super::slim`]) takes the configuration the tree was built
+    /// with and does not read it. Why the presets raise it: the default
+    /// price (0.5) has taken much of the duplication hoisting removes, and
+    /// a higher price removes nodes where primary packets lose least
+    /// (ravenbridge at μ 2: 29 % fewer bytes, 1.4 % slower packets;
+    /// `small`'s hoists cost it 7 %).
+    ///
+    /// [`Pipeline::slimmed`]: crate::pipeline::Pipeline::slimmed
+    pub split_price: Option<f64>,
 }
 
 impl SlimParams {
-    /// The `fast` preset: low thresholds (τ_occu 0.1, τ_freq 0.05,
-    /// max_t2rn 16) with the byte rule for a reordered file, rebuilt
-    /// subtrees priced with 1.5 × `K_T`, and the price rule at 0.01: 24–40 %
-    /// fewer tree bytes than std on the six shared scenes, tracing primary
-    /// packets at 0.987–1.137× std's speed (without the price rule and the
-    /// coarsening, 22–34 % and 0.938–1.096×; `docs/perf-notes.md`, "A price
-    /// on hoists").
+    /// The `fast` preset: the split price at 1.5, low thresholds (τ_occu
+    /// 0.1, τ_freq 0.05, max_t2rn 16) with the byte rule for a reordered
+    /// file, rebuilt subtrees priced with 1.5 × `K_T`, and the price rule
+    /// at 0.01: 21–35 % fewer tree bytes than std on the six shared
+    /// scenes, tracing primary packets at 0.98–1.08× std's speed
+    /// (`docs/perf-notes.md`, "The presets on the priced std tree").
     pub const FAST: SlimParams = SlimParams {
         tau_occu: 0.1,
         tau_freq: 0.05,
@@ -86,14 +98,17 @@ impl SlimParams {
         rule: HoistRule::Bytes { reordered: true },
         coarsen: 1.5,
         cost_ratio: 0.01,
+        split_price: Some(1.5),
     };
-    /// The `small` preset: the thresholds of `fast`, the rebuilt subtrees
-    /// priced with twice `K_T`, no price rule: 49–64 % fewer tree bytes
-    /// than std on the same scenes, at 0.96–1.16× std's speed (`docs/perf-notes.md`,
-    /// "Hoisting that pays").
+    /// The `small` preset: the split price at 2, the thresholds of `fast`,
+    /// the rebuilt subtrees priced with twice `K_T`, the price rule at
+    /// 0.05: 32–46 % fewer tree bytes than std on the same scenes, at
+    /// 0.93–1.08× std's speed (`docs/perf-notes.md`, "The presets on the
+    /// priced std tree").
     pub const SMALL: SlimParams = SlimParams {
         coarsen: 2.0,
-        cost_ratio: f64::INFINITY,
+        cost_ratio: 0.05,
+        split_price: Some(2.0),
         ..SlimParams::FAST
     };
     /// The paper's `f` setting (τ_occu 0.9, τ_freq 0.7, max_t2rn 4) with
@@ -105,6 +120,7 @@ impl SlimParams {
         rule: HoistRule::Paper,
         coarsen: 1.0,
         cost_ratio: f64::INFINITY,
+        split_price: None,
     };
     /// The paper's `s` setting (τ_occu 0.5, τ_freq 0.4, max_t2rn 4) with
     /// its Algorithm 1.

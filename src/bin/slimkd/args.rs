@@ -267,11 +267,13 @@ pub(crate) struct CellsArgs {
 
 #[derive(clap::Args, Clone)]
 pub(crate) struct BuildArgs {
-    /// Tree preset: `std` (no hoisting), `fast` (τ_occu 0.1, τ_freq 0.05,
-    /// max_t2rn 16, coarsen 1.5, cost ratio 0.01), `small` (the same,
-    /// coarsen 2, no cost ratio), with the hoist rule `bytes`; with `--hoist-rule paper`, the paper's settings
-    /// (Choi et al. 2013): fast τ_occu 0.9, τ_freq 0.7, small 0.5, 0.4,
-    /// both max_t2rn 4, coarsen 1, no cost ratio. The hoisting flags
+    /// Tree preset: `std` (no hoisting), `fast` (split price 1.5, τ_occu
+    /// 0.1, τ_freq 0.05, max_t2rn 16, coarsen 1.5, cost ratio 0.01),
+    /// `small` (split price 2, the same thresholds, coarsen 2, cost ratio
+    /// 0.05), with the hoist rule `bytes`; with `--hoist-rule paper`, the
+    /// paper's settings (Choi et al. 2013): fast τ_occu 0.9, τ_freq 0.7,
+    /// small 0.5, 0.4, both max_t2rn 4, coarsen 1, no cost ratio, std's
+    /// split price. --split-price replaces a preset's. The hoisting flags
     /// (--tau-occu, --tau-freq, --max-t2rn, --coarsen, --cost-ratio,
     /// --hoist-rule) override what a
     /// slim preset sets; with `std` (the default) they need both
@@ -289,12 +291,14 @@ pub(crate) struct BuildArgs {
     /// --tau-occu and --tau-freq.
     #[arg(long, value_enum, default_value_t = HoistRuleArg::Bytes)]
     pub(crate) hoist_rule: HoistRuleArg,
-    /// Occupancy threshold in [0, 1] (overrides the preset's: fast 0.9,
-    /// small 0.5; with `--preset std` it needs --tau-freq too).
+    /// Occupancy threshold in [0, 1] (overrides the preset's: 0.1, or with
+    /// `--hoist-rule paper` fast 0.9, small 0.5; with `--preset std` it
+    /// needs --tau-freq too).
     #[arg(long, value_parser = parse_tau, allow_hyphen_values = true)]
     pub(crate) tau_occu: Option<f64>,
-    /// Frequency threshold in [0, 1] (overrides the preset's: fast 0.7,
-    /// small 0.4; with `--preset std` it needs --tau-occu too).
+    /// Frequency threshold in [0, 1] (overrides the preset's: 0.05, or
+    /// with `--hoist-rule paper` fast 0.7, small 0.4; with `--preset std`
+    /// it needs --tau-occu too).
     #[arg(long, value_parser = parse_tau, allow_hyphen_values = true)]
     pub(crate) tau_freq: Option<f64>,
     /// Most hoisted triangles on a root path (overrides the preset's: 16,
@@ -311,7 +315,7 @@ pub(crate) struct BuildArgs {
     /// it raises the tree's SAH cost (the std tree's K_T and K_I, a
     /// hoisted triangle one test at its node) by at most this many times
     /// the share of the tree's bytes it saves; a number ≥ 0, or `inf` for
-    /// no price (overrides the preset's: fast 0.01, small inf; with
+    /// no price (overrides the preset's: fast 0.01, small 0.05; with
     /// `--preset std` it needs --tau-occu and --tau-freq).
     #[arg(long, value_parser = parse_cost_ratio, allow_hyphen_values = true)]
     pub(crate) cost_ratio: Option<f64>,
@@ -330,7 +334,8 @@ pub(crate) struct BuildArgs {
     /// SAH price of a split, μ ≥ 0: a split is taken only if the SAH cost
     /// it saves (weighted by its cell's share of the root's surface area)
     /// is at least μ times the bytes it adds per triangle of the scene; 0
-    /// takes every split that pays for itself (the file records it).
+    /// takes every split that pays for itself (the file records it;
+    /// replaces the split price of `--preset fast`, 1.5, and `small`, 2).
     #[arg(long, value_parser = parse_price, default_value_t = slimkd::build::sah::SahParams::default().split_price)]
     pub(crate) split_price: f64,
     /// SAH factor in (0, 1] on the intersection cost of a split that cuts
@@ -477,6 +482,11 @@ impl BuildArgs {
         }
         if let Some(v) = self.cost_ratio {
             p.cost_ratio = v;
+        }
+        // A given --split-price (in the build configuration) replaces the
+        // preset's; hoisting on the std preset keeps std's.
+        if base.is_none() || self.was_given("--split-price") {
+            p.split_price = None;
         }
         match (base, custom) {
             (None, false) => (None, Preset::Std),

@@ -214,12 +214,19 @@ pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
     ] {
         let start = Instant::now();
         let pipeline = built.pipeline.slimmed(Some(params), preset);
+        // The preset's split price gives it its own std tree.
+        let own_base = match pipeline.config == built.pipeline.config {
+            true => None,
+            false => Some(pipeline.build(&loaded.scene, None)?.0),
+        };
+        let base = own_base.as_ref().unwrap_or(&built.tree);
         let (tree, report, phases) = pipeline
-            .slim(&built.tree, &loaded.scene, None)
+            .slim(base, &loaded.scene, None)
             .expect("the pipeline has a slim pass");
         let slim_s = start.elapsed().as_secs_f64();
         say!(
-            "slim       {name} (τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted in {slim_s:.3} s",
+            "slim       {name} (μ {}, τ_occu {}, τ_freq {}, max_t2rn {}): {} triangles hoisted in {slim_s:.3} s",
+            pipeline.config.sah.split_price,
             params.tau_occu,
             params.tau_freq,
             params.max_t2rn,

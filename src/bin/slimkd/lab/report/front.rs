@@ -39,8 +39,8 @@ pub const FRONT_TAUS: [(f64, f64); 4] = [(0.5, 0.4), (0.3, 0.2), (0.1, 0.05), (0
 /// `μ` of the split-price family (std trees, default `K_T`, `K_I`): from
 /// none to eight times the default.
 pub const FRONT_SPLIT_PRICE: [f64; 5] = [0.0, 0.25, 0.5, 1.0, 8.0];
-/// `coarsen` of the coarsen family, at the presets' thresholds and
-/// without the price rule (2 is `small`).
+/// `coarsen` of the coarsen family, at `small`'s thresholds, price rule
+/// and split price (2 is `small`).
 pub const FRONT_COARSEN: [f64; 4] = [1.0, 1.5, 2.0, 3.0];
 
 /// One tree of the sweep.
@@ -99,12 +99,12 @@ impl FrontGrid {
 ///
 /// - `K_T` (std trees at K_I 20): [`FRONT_KT`]; `K_T 15` is `std`.
 /// - the split price (std trees): [`FRONT_SPLIT_PRICE`], through `std`.
-/// - hoisting with `fast`'s rebuild (`coarsen`, price rule) and with
-///   `small`'s: [`FRONT_TAUS`] with the presets' `max_t2rn` and rule,
-///   each line starting at `std` (no hoisting); `0.1/0.05` is `fast` and
-///   `small`.
-/// - coarsen at τ 0.1/0.05 without the price rule: [`FRONT_COARSEN`],
-///   through `small`.
+/// - hoisting with `fast`'s split price and rebuild (`coarsen`, price
+///   rule) and with `small`'s: [`FRONT_TAUS`] with the presets'
+///   `max_t2rn` and rule, each line starting at `std` (no hoisting);
+///   `0.1/0.05` is `fast` and `small`.
+/// - coarsen at `small`'s τ 0.1/0.05, price rule and split price:
+///   [`FRONT_COARSEN`], through `small`.
 pub fn default_grid() -> FrontGrid {
     let sah = build::sah::SahParams::default();
     let mut grid = FrontGrid {
@@ -145,11 +145,15 @@ pub fn default_grid() -> FrontGrid {
         if params.cost_ratio.is_finite() {
             label += &format!(" p{}", params.cost_ratio);
         }
+        let split_price = params.split_price.unwrap_or(sah.split_price);
+        if split_price != sah.split_price {
+            label += &format!(" μ{split_price}");
+        }
         FrontSetting {
             label: preset.map_or(label, |k| k.name().to_string()),
             k_t: sah.k_t,
             k_i: sah.k_i,
-            split_price: sah.split_price,
+            split_price,
             slim: Some(params),
             preset,
         }
@@ -190,7 +194,7 @@ pub fn default_grid() -> FrontGrid {
         })
         .collect();
     grid.families.push(FrontFamily {
-        name: format!("coarsen, τ {}/{}, no price", taus.0, taus.1),
+        name: format!("coarsen, τ {}/{}, as small", taus.0, taus.1),
         points,
     });
     grid

@@ -172,6 +172,8 @@ struct Table4Json {
     std_build_s: f64,
     fast_slim_s: f64,
     small_slim_s: f64,
+    fast_base_s: f64,
+    small_base_s: f64,
     fast_ratio: f64,
     small_ratio: f64,
     write_s: WriteTimesJson,
@@ -309,6 +311,8 @@ fn scene_json(s: &SceneReport) -> SceneJson<'_> {
             std_build_s: s.table4.std_build_s,
             fast_slim_s: s.table4.slim_s[0],
             small_slim_s: s.table4.slim_s[1],
+            fast_base_s: s.table4.base_s[0],
+            small_base_s: s.table4.base_s[1],
             fast_ratio: s.table4.slim_ratio(0),
             small_ratio: s.table4.slim_ratio(1),
             write_s: WriteTimesJson {

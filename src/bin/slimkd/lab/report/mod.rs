@@ -344,16 +344,25 @@ impl ViewRates {
 pub struct BuildTimes {
     pub load_s: f64,
     pub std_build_s: f64,
-    /// The slim passes of fast and small (after the std build).
+    /// The slim passes of fast and small (after their std trees).
     pub slim_s: [f64; 2],
+    /// The std trees of fast and small at their own split price
+    /// ([`SlimParams::split_price`]); 0 where a preset slims the std tree.
+    pub base_s: [f64; 2],
     /// Serialising std, fast and small to `.kd` bytes (in memory).
     pub write_s: [f64; 3],
 }
 
 impl BuildTimes {
-    /// `(std build + slim pass) / std build` for fast (`0`) or small (`1`).
+    /// The preset's build (its std tree, then the slim pass) over the std
+    /// build, for fast (`0`) or small (`1`).
     pub fn slim_ratio(&self, i: usize) -> f64 {
-        ratio(self.std_build_s + self.slim_s[i], self.std_build_s)
+        let base = if self.base_s[i] > 0.0 {
+            self.base_s[i]
+        } else {
+            self.std_build_s
+        };
+        ratio(base + self.slim_s[i], self.std_build_s)
     }
 }
 

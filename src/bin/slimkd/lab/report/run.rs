@@ -177,13 +177,31 @@ pub fn run_with_progress(
         let mut written = Vec::new();
         let mut hoisted = [0usize; 3];
         for (k, kind) in TreeKind::ALL.into_iter().enumerate() {
-            let pipeline = pipeline.slimmed(kind.params(options.rule), kind.preset());
-            let slimmed = match pipeline.slim {
+            let kind_pipeline = pipeline.slimmed(kind.params(options.rule), kind.preset());
+            let slimmed = match kind_pipeline.slim {
                 None => None,
                 Some(_) => {
+                    // A preset with its own split price starts from its own
+                    // std tree.
+                    let own_base = if kind_pipeline.config == pipeline.config {
+                        None
+                    } else {
+                        steps.step(&format!("{name}: building {}'s std tree", kind.name()));
+                        let start = Instant::now();
+                        let (tree, _) = pools
+                            .all
+                            .install(|| kind_pipeline.build(scene, None))
+                            .map_err(|source| ReportError::Build {
+                                scene: name.clone(),
+                                source,
+                            })?;
+                        times.base_s[k - 1] = start.elapsed().as_secs_f64();
+                        Some(tree)
+                    };
+                    let base = own_base.as_ref().unwrap_or(&std_tree);
                     steps.step(&format!("{name}: slim pass ({})", kind.name()));
                     let start = Instant::now();
-                    let slimmed = pools.all.install(|| pipeline.slim(&std_tree, scene, None));
+                    let slimmed = pools.all.install(|| kind_pipeline.slim(base, scene, None));
                     let (t, r, _) = slimmed.expect("the pipeline has a slim pass");
                     times.slim_s[k - 1] = start.elapsed().as_secs_f64();
                     hoisted[k] = r.hoisted;
@@ -192,7 +210,7 @@ pub fn run_with_progress(
             };
             steps.step(&format!("{name}: writing {} file", kind.name()));
             let tree = slimmed.as_ref().unwrap_or(&std_tree);
-            let w = write_tree(name, kind.name(), tree, scene, &pipeline)?;
+            let w = write_tree(name, kind.name(), tree, scene, &kind_pipeline)?;
             times.write_s[k] = w.seconds;
             written.push(w);
         }
@@ -231,6 +249,7 @@ pub fn run_with_progress(
                         // The paper's rebuild: Figure 5 sweeps its thresholds.
                         coarsen: 1.0,
                         cost_ratio: f64::INFINITY,
+                        split_price: None,
                     };
                     sweep.push(sweep_point(
                         name,
