@@ -89,8 +89,10 @@ impl SlimParams {
     /// 0.1, τ_freq 0.05, max_t2rn 16) with the byte rule for a reordered
     /// file, rebuilt subtrees priced with 1.5 × `K_T`, and the price rule
     /// at 0.01: 21–35 % fewer tree bytes than std on the six shared
-    /// scenes, tracing primary packets at 0.98–1.08× std's speed
-    /// (`docs/perf-notes.md`, "The presets on the priced std tree").
+    /// scenes, tracing primary packets at 0.97–1.08× std's speed and
+    /// single rays at 0.82–1.14× (the split price costs single rays on
+    /// ravenbridge and black_forest; `docs/perf-notes.md`, "The presets on
+    /// the priced std tree").
     pub const FAST: SlimParams = SlimParams {
         tau_occu: 0.1,
         tau_freq: 0.05,
@@ -103,8 +105,8 @@ impl SlimParams {
     /// The `small` preset: the split price at 2, the thresholds of `fast`,
     /// the rebuilt subtrees priced with twice `K_T`, the price rule at
     /// 0.05: 32–46 % fewer tree bytes than std on the same scenes, at
-    /// 0.93–1.08× std's speed (`docs/perf-notes.md`, "The presets on the
-    /// priced std tree").
+    /// 0.93–1.08× std's speed in packets and 0.71–1.04× in single rays
+    /// (`docs/perf-notes.md`, "The presets on the priced std tree").
     pub const SMALL: SlimParams = SlimParams {
         coarsen: 2.0,
         cost_ratio: 0.05,
