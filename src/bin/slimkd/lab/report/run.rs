@@ -159,14 +159,17 @@ pub fn run_with_progress(
             scene_name: Some(name.clone()),
             ..base.clone()
         };
-        let (std_tree, _) =
-            pools
+        let build_std = |p: &Pipeline| {
+            let (tree, _) = pools
                 .all
-                .install(|| pipeline.build(scene, None))
+                .install(|| p.build(scene, None))
                 .map_err(|source| ReportError::Build {
                     scene: name.clone(),
                     source,
                 })?;
+            Ok::<_, ReportError>(tree)
+        };
+        let std_tree = build_std(&pipeline)?;
         let std_build_s = start.elapsed().as_secs_f64();
         let table1 = duplication(&std_tree, scene);
         let mut times = BuildTimes {
@@ -188,13 +191,7 @@ pub fn run_with_progress(
                     } else {
                         steps.step(&format!("{name}: building {}'s std tree", kind.name()));
                         let start = Instant::now();
-                        let (tree, _) = pools
-                            .all
-                            .install(|| kind_pipeline.build(scene, None))
-                            .map_err(|source| ReportError::Build {
-                                scene: name.clone(),
-                                source,
-                            })?;
+                        let tree = build_std(&kind_pipeline)?;
                         times.base_s[k - 1] = start.elapsed().as_secs_f64();
                         Some(tree)
                     };
