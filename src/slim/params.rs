@@ -77,8 +77,8 @@ pub struct SlimParams {
     /// with and does not read it. Why the presets raise it: the default
     /// price (0.5) has taken much of the duplication hoisting removes, and
     /// a higher price removes nodes where primary packets lose least
-    /// (ravenbridge at μ 2: 29 % fewer bytes, 1.4 % slower packets;
-    /// `small`'s hoists cost it 7 %).
+    /// (ravenbridge at μ 2 alone: 29 % fewer bytes for 1.4 % of its
+    /// primary packets' speed, but 14 % of its single rays').
     ///
     /// [`Pipeline::slimmed`]: crate::pipeline::Pipeline::slimmed
     pub split_price: Option<f64>,
