@@ -114,6 +114,33 @@ proptest! {
     }
 }
 
+/// A ray that runs along −z in the plane x = 2, from the cell to the right
+/// of that plane, meets the triangle to its left whose edge lies in the
+/// plane: the ray lies in the face behind it, not only in the face it
+/// would leave by (a case the proptest above found).
+#[test]
+fn a_ray_in_the_face_behind_it_meets_the_neighbours_triangle() {
+    let v = |x: f32, y: f32, z: f32| Vec3::new(x, y, z);
+    let tris = vec![
+        [v(0.0, 0.0, 0.0); 3],
+        [v(0.0, 0.0, 0.0), v(2.0, 2.0, 0.0), v(2.0, 0.0, 0.0)],
+        [v(0.0, 0.0, 0.0), v(0.0, 0.0, 0.0), v(1.0, 0.0, 1.0)],
+        [v(2.0, 0.0, 0.0), v(2.0, 0.0, 0.0), v(4.0, 1.0, 0.0)],
+    ];
+    let scene = columns(&tris);
+    let rays = [
+        Ray::new(v(2.0, 0.5, 0.5), v(0.0, 0.0, -1.0)),
+        Ray::new(v(2.0, 0.5, 0.5), v(-0.0, 0.0, -1.0)),
+    ];
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+    let src = TreeTracer {
+        tree: &tree,
+        scene: &scene,
+    };
+    check_ropes(&src, &scene, &rays, v(2.5, 0.0, 0.0));
+    assert_eq!(trace::brute_force(&scene, &rays[0]).t, 0.5);
+}
+
 /// The shadow and AO rays of a real scene, each from the cell of its
 /// origin, against the root walk (itself brute force's,
 /// `tests/traversal.rs`) and, for a sample, brute force; and with fewer

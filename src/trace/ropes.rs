@@ -15,7 +15,8 @@
 //! clearly later) and the entered cell is chosen only when the entry
 //! distance lies clearly off every split on the way down. A ray that
 //! passes within the margin of an edge, starts outside its context's
-//! cell, lies in a face, or has a negative `tmin` is handed to the walk
+//! cell or on one of its faces, lies in a face, or has a negative `tmin`
+//! is handed to the walk
 //! from the root over the rest of its interval (from the entry of the
 //! last cell whose triangles it tested), so the hit is brute force's, bit
 //! for bit. Closest-hit queries stop once the best hit lies clearly
@@ -331,7 +332,12 @@ pub(crate) fn walk_ropes<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     };
     let org = ray.origin.to_array();
     let inside = (0..3).all(|k| first.lo[k] <= org[k] && org[k] <= first.hi[k]);
-    if !(inside && ray.tmin >= 0.0 && ropes.tag == src.tag()) {
+    // An origin on a face (within the margin) may meet the neighbour's
+    // triangles at a rounded `t` just above 0, a triangle lying in the
+    // face among them, which the walk from this cell never tests.
+    let near = |v: f32, f: f32| (v - f).abs() <= v.abs().max(f.abs()) * MARGIN;
+    let on_face = (0..3).any(|k| near(org[k], first.lo[k]) || near(org[k], first.hi[k]));
+    if !(inside && !on_face && ray.tmin >= 0.0 && ropes.tag == src.tag()) {
         return walk_ray::<W, ANY, COUNT>(src, ray, stats);
     }
     let Some(start) = ray_start::<W, COUNT>(src, ray, stats) else {
@@ -392,8 +398,14 @@ pub(crate) fn walk_ropes<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
             2
         };
         let x = tx[k];
-        if x.is_nan() || tx[(k + 1) % 3].is_nan() || tx[(k + 2) % 3].is_nan() {
-            // The ray lies in a face of the cell.
+        if x.is_nan()
+            || tx[(k + 1) % 3].is_nan()
+            || tx[(k + 2) % 3].is_nan()
+            || (0..3).any(|a| dir[a] == 0.0 && (org[a] == c.lo[a] || org[a] == c.hi[a]))
+        {
+            // The ray lies in a face of the cell: the NaNs catch the face
+            // it would leave by, the comparisons the one behind it, whose
+            // neighbour's triangles the ray meets too.
             break 'chain en;
         }
         // The ray ends in this cell, or (closest hit) its best hit lies
