@@ -13,6 +13,7 @@ use crate::progress::Progress;
 use crate::scene::TriangleColumns;
 use crate::slim::{self, SlimParams, SlimPhases, SlimReport};
 use crate::tree::{PreOrderSink, TreeIr};
+use std::borrow::Cow;
 use std::path::Path;
 
 /// Why a [`Pipeline`] stopped: its build or its writing failed (the
@@ -142,6 +143,23 @@ impl Pipeline {
             built();
             Ok(report)
         })
+    }
+
+    /// The std tree this pipeline's slim pass starts from: `std`, built by
+    /// `built_by`, where that pipeline has this one's build configuration,
+    /// else this pipeline's own build (a preset's split price,
+    /// [`SlimParams::split_price`]), on the current rayon pool.
+    pub fn base_tree<'t>(
+        &self,
+        std: &'t TreeIr,
+        built_by: &Pipeline,
+        scene: &TriangleColumns,
+    ) -> Result<Cow<'t, TreeIr>, BuildError> {
+        if self.config == built_by.config {
+            Ok(Cow::Borrowed(std))
+        } else {
+            Ok(Cow::Owned(self.build(scene, None)?.0))
+        }
     }
 
     /// The pipeline's slim pass over `tree` (on the current rayon pool);

@@ -354,6 +354,9 @@ pub(crate) fn walk_ropes<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
     // The face a ray leaves a cell by on each axis (+∞ and −∞ inverses,
     // of ±0 directions, pick the face whose distance is +∞).
     let up = [inv[0] > 0.0, inv[1] > 0.0, inv[2] > 0.0];
+    // The axes the ray runs across in no time: on them it lies in a face
+    // of every cell whose face plane holds its origin.
+    let flat = [dir[0] == 0.0, dir[1] == 0.0, dir[2] == 0.0];
     let mut steps_left = u64::from(src.step_limit());
     let mut best = Hit::MISS;
     let mut rec = (cell & !CELL) as usize;
@@ -398,14 +401,11 @@ pub(crate) fn walk_ropes<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool>(
             2
         };
         let x = tx[k];
-        if x.is_nan()
-            || tx[(k + 1) % 3].is_nan()
-            || tx[(k + 2) % 3].is_nan()
-            || (0..3).any(|a| dir[a] == 0.0 && (org[a] == c.lo[a] || org[a] == c.hi[a]))
-        {
-            // The ray lies in a face of the cell: the NaNs catch the face
-            // it would leave by, the comparisons the one behind it, whose
-            // neighbour's triangles the ray meets too.
+        if x.is_nan() || (0..3).any(|a| flat[a] && (org[a] == c.lo[a] || org[a] == c.hi[a])) {
+            // The ray lies in a face of the cell (the one it would leave
+            // by, where `tx` is 0·∞, or the one behind it): the
+            // neighbour's triangles in that face are met too. (A NaN exit
+            // is left to the root walk whatever its cause.)
             break 'chain en;
         }
         // The ray ends in this cell, or (closest hit) its best hit lies

@@ -214,14 +214,9 @@ pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
     ] {
         let start = Instant::now();
         let pipeline = built.pipeline.slimmed(Some(params), preset);
-        // The preset's split price gives it its own std tree.
-        let own_base = match pipeline.config == built.pipeline.config {
-            true => None,
-            false => Some(pipeline.build(&loaded.scene, None)?.0),
-        };
-        let base = own_base.as_ref().unwrap_or(&built.tree);
+        let base = pipeline.base_tree(&built.tree, &built.pipeline, &loaded.scene)?;
         let (tree, report, phases) = pipeline
-            .slim(base, &loaded.scene, None)
+            .slim(&base, &loaded.scene, None)
             .expect("the pipeline has a slim pass");
         let slim_s = start.elapsed().as_secs_f64();
         say!(

@@ -4,6 +4,7 @@ use super::tables::{Pools, duplication, measure_views, sweep_point, write_tree};
 use super::*;
 use slimkd::pipeline::Pipeline;
 use slimkd::progress::Progress;
+use std::borrow::Cow;
 
 /// The views of a scene among [`VIEW_IDS`], found by its name (or, for a
 /// file name or path, by its stem).
@@ -159,17 +160,14 @@ pub fn run_with_progress(
             scene_name: Some(name.clone()),
             ..base.clone()
         };
-        let build_std = |p: &Pipeline| {
-            let (tree, _) = pools
-                .all
-                .install(|| p.build(scene, None))
-                .map_err(|source| ReportError::Build {
-                    scene: name.clone(),
-                    source,
-                })?;
-            Ok::<_, ReportError>(tree)
+        let build_error = |source| ReportError::Build {
+            scene: name.clone(),
+            source,
         };
-        let std_tree = build_std(&pipeline)?;
+        let (std_tree, _) = pools
+            .all
+            .install(|| pipeline.build(scene, None))
+            .map_err(build_error)?;
         let std_build_s = start.elapsed().as_secs_f64();
         let table1 = duplication(&std_tree, scene);
         let mut times = BuildTimes {
@@ -184,21 +182,18 @@ pub fn run_with_progress(
             let slimmed = match kind_pipeline.slim {
                 None => None,
                 Some(_) => {
-                    // A preset with its own split price starts from its own
-                    // std tree.
-                    let own_base = if kind_pipeline.config == pipeline.config {
-                        None
-                    } else {
-                        steps.step(&format!("{name}: building {}'s std tree", kind.name()));
-                        let start = Instant::now();
-                        let tree = build_std(&kind_pipeline)?;
+                    steps.step(&format!("{name}: {}'s std tree", kind.name()));
+                    let start = Instant::now();
+                    let base = pools
+                        .all
+                        .install(|| kind_pipeline.base_tree(&std_tree, &pipeline, scene))
+                        .map_err(build_error)?;
+                    if let Cow::Owned(_) = base {
                         times.base_s[k - 1] = start.elapsed().as_secs_f64();
-                        Some(tree)
-                    };
-                    let base = own_base.as_ref().unwrap_or(&std_tree);
+                    }
                     steps.step(&format!("{name}: slim pass ({})", kind.name()));
                     let start = Instant::now();
-                    let slimmed = pools.all.install(|| kind_pipeline.slim(base, scene, None));
+                    let slimmed = pools.all.install(|| kind_pipeline.slim(&base, scene, None));
                     let (t, r, _) = slimmed.expect("the pipeline has a slim pass");
                     times.slim_s[k - 1] = start.elapsed().as_secs_f64();
                     hoisted[k] = r.hoisted;
