@@ -32,7 +32,7 @@ use crate::pipeline::{Pipeline, PipelineError};
 use crate::scene::{InvalidColumns, TriangleColumns};
 use crate::slim::{HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
-use crate::trace::{ClosestHit, FileWalk, Hit, HitContext, Scalar, Walk};
+use crate::trace::{ClosestHit, FileWalk, Hit, HitContext, OccluderCache, Scalar, Walk};
 use glam::Vec3;
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -540,6 +540,27 @@ impl AccelTracer<'_> {
         let (rays, lanes, n) = gather(packet, mask);
         let mut occ = [false; 16];
         PacketTracer::with_level(&self.walk, self.level).occluded_n(&rays[..n], &mut occ[..n]);
+        (0..n).filter(|&i| occ[i]).fold(0, |m, i| m | 1 << lanes[i])
+    }
+
+    /// [`Accel::occluded_packet`] that tests the triangles of `cache`
+    /// first and leaves this packet's occluders in it for the next call:
+    /// the same answers, less work for consecutive packets blocked by the
+    /// same triangles, as a renderer's shadow rays toward one light are
+    /// ([`OccluderCache`]; keep one cache per thread and kind of ray).
+    pub fn occluded_packet_cached(
+        &self,
+        packet: &RayPacket,
+        mask: u16,
+        cache: &mut OccluderCache,
+    ) -> u16 {
+        let (rays, lanes, n) = gather(packet, mask);
+        let mut occ = [false; 16];
+        PacketTracer::with_level(&self.walk, self.level).occluded_n_cached(
+            &rays[..n],
+            &mut occ[..n],
+            cache,
+        );
         (0..n).filter(|&i| occ[i]).fold(0, |m, i| m | 1 << lanes[i])
     }
 

@@ -91,3 +91,4 @@ pub mod tree;
 pub use accel::{Accel, AccelError, AccelTracer, BuildOptions, HitRecord, Preset, RayPacket};
 pub use geom::Ray;
 pub use scene::{SceneError, SceneFormat, TriangleColumns};
+pub use trace::OccluderCache;

@@ -11,7 +11,7 @@ use glam::Vec3;
 use slimkd::accel::{self, Accel, AccelError, BuildOptions, HitRecord, Preset, RayPacket};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
-use slimkd::trace;
+use slimkd::trace::{self, OccluderCache};
 
 /// A few hundred rays at the scene, a third of them with a finite `tmax`
 /// (so that occlusion has both answers).
@@ -156,9 +156,15 @@ fn assert_tracer_matches(accel: &Accel, rays: &[Ray]) {
         );
     }
     assert!(from_hits > 20, "{from_hits} hits");
+    let mut cache = OccluderCache::new();
     for chunk in rays.chunks(16) {
         let packet = RayPacket::from_rays(chunk);
         for mask in [0xFFFFu16, 0x0001, 0x8421, 0x7FFE, 0] {
+            assert_eq!(
+                tracer.occluded_packet_cached(&packet, mask, &mut cache),
+                accel.occluded_packet(&packet, mask),
+                "cached, mask {mask:#x}"
+            );
             assert_eq!(
                 tracer.intersect_packet(&packet, mask),
                 accel.intersect_packet(&packet, mask),

@@ -16,7 +16,9 @@ use slimkd::geom::Ray;
 use slimkd::slim::{self, SlimParams};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::rays::{self, Query};
-use slimkd::trace::{self, ClosestHit, Hit, KdSource, Scalar, TraceStats, TreeTracer};
+use slimkd::trace::{
+    self, ClosestHit, Hit, KdSource, OccluderCache, Scalar, TraceStats, TreeTracer,
+};
 
 /// Every query of every traverser over `src` against brute force on `rays`.
 fn check_queries(src: &impl KdSource, scene: &slimkd::scene::TriangleColumns, rays: &[Ray]) {
@@ -44,6 +46,10 @@ fn check_queries(src: &impl KdSource, scene: &slimkd::scene::TriangleColumns, ra
     for level in SimdLevel::available() {
         let tracer = PacketTracer::with_level(src, level);
         assert_eq!(tracer.level(), level);
+        // One occluder cache through every chunk of every length: each
+        // packet tests the triangles that blocked the one before.
+        let mut cache = OccluderCache::new();
+        let mut counted_cache = OccluderCache::new();
         // Every packet length, starting anywhere.
         for len in [1, 2, 5, 7, 8, 9, 15, 16] {
             for (c, chunk) in rays.chunks(len).enumerate() {
@@ -58,6 +64,12 @@ fn check_queries(src: &impl KdSource, scene: &slimkd::scene::TriangleColumns, ra
                     want_occ[base..base + chunk.len()],
                     "{level:?} occluded len {len}"
                 );
+                let mut cached = vec![false; chunk.len()];
+                tracer.occluded_n_cached(chunk, &mut cached, &mut cache);
+                assert_eq!(
+                    cached, occ,
+                    "{level:?} occluded through the cache, len {len}"
+                );
                 let mut stats = TraceStats::default();
                 let mut counted = vec![Hit::MISS; chunk.len()];
                 tracer.trace_counted(chunk, false, &mut counted, &mut stats);
@@ -66,6 +78,15 @@ fn check_queries(src: &impl KdSource, scene: &slimkd::scene::TriangleColumns, ra
                 tracer.trace_counted(chunk, true, &mut counted, &mut stats);
                 let occ2: Vec<bool> = counted.iter().map(Hit::is_hit).collect();
                 assert_eq!(occ2, occ);
+                tracer.trace_counted_cached(
+                    chunk,
+                    true,
+                    &mut counted,
+                    &mut stats,
+                    &mut counted_cache,
+                );
+                let occ3: Vec<bool> = counted.iter().map(Hit::is_hit).collect();
+                assert_eq!(occ3, occ, "{level:?} counted through the cache, len {len}");
             }
         }
     }
@@ -181,6 +202,93 @@ proptest! {
         let bytes = format::write_to_vec(&tree, &scene, &WriteOptions::default()).unwrap();
         let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
         check_queries(&file, &scene, &rays);
+    }
+}
+
+/// A wall (two triangles at z = 4) and packets of rays toward it from
+/// z = 0: the first packet fills the cache with the wall; the cached wall
+/// then counts only inside each ray's interval, and a cache filled in one
+/// tree is emptied in another.
+#[test]
+fn cached_occluders_count_only_inside_the_interval() {
+    let wall = |z: f32| {
+        [
+            [v(-8.0, -8.0, z), v(8.0, -8.0, z), v(8.0, 8.0, z)],
+            [v(-8.0, -8.0, z), v(8.0, 8.0, z), v(-8.0, 8.0, z)],
+        ]
+    };
+    let mut tris = wall(4.0).to_vec();
+    // Clutter beside the wall, so that the tree has more than one leaf.
+    tris.extend(box_mesh(v(10.0, 10.0, 0.0), v(11.0, 11.0, 1.0)));
+    let scene = columns(&tris);
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+    let src = TreeTracer {
+        tree: &tree,
+        scene: &scene,
+    };
+    let packet = |tmin: f32, tmax: f32| -> Vec<Ray> {
+        (0..16)
+            .map(|i| Ray {
+                tmin,
+                tmax,
+                ..Ray::new(
+                    v((i % 4) as f32 - 1.5, (i / 4) as f32 - 1.5, 0.0),
+                    v(0.1, 0.05, 1.0).normalize(),
+                )
+            })
+            .collect()
+    };
+    for level in SimdLevel::available() {
+        let tracer = PacketTracer::with_level(&src, level);
+        let mut cache = OccluderCache::new();
+        let mut occ = [false; 16];
+        for (tmin, tmax, want) in [
+            (0.0, 100.0, true),
+            // Ends before the wall, starts past it, ends on the plane
+            // short of it: the cached wall is hit, outside the interval.
+            (0.0, 3.9, false),
+            (4.2, 100.0, false),
+            (0.0, 4.0, false),
+            (0.0, 4.1, true),
+        ] {
+            let rays = packet(tmin, tmax);
+            for len in [16, 9, 3] {
+                tracer.occluded_n_cached(&rays[..len], &mut occ[..len], &mut cache);
+                for (i, r) in rays[..len].iter().enumerate() {
+                    let brute = trace::brute_force(&scene, r).t < r.tmax;
+                    assert_eq!(
+                        occ[i], brute,
+                        "{level:?} ({tmin}, {tmax}) len {len} lane {i}"
+                    );
+                    assert_eq!(
+                        occ[i], want,
+                        "{level:?} ({tmin}, {tmax}) len {len} lane {i}"
+                    );
+                }
+            }
+            // Refill with the wall for the next interval.
+            tracer.occluded_n_cached(&packet(0.0, 100.0), &mut occ, &mut cache);
+            assert!(
+                !cache.is_empty() && cache.len() <= 2,
+                "{level:?}: {cache:?}"
+            );
+        }
+        // The wall's cache in a tree of another scene (one triangle, far
+        // away): no wall there.
+        let other = columns(&[[
+            v(50.0, 50.0, 50.0),
+            v(51.0, 50.0, 50.0),
+            v(50.0, 51.0, 50.0),
+        ]]);
+        let other_tree =
+            build::build(&other, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        let other_src = TreeTracer {
+            tree: &other_tree,
+            scene: &other,
+        };
+        let rays = packet(0.0, 100.0);
+        PacketTracer::with_level(&other_src, level).occluded_n_cached(&rays, &mut occ, &mut cache);
+        assert_eq!(occ, [false; 16], "{level:?} another tree");
     }
 }
 

@@ -17,7 +17,7 @@
 use super::{Camera, Frame, HitBuffer, TriangleNormals, trace_frame};
 use crate::geom::{Aabb, Ray};
 use crate::trace::packet::LANES;
-use crate::trace::{ClosestHit, HitContext};
+use crate::trace::{ClosestHit, HitContext, OccluderCache};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -27,8 +27,9 @@ use std::time::Instant;
 pub enum Secondary {
     /// One ray at a time from the root.
     Single,
-    /// 16 rays at a time through [`ClosestHit::occluded_n`] (a packet
-    /// tracer's packets).
+    /// 16 rays at a time through [`ClosestHit::occluded_n_cached`] (a
+    /// packet tracer's packets), one [`OccluderCache`] per kind of ray in
+    /// a chunk.
     Packet,
     /// One ray at a time from the [`HitContext`] of the hit point, one
     /// context for the pixel's shadow and AO rays (its location timed
@@ -360,10 +361,11 @@ fn trace_chunk(
                 .enumerate()
                 .filter_map(|(i, px)| px.shadow.map(|r| (i, r)))
                 .collect();
+            let mut cache = OccluderCache::new();
             for group in rays.chunks(LANES) {
                 let batch: Vec<Ray> = group.iter().map(|&(_, r)| r).collect();
                 let mut occ = [false; LANES];
-                tracer.occluded_n(&batch, &mut occ[..batch.len()]);
+                tracer.occluded_n_cached(&batch, &mut occ[..batch.len()], &mut cache);
                 for (&(i, _), o) in group.iter().zip(occ) {
                     out.results[i].0 = o;
                 }
@@ -406,12 +408,17 @@ fn trace_chunk(
             let mut order: Vec<u32> = (0..rays.len() as u32).collect();
             order.sort_by_key(|&i| octant(&rays[i as usize]));
             let mut batch = [Ray::new(Vec3::ZERO, Vec3::X); LANES];
+            let mut cache = OccluderCache::new();
             for group in order.chunks(LANES) {
                 for (b, &i) in batch.iter_mut().zip(group) {
                     *b = rays[i as usize];
                 }
                 let mut occ = [false; LANES];
-                tracer.occluded_n(&batch[..group.len()], &mut occ[..group.len()]);
+                tracer.occluded_n_cached(
+                    &batch[..group.len()],
+                    &mut occ[..group.len()],
+                    &mut cache,
+                );
                 for (&i, o) in group.iter().zip(occ) {
                     open[i as usize / spp.max(1)] += u32::from(!o);
                 }

@@ -32,6 +32,7 @@ pub mod stream;
 pub use context::{HitContext, locate, locate_into};
 pub use file::FileWalk;
 pub(crate) use file::NO_WORD;
+pub use packet::OccluderCache;
 
 use crate::format::{KdFile, LeafIndices};
 use crate::geom::{Aabb, Ray, RayPrecomp, intersect_triangle};
@@ -105,6 +106,15 @@ pub trait ClosestHit: Sync {
         for (r, o) in rays.iter().zip(out.iter_mut()) {
             *o = self.occluded(r);
         }
+    }
+
+    /// [`ClosestHit::occluded_n`] that tests the triangles of `cache` first
+    /// and leaves these rays' occluders in it for the next call: the same
+    /// answers, less work where consecutive calls are blocked by the same
+    /// triangles ([`OccluderCache`]). The default ignores the cache.
+    fn occluded_n_cached(&self, rays: &[Ray], out: &mut [bool], cache: &mut OccluderCache) {
+        let _ = cache;
+        self.occluded_n(rays, out)
     }
 
     /// Traces a 4×4 block of rays.
@@ -492,6 +502,9 @@ pub struct TraceStats {
     pub tris: u64,
     /// Ray–triangle tests of hoisted triangles (type II nodes).
     pub hoisted: u64,
+    /// Ray–triangle tests of cached occluders ([`OccluderCache`]; one per
+    /// lane).
+    pub cached: u64,
     /// Packets traced, and the active lanes summed over their node steps
     /// (`lane_steps / nodes` is the packets' mean occupancy).
     pub packets: u64,
@@ -507,6 +520,7 @@ impl TraceStats {
         self.leaves += o.leaves;
         self.tris += o.tris;
         self.hoisted += o.hoisted;
+        self.cached += o.cached;
         self.packets += o.packets;
         self.lane_steps += o.lane_steps;
     }

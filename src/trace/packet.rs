@@ -21,7 +21,9 @@
 //! ray–triangle kernel performs the scalar watertight test's operations in
 //! the same order (no fused multiply–add), so a packet returns exactly the
 //! scalar traverser's hits, bit for bit, whatever instruction set ran it.
-//! Any-hit queries drop a lane at its first hit and end when none is left.
+//! Any-hit queries drop a lane at its first hit and end when none is left;
+//! in a batch they first test the triangles that blocked the packet before
+//! ([`OccluderCache`]).
 //!
 //! **Instruction sets.** The whole packet traversal (split decisions and
 //! leaf kernel) is compiled three times, for AVX-512, for AVX2 and for the
@@ -371,6 +373,7 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         rays: &[Ray],
         out: &mut [Hit],
         stats: &mut TraceStats,
+        cache: &mut OccluderCache,
     ) {
         assert!(rays.len() <= LANES && out.len() == rays.len());
         if rays.is_empty() {
@@ -378,7 +381,7 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         }
         let w = self.scalar.walk;
         crate::simd_dispatch!(self.scalar.level, |WIDE| trace_rays::<_, ANY, COUNT, WIDE>(
-            w, rays, out, stats
+            w, rays, out, stats, cache
         ))
     }
 
@@ -389,10 +392,28 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
     ///
     /// If `rays` holds more than 16 rays or `out` is not as long.
     pub fn trace_counted(&self, rays: &[Ray], any: bool, out: &mut [Hit], stats: &mut TraceStats) {
+        self.trace_counted_cached(rays, any, out, stats, &mut OccluderCache::new());
+    }
+
+    /// [`PacketTracer::trace_counted`] whose any-hit rays test `cache`'s
+    /// triangles first, as [`ClosestHit::occluded_n_cached`]'s do (counted
+    /// in [`TraceStats::cached`]).
+    ///
+    /// # Panics
+    ///
+    /// If `rays` holds more than 16 rays or `out` is not as long.
+    pub fn trace_counted_cached(
+        &self,
+        rays: &[Ray],
+        any: bool,
+        out: &mut [Hit],
+        stats: &mut TraceStats,
+        cache: &mut OccluderCache,
+    ) {
         if any {
-            self.dispatch::<true, true>(rays, out, stats)
+            self.dispatch::<true, true>(rays, out, stats, cache)
         } else {
-            self.dispatch::<false, true>(rays, out, stats)
+            self.dispatch::<false, true>(rays, out, stats, cache)
         }
     }
 }
@@ -419,13 +440,32 @@ impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
     }
 
     fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
-        self.dispatch::<false, false>(rays, out, &mut TraceStats::default())
+        self.dispatch::<false, false>(
+            rays,
+            out,
+            &mut TraceStats::default(),
+            &mut OccluderCache::default(),
+        )
     }
 
     fn occluded_n(&self, rays: &[Ray], out: &mut [bool]) {
         let mut hits = [Hit::MISS; LANES];
         let hits = &mut hits[..rays.len()];
-        self.dispatch::<true, false>(rays, hits, &mut TraceStats::default());
+        self.dispatch::<true, false>(
+            rays,
+            hits,
+            &mut TraceStats::default(),
+            &mut OccluderCache::default(),
+        );
+        for (o, h) in out.iter_mut().zip(hits.iter()) {
+            *o = h.is_hit();
+        }
+    }
+
+    fn occluded_n_cached(&self, rays: &[Ray], out: &mut [bool], cache: &mut OccluderCache) {
+        let mut hits = [Hit::MISS; LANES];
+        let hits = &mut hits[..rays.len()];
+        self.dispatch::<true, false>(rays, hits, &mut TraceStats::default(), cache);
         for (o, h) in out.iter_mut().zip(hits.iter()) {
             *o = h.is_hit();
         }
@@ -499,17 +539,26 @@ fn split_lanes<const M: bool>(p: &Packet, k: usize, pos: f32, cur: &Entry) -> La
 
 /// Walks a packet of at least [`MIN_LANES`] rays as one, and fewer ray by
 /// ray; inlined into one copy per instruction set, so that its lane loops
-/// are vectorised for that set.
+/// are vectorised for that set. Any-hit rays test `cache`'s triangles
+/// first, and the packet's occluders become its contents (not those found
+/// by a lane walking alone: its walk reports input ids, and the cache
+/// needs source numbers).
 #[inline(always)]
 fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
     src: W,
     rays: &[Ray],
     out: &mut [Hit],
     stats: &mut TraceStats,
+    cache: &mut OccluderCache,
 ) {
     if rays.len() < MIN_LANES as usize {
         for (r, o) in rays.iter().zip(out.iter_mut()) {
-            *o = super::walk_ray::<_, ANY, COUNT>(src, r, stats);
+            *o = if ANY {
+                cached_hit::<_, COUNT>(src, r, &cache.tris(&src), stats)
+                    .unwrap_or_else(|| super::walk_ray::<_, ANY, COUNT>(src, r, stats))
+            } else {
+                super::walk_ray::<_, ANY, COUNT>(src, r, stats)
+            };
         }
         return;
     }
@@ -523,7 +572,39 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
     } else {
         (1u16 << rays.len()) - 1
     };
-    walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats);
+    if ANY {
+        // The cache's triangles first, in all lanes; the walk takes the
+        // lanes they leave.
+        let mut occ = [u32::MAX; LANES];
+        let mut done = 0u16;
+        let perm = p.shared_permutation(mask);
+        for t in cache.tris(&src) {
+            if COUNT {
+                stats.cached += u64::from((mask & !done).count_ones());
+            }
+            let h = test_triangle::<_, ANY, M>(src, &p, perm, t, mask & !done, &mut best);
+            record(&mut occ, h, t);
+            done |= h;
+            if done == mask {
+                break;
+            }
+        }
+        if mask & !done != 0 {
+            walk_packet::<_, ANY, COUNT, M>(
+                src,
+                rays,
+                &p,
+                mask & !done,
+                &mut best,
+                stats,
+                &mut occ,
+            );
+        }
+        cache.update(&occ);
+    } else {
+        let mut occ = [u32::MAX; LANES];
+        walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats, &mut occ);
+    }
     for (i, o) in out.iter_mut().enumerate() {
         *o = if best.id[i] == u32::MAX {
             Hit::MISS
@@ -534,6 +615,32 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
             }
         };
     }
+}
+
+/// The hit of the first of `tris` that `ray` hits in `(tmin, tmax)`, by the
+/// scalar traverser's test.
+#[inline(always)]
+fn cached_hit<'a, W: Walk<'a>, const COUNT: bool>(
+    src: W,
+    ray: &Ray,
+    tris: &[u32],
+    stats: &mut TraceStats,
+) -> Option<Hit> {
+    if tris.is_empty() {
+        return None;
+    }
+    let rp = RayPrecomp::new(ray);
+    tris.iter().find_map(|&t| {
+        if COUNT {
+            stats.cached += 1;
+        }
+        intersect_triangle(&rp, &src.triangle(t), ray.tmin, ray.tmax)
+            .filter(|&th| th < ray.tmax)
+            .map(|th| Hit {
+                t: th,
+                tri: src.input_id(t),
+            })
+    })
 }
 
 /// [`super::clip_ray`] in 16 lanes: the lanes that enter the box, and
@@ -618,6 +725,96 @@ fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
     hit
 }
 
+/// The triangles that occluded the last packet of an any-hit batch, tested
+/// first in the next ([`ClosestHit::occluded_n_cached`]): the shadow-ray
+/// cache of Haines & Greenberg (1986). Consecutive rays of a renderer's
+/// batch (the shadow rays of neighbouring pixels) are mostly blocked by the
+/// same few triangles, and one triangle test in 16 lanes costs less than one
+/// packet step: shadow packets ran 2.2× as fast on ravenbridge and 1.45×
+/// on dieselpower, ambient-occlusion packets 1.0–1.05×.
+///
+/// The answers are exact with any contents: a cached triangle counts only
+/// where the watertight test (the traversal's own) hits it in `(tmin,
+/// tmax)`, so some triangle is hit before `tmax` and
+/// `closest_hit(ray).t < tmax`. A cache filled in one tree and handed to
+/// another (a different node storage) is emptied on first use.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct OccluderCache {
+    /// Source numbers in the tree of `tag`; `tris[..len]` are set.
+    tris: [u32; OCCLUDERS],
+    len: u8,
+    /// The tree's [`Walk::tag`].
+    tag: (usize, usize),
+}
+
+/// Triangles a cache keeps: with 2, ravenbridge's shadow packets ran 8 %
+/// slower; with 8, no faster.
+const OCCLUDERS: usize = 4;
+
+impl OccluderCache {
+    /// An empty cache.
+    pub fn new() -> OccluderCache {
+        OccluderCache::default()
+    }
+
+    /// How many triangles the next packet tests first.
+    pub fn len(&self) -> usize {
+        usize::from(self.len)
+    }
+
+    /// Whether the next packet tests no triangle first.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The cached triangles, once the cache is known to be `src`'s.
+    #[inline(always)]
+    fn tris<'a, W: Walk<'a>>(&mut self, src: &W) -> ArrayVec<u32, OCCLUDERS> {
+        let tag = src.tag();
+        if self.tag != tag {
+            *self = OccluderCache {
+                tag,
+                ..OccluderCache::default()
+            };
+        }
+        self.tris[..usize::from(self.len)].iter().copied().collect()
+    }
+
+    /// Makes this packet's occluders (`occ`, per lane; `u32::MAX`: none)
+    /// the next packet's, the first [`OCCLUDERS`] in lane order: a cached
+    /// triangle that blocked no lane is dropped, so rays that share no
+    /// occluder test each at most once. (Keeping the old contents through
+    /// a packet that nothing blocked ran dieselpower's ambient-occlusion
+    /// packets 9 % slower; keeping only the occluders of two lanes gave
+    /// up a third of the shadow rays' gain.)
+    #[inline(never)]
+    fn update(&mut self, occ: &[u32; LANES]) {
+        let mut n = 0usize;
+        let mut tris = [0u32; OCCLUDERS];
+        for &t in occ {
+            if t != u32::MAX && !tris[..n].contains(&t) {
+                tris[n] = t;
+                n += 1;
+                if n == OCCLUDERS {
+                    break;
+                }
+            }
+        }
+        self.tris = tris;
+        self.len = n as u8;
+    }
+}
+
+/// Notes triangle `t` as the occluder of the lanes of `hit`.
+#[inline(always)]
+fn record(occ: &mut [u32; LANES], mut hit: u16, t: u32) {
+    while hit != 0 {
+        let i = hit.trailing_zeros() as usize;
+        hit &= hit - 1;
+        occ[i] = t;
+    }
+}
+
 /// Walks the lanes of `mask` as one packet, whatever their octants.
 #[inline(always)]
 fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
@@ -627,6 +824,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
     mask: u16,
     best: &mut Best,
     stats: &mut TraceStats,
+    occ: &mut [u32; LANES],
 ) {
     let mut cur = Entry {
         node: 0,
@@ -698,7 +896,9 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             stats.hoisted += u64::from(cur.mask.count_ones());
                         }
                         if ANY {
-                            done |= test_triangle::<_, ANY, M>(src, p, perm, tri, cur.mask, best);
+                            let h = test_triangle::<_, ANY, M>(src, p, perm, tri, cur.mask, best);
+                            record(occ, h, tri);
+                            done |= h;
                             cur.mask &= !done;
                             if mask & !done == 0 {
                                 return;
@@ -758,7 +958,9 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                             stats.tris += u64::from(cur.mask.count_ones());
                         }
                         if ANY {
-                            done |= test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
+                            let h = test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
+                            record(occ, h, t);
+                            done |= h;
                             cur.mask &= !done;
                             if cur.mask == 0 {
                                 if mask & !done == 0 {

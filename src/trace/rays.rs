@@ -265,6 +265,8 @@ fn trace_chunk(
         }
         return;
     }
+    // Consecutive rays' occluders: the batch's order is the renderer's.
+    let mut cache = super::OccluderCache::new();
     for (rays, out) in rays.chunks(16).zip(out.chunks_mut(16)) {
         match query {
             Query::Closest => {
@@ -276,7 +278,7 @@ fn trace_chunk(
             }
             Query::Occluded => {
                 let mut occ = [false; 16];
-                tracer.occluded_n(rays, &mut occ[..rays.len()]);
+                tracer.occluded_n_cached(rays, &mut occ[..rays.len()], &mut cache);
                 for (o, h) in out.iter_mut().zip(occ) {
                     *o = f32::from(u8::from(h));
                 }
@@ -286,8 +288,10 @@ fn trace_chunk(
 }
 
 /// Traces the rays of one piece of a chunk into their hits, counting the
-/// work.
-pub type CountFn<'a> = dyn Fn(&[Ray], &mut [Hit], &mut TraceStats) + Sync + 'a;
+/// work; packets of any-hit rays may use the chunk's occluder cache, as
+/// [`trace_batch`]'s do.
+pub type CountFn<'a> =
+    dyn Fn(&[Ray], &mut [Hit], &mut TraceStats, &mut super::OccluderCache) + Sync + 'a;
 
 /// Traces `rays` like [`trace_batch`] with a counting traversal (`trace`
 /// gets the rays of one chunk piece and returns their hits) and returns the
@@ -306,9 +310,10 @@ pub fn count_batch(
         .zip(rays.par_chunks(CHUNK))
         .for_each(|(out, rays)| {
             let mut stats = TraceStats::default();
+            let mut cache = super::OccluderCache::new();
             for (rays, out) in rays.chunks(step).zip(out.chunks_mut(step)) {
                 let mut hits = [Hit::MISS; 16];
-                trace(rays, &mut hits[..rays.len()], &mut stats);
+                trace(rays, &mut hits[..rays.len()], &mut stats, &mut cache);
                 for (o, h) in out.iter_mut().zip(hits) {
                     *o = result(query, h);
                 }

@@ -50,6 +50,7 @@ struct TraceStatsJson {
     leaves_per_ray: f64,
     tris_per_ray: f64,
     hoisted_per_ray: f64,
+    cached_per_ray: f64,
     packets: u64,
     lanes_per_step: f64,
 }
@@ -110,9 +111,12 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     });
     let stats = args.stats.then(|| {
         let any = query == Query::Occluded;
-        let count = |r: &[slimkd::geom::Ray], out: &mut [Hit], s: &mut TraceStats| {
+        let count = |r: &[slimkd::geom::Ray],
+                     out: &mut [Hit],
+                     s: &mut TraceStats,
+                     cache: &mut slimkd::trace::OccluderCache| {
             if packets {
-                packet.trace_counted(r, any, out, s);
+                packet.trace_counted_cached(r, any, out, s, cache);
             } else if let Some(rt) = &rope_tracer {
                 let mut ctx = slimkd::trace::context::HitContext::default();
                 for (ray, h) in r.iter().zip(out.iter_mut()) {
@@ -198,6 +202,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                     leaves_per_ray: per_ray(s, s.leaves),
                     tris_per_ray: per_ray(s, s.tris),
                     hoisted_per_ray: per_ray(s, s.hoisted),
+                    cached_per_ray: per_ray(s, s.cached),
                     packets: s.packets,
                     lanes_per_step: lanes_per_step(s),
                 }),
@@ -221,10 +226,11 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         if let Some((s, _)) = &stats {
             if packets {
                 println!(
-                    "per ray: {:.2} packet node steps shared, {:.2} leaf triangle tests, {:.2} hoisted tests; {:.2} active lanes per step",
+                    "per ray: {:.2} packet node steps shared, {:.2} leaf triangle tests, {:.2} hoisted tests, {:.2} cached-occluder tests; {:.2} active lanes per step",
                     per_ray(s, s.nodes),
                     per_ray(s, s.tris),
                     per_ray(s, s.hoisted),
+                    per_ray(s, s.cached),
                     lanes_per_step(s)
                 );
             } else {

@@ -309,14 +309,18 @@ pub fn measure_scene(
             for mode in Mode::ALL {
                 let any = set.query() == Query::Occluded;
                 let packet = &packets[k];
-                let count = |r: &[Ray], out: &mut [Hit], s: &mut TraceStats| match mode {
-                    Mode::Packet => packet.trace_counted(r, any, out, s),
-                    Mode::Single => {
-                        for (ray, h) in r.iter().zip(out.iter_mut()) {
-                            *h = tr::traverse_counted(file, ray, any, s);
+                let count =
+                    |r: &[Ray],
+                     out: &mut [Hit],
+                     s: &mut TraceStats,
+                     cache: &mut slimkd::trace::OccluderCache| match mode {
+                        Mode::Packet => packet.trace_counted_cached(r, any, out, s, cache),
+                        Mode::Single => {
+                            for (ray, h) in r.iter().zip(out.iter_mut()) {
+                                *h = tr::traverse_counted(file, ray, any, s);
+                            }
                         }
-                    }
-                };
+                    };
                 let (_, s) = rays::count_batch(rays, set.query(), mode == Mode::Packet, &count);
                 let per_ray = |v: u64| v as f64 / rays.len().max(1) as f64;
                 samples.push(Sample {
