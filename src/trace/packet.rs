@@ -373,7 +373,6 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         rays: &[Ray],
         out: &mut [Hit],
         stats: &mut TraceStats,
-        cache: &mut OccluderCache,
     ) {
         assert!(rays.len() <= LANES && out.len() == rays.len());
         if rays.is_empty() {
@@ -381,8 +380,29 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         }
         let w = self.scalar.walk;
         crate::simd_dispatch!(self.scalar.level, |WIDE| trace_rays::<_, ANY, COUNT, WIDE>(
-            w, rays, out, stats, cache
+            w, rays, out, stats
         ))
+    }
+
+    /// Traces up to 16 rays as any-hit queries, `cache`'s triangles first
+    /// ([`OccluderCache`]); a function of its own, so that the closest-hit
+    /// packets' code is not touched by it.
+    fn dispatch_cached<const COUNT: bool>(
+        &self,
+        rays: &[Ray],
+        out: &mut [Hit],
+        stats: &mut TraceStats,
+        cache: &mut OccluderCache,
+    ) {
+        assert!(rays.len() <= LANES && out.len() == rays.len());
+        if rays.is_empty() {
+            return;
+        }
+        let w = self.scalar.walk;
+        crate::simd_dispatch!(
+            self.scalar.level,
+            |WIDE| trace_rays_cached::<_, COUNT, WIDE>(w, rays, out, stats, cache)
+        )
     }
 
     /// [`ClosestHit::closest_hit_n`] or [`ClosestHit::occluded_n`] (a hit
@@ -392,7 +412,11 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
     ///
     /// If `rays` holds more than 16 rays or `out` is not as long.
     pub fn trace_counted(&self, rays: &[Ray], any: bool, out: &mut [Hit], stats: &mut TraceStats) {
-        self.trace_counted_cached(rays, any, out, stats, &mut OccluderCache::new());
+        if any {
+            self.dispatch::<true, true>(rays, out, stats)
+        } else {
+            self.dispatch::<false, true>(rays, out, stats)
+        }
     }
 
     /// [`PacketTracer::trace_counted`] whose any-hit rays test `cache`'s
@@ -411,9 +435,9 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         cache: &mut OccluderCache,
     ) {
         if any {
-            self.dispatch::<true, true>(rays, out, stats, cache)
+            self.dispatch_cached::<true>(rays, out, stats, cache)
         } else {
-            self.dispatch::<false, true>(rays, out, stats, cache)
+            self.dispatch::<false, true>(rays, out, stats)
         }
     }
 }
@@ -440,23 +464,13 @@ impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
     }
 
     fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
-        self.dispatch::<false, false>(
-            rays,
-            out,
-            &mut TraceStats::default(),
-            &mut OccluderCache::default(),
-        )
+        self.dispatch::<false, false>(rays, out, &mut TraceStats::default())
     }
 
     fn occluded_n(&self, rays: &[Ray], out: &mut [bool]) {
         let mut hits = [Hit::MISS; LANES];
         let hits = &mut hits[..rays.len()];
-        self.dispatch::<true, false>(
-            rays,
-            hits,
-            &mut TraceStats::default(),
-            &mut OccluderCache::default(),
-        );
+        self.dispatch::<true, false>(rays, hits, &mut TraceStats::default());
         for (o, h) in out.iter_mut().zip(hits.iter()) {
             *o = h.is_hit();
         }
@@ -465,7 +479,7 @@ impl<'a, S: KdSource> ClosestHit for PacketTracer<'a, S> {
     fn occluded_n_cached(&self, rays: &[Ray], out: &mut [bool], cache: &mut OccluderCache) {
         let mut hits = [Hit::MISS; LANES];
         let hits = &mut hits[..rays.len()];
-        self.dispatch::<true, false>(rays, hits, &mut TraceStats::default(), cache);
+        self.dispatch_cached::<false>(rays, hits, &mut TraceStats::default(), cache);
         for (o, h) in out.iter_mut().zip(hits.iter()) {
             *o = h.is_hit();
         }
@@ -539,26 +553,17 @@ fn split_lanes<const M: bool>(p: &Packet, k: usize, pos: f32, cur: &Entry) -> La
 
 /// Walks a packet of at least [`MIN_LANES`] rays as one, and fewer ray by
 /// ray; inlined into one copy per instruction set, so that its lane loops
-/// are vectorised for that set. Any-hit rays test `cache`'s triangles
-/// first, and the packet's occluders become its contents (not those found
-/// by a lane walking alone: its walk reports input ids, and the cache
-/// needs source numbers).
+/// are vectorised for that set.
 #[inline(always)]
 fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
     src: W,
     rays: &[Ray],
     out: &mut [Hit],
     stats: &mut TraceStats,
-    cache: &mut OccluderCache,
 ) {
     if rays.len() < MIN_LANES as usize {
         for (r, o) in rays.iter().zip(out.iter_mut()) {
-            *o = if ANY {
-                cached_hit::<_, COUNT>(src, r, &cache.tris(&src), stats)
-                    .unwrap_or_else(|| super::walk_ray::<_, ANY, COUNT>(src, r, stats))
-            } else {
-                super::walk_ray::<_, ANY, COUNT>(src, r, stats)
-            };
+            *o = super::walk_ray::<_, ANY, COUNT>(src, r, stats);
         }
         return;
     }
@@ -567,44 +572,80 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
         t: [f32::INFINITY; LANES],
         id: [u32::MAX; LANES],
     };
-    let mask: u16 = if rays.len() == LANES {
+    walk_packet::<_, ANY, COUNT, M, _>(src, rays, &p, all_lanes(rays), &mut best, stats, &mut ());
+    write_hits(&best, out);
+}
+
+/// [`trace_rays`] for any-hit queries that test `cache`'s triangles first
+/// and leave the packet's occluders in it (not those found by a lane
+/// walking alone: its walk reports input ids, and the cache needs source
+/// numbers).
+#[inline(always)]
+fn trace_rays_cached<'a, W: Walk<'a>, const COUNT: bool, const M: bool>(
+    src: W,
+    rays: &[Ray],
+    out: &mut [Hit],
+    stats: &mut TraceStats,
+    cache: &mut OccluderCache,
+) {
+    let cached = cache.tris(&src);
+    if rays.len() < MIN_LANES as usize {
+        for (r, o) in rays.iter().zip(out.iter_mut()) {
+            *o = cached_hit::<_, COUNT>(src, r, &cached, stats)
+                .unwrap_or_else(|| super::walk_ray::<_, true, COUNT>(src, r, stats));
+        }
+        return;
+    }
+    let p = Packet::new(rays);
+    let mut best = Best {
+        t: [f32::INFINITY; LANES],
+        id: [u32::MAX; LANES],
+    };
+    let mask = all_lanes(rays);
+    // The cache's triangles first, in all lanes; the walk takes the lanes
+    // they leave.
+    let mut occ = [u32::MAX; LANES];
+    let mut done = 0u16;
+    let perm = p.shared_permutation(mask);
+    for t in cached {
+        if COUNT {
+            stats.cached += u64::from((mask & !done).count_ones());
+        }
+        let h = test_triangle::<_, true, M>(src, &p, perm, t, mask & !done, &mut best);
+        occ.note(h, t);
+        done |= h;
+        if done == mask {
+            break;
+        }
+    }
+    if mask & !done != 0 {
+        walk_packet::<_, true, COUNT, M, _>(
+            src,
+            rays,
+            &p,
+            mask & !done,
+            &mut best,
+            stats,
+            &mut occ,
+        );
+    }
+    cache.update(&occ);
+    write_hits(&best, out);
+}
+
+/// The lane mask of a packet of `rays`.
+#[inline(always)]
+fn all_lanes(rays: &[Ray]) -> u16 {
+    if rays.len() == LANES {
         u16::MAX
     } else {
         (1u16 << rays.len()) - 1
-    };
-    if ANY {
-        // The cache's triangles first, in all lanes; the walk takes the
-        // lanes they leave.
-        let mut occ = [u32::MAX; LANES];
-        let mut done = 0u16;
-        let perm = p.shared_permutation(mask);
-        for t in cache.tris(&src) {
-            if COUNT {
-                stats.cached += u64::from((mask & !done).count_ones());
-            }
-            let h = test_triangle::<_, ANY, M>(src, &p, perm, t, mask & !done, &mut best);
-            record(&mut occ, h, t);
-            done |= h;
-            if done == mask {
-                break;
-            }
-        }
-        if mask & !done != 0 {
-            walk_packet::<_, ANY, COUNT, M>(
-                src,
-                rays,
-                &p,
-                mask & !done,
-                &mut best,
-                stats,
-                &mut occ,
-            );
-        }
-        cache.update(&occ);
-    } else {
-        let mut occ = [u32::MAX; LANES];
-        walk_packet::<_, ANY, COUNT, M>(src, rays, &p, mask, &mut best, stats, &mut occ);
     }
+}
+
+/// The packet's hits, one per ray.
+#[inline(always)]
+fn write_hits(best: &Best, out: &mut [Hit]) {
     for (i, o) in out.iter_mut().enumerate() {
         *o = if best.id[i] == u32::MAX {
             Hit::MISS
@@ -730,8 +771,8 @@ fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
 /// cache of Haines & Greenberg (1986). Consecutive rays of a renderer's
 /// batch (the shadow rays of neighbouring pixels) are mostly blocked by the
 /// same few triangles, and one triangle test in 16 lanes costs less than one
-/// packet step: shadow packets ran 2.2× as fast on ravenbridge and 1.45×
-/// on dieselpower, ambient-occlusion packets 1.0–1.05×.
+/// packet step: shadow packets ran 2.2× as fast on ravenbridge and 1.4×
+/// on dieselpower, ambient-occlusion packets at 0.97–1.04×.
 ///
 /// The answers are exact with any contents: a cached triangle counts only
 /// where the watertight test (the traversal's own) hits it in `(tmin,
@@ -783,48 +824,63 @@ impl OccluderCache {
     /// Makes this packet's occluders (`occ`, per lane; `u32::MAX`: none)
     /// the next packet's, the first [`OCCLUDERS`] in lane order: a cached
     /// triangle that blocked no lane is dropped, so rays that share no
-    /// occluder test each at most once. (Keeping the old contents through
-    /// a packet that nothing blocked ran dieselpower's ambient-occlusion
-    /// packets 9 % slower; keeping only the occluders of two lanes gave
-    /// up a third of the shadow rays' gain.)
+    /// occluder test each at most once. Measured against the alternatives
+    /// (dieselpower and ravenbridge, AMD EPYC): keeping the old contents
+    /// through a packet that nothing blocked ran ambient-occlusion packets
+    /// 9 % slower, keeping only the occluders of two lanes gave up a third
+    /// of the shadow rays' gain, and a cache idle for 2^k − 1 packets after
+    /// k packets it did not help lost 7 % of the shadow rays' speed and
+    /// gained no ambient-occlusion speed.
     #[inline(never)]
     fn update(&mut self, occ: &[u32; LANES]) {
         let mut n = 0usize;
-        let mut tris = [0u32; OCCLUDERS];
         for &t in occ {
-            if t != u32::MAX && !tris[..n].contains(&t) {
-                tris[n] = t;
+            if t != u32::MAX && !self.tris[..n].contains(&t) {
+                self.tris[n] = t;
                 n += 1;
                 if n == OCCLUDERS {
                     break;
                 }
             }
         }
-        self.tris = tris;
         self.len = n as u8;
     }
 }
 
-/// Notes triangle `t` as the occluder of the lanes of `hit`.
-#[inline(always)]
-fn record(occ: &mut [u32; LANES], mut hit: u16, t: u32) {
-    while hit != 0 {
-        let i = hit.trailing_zeros() as usize;
-        hit &= hit - 1;
-        occ[i] = t;
+/// Where a packet walk notes the triangle that blocked each lane: per lane
+/// (`[u32; LANES]`, for the cache) or nowhere (`()`: closest hits and
+/// uncached any-hit queries, whose code is then the walk alone).
+trait Occluders {
+    /// Notes triangle `t` as the occluder of the lanes of `hit`.
+    fn note(&mut self, hit: u16, t: u32);
+}
+
+impl Occluders for () {
+    #[inline(always)]
+    fn note(&mut self, _: u16, _: u32) {}
+}
+
+impl Occluders for [u32; LANES] {
+    #[inline(always)]
+    fn note(&mut self, mut hit: u16, t: u32) {
+        while hit != 0 {
+            let i = hit.trailing_zeros() as usize;
+            hit &= hit - 1;
+            self[i] = t;
+        }
     }
 }
 
 /// Walks the lanes of `mask` as one packet, whatever their octants.
 #[inline(always)]
-fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool>(
+fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool, O: Occluders>(
     src: W,
     rays: &[Ray],
     p: &Packet,
     mask: u16,
     best: &mut Best,
     stats: &mut TraceStats,
-    occ: &mut [u32; LANES],
+    occ: &mut O,
 ) {
     let mut cur = Entry {
         node: 0,
@@ -897,7 +953,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                         }
                         if ANY {
                             let h = test_triangle::<_, ANY, M>(src, p, perm, tri, cur.mask, best);
-                            record(occ, h, tri);
+                            occ.note(h, tri);
                             done |= h;
                             cur.mask &= !done;
                             if mask & !done == 0 {
@@ -959,7 +1015,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                         }
                         if ANY {
                             let h = test_triangle::<_, ANY, M>(src, p, perm, t, cur.mask, best);
-                            record(occ, h, t);
+                            occ.note(h, t);
                             done |= h;
                             cur.mask &= !done;
                             if cur.mask == 0 {
