@@ -28,8 +28,8 @@ pub enum Secondary {
     /// One ray at a time from the root.
     Single,
     /// 16 rays at a time through [`ClosestHit::occluded_n_cached`] (a
-    /// packet tracer's packets), one [`OccluderCache`] per kind of ray in
-    /// a chunk.
+    /// packet tracer's packets), one [`OccluderCache`] per worker and
+    /// kind of ray.
     Packet,
     /// One ray at a time from the [`HitContext`] of the hit point, one
     /// context for the pixel's shadow and AO rays (its location timed
@@ -272,9 +272,13 @@ pub fn trace_ao_frame<N: TriangleNormals>(
                 } else {
                     0
                 };
-                vec![HitContext::default(); n]
+                Scratch {
+                    contexts: vec![HitContext::default(); n],
+                    shadow: OccluderCache::new(),
+                    ao: OccluderCache::new(),
+                }
             },
-            |contexts, chunk| trace_chunk(tracer, options.secondary, chunk, &ao, spp, contexts),
+            |scratch, chunk| trace_chunk(tracer, options.secondary, chunk, &ao, spp, scratch),
         )
         .collect();
     let secondary_s = start.elapsed().as_secs_f64();
@@ -320,6 +324,16 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     }
 }
 
+/// What a worker keeps from chunk to chunk: the contexts of a chunk's
+/// pixels (from-hit mode) and one occluder cache per kind of ray, so that
+/// the first packet of a chunk tests the occluders of the worker's last
+/// one (its neighbour in the image as often as not).
+struct Scratch {
+    contexts: Vec<HitContext>,
+    shadow: OccluderCache,
+    ao: OccluderCache,
+}
+
 /// One chunk of pixels: contexts, shadow rays, AO rays, each kind timed.
 fn trace_chunk(
     tracer: &dyn ClosestHit,
@@ -327,8 +341,9 @@ fn trace_chunk(
     chunk: &[PixelRays],
     ao: &[Ray],
     spp: usize,
-    contexts: &mut [HitContext],
+    scratch: &mut Scratch,
 ) -> ChunkOut {
+    let contexts = &mut scratch.contexts[..];
     let mut out = ChunkOut {
         results: vec![(false, 0); chunk.len()],
         ..ChunkOut::default()
@@ -361,11 +376,11 @@ fn trace_chunk(
                 .enumerate()
                 .filter_map(|(i, px)| px.shadow.map(|r| (i, r)))
                 .collect();
-            let mut cache = OccluderCache::new();
+            let cache = &mut scratch.shadow;
             for group in rays.chunks(LANES) {
                 let batch: Vec<Ray> = group.iter().map(|&(_, r)| r).collect();
                 let mut occ = [false; LANES];
-                tracer.occluded_n_cached(&batch, &mut occ[..batch.len()], &mut cache);
+                tracer.occluded_n_cached(&batch, &mut occ[..batch.len()], cache);
                 for (&(i, _), o) in group.iter().zip(occ) {
                     out.results[i].0 = o;
                 }
@@ -408,17 +423,13 @@ fn trace_chunk(
             let mut order: Vec<u32> = (0..rays.len() as u32).collect();
             order.sort_by_key(|&i| octant(&rays[i as usize]));
             let mut batch = [Ray::new(Vec3::ZERO, Vec3::X); LANES];
-            let mut cache = OccluderCache::new();
+            let cache = &mut scratch.ao;
             for group in order.chunks(LANES) {
                 for (b, &i) in batch.iter_mut().zip(group) {
                     *b = rays[i as usize];
                 }
                 let mut occ = [false; LANES];
-                tracer.occluded_n_cached(
-                    &batch[..group.len()],
-                    &mut occ[..group.len()],
-                    &mut cache,
-                );
+                tracer.occluded_n_cached(&batch[..group.len()], &mut occ[..group.len()], cache);
                 for (&i, o) in group.iter().zip(occ) {
                     open[i as usize / spp.max(1)] += u32::from(!o);
                 }

@@ -188,7 +188,9 @@ pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets:
     results
         .par_chunks_mut(CHUNK)
         .zip(rays.par_chunks(CHUNK))
-        .for_each(|(out, rays)| trace_chunk(tracer, rays, query, packets, out));
+        .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
+            trace_chunk(tracer, rays, query, packets, out, cache)
+        });
     Traced {
         results,
         seconds: start.elapsed().as_secs_f64(),
@@ -249,12 +251,16 @@ pub fn trace_batch_stream<S: super::KdSource>(src: &S, rays: &[Ray], stream: usi
     }
 }
 
+/// Traces one chunk; any-hit packets go through `cache`, the worker's
+/// (the first packet of a chunk tests the occluders of the last packet the
+/// worker traced).
 fn trace_chunk(
     tracer: &dyn ClosestHit,
     rays: &[Ray],
     query: Query,
     packets: bool,
     out: &mut [f32],
+    cache: &mut super::OccluderCache,
 ) {
     if !packets {
         for (r, o) in rays.iter().zip(out.iter_mut()) {
@@ -265,8 +271,6 @@ fn trace_chunk(
         }
         return;
     }
-    // Consecutive rays' occluders: the batch's order is the renderer's.
-    let mut cache = super::OccluderCache::new();
     for (rays, out) in rays.chunks(16).zip(out.chunks_mut(16)) {
         match query {
             Query::Closest => {
@@ -278,7 +282,7 @@ fn trace_chunk(
             }
             Query::Occluded => {
                 let mut occ = [false; 16];
-                tracer.occluded_n_cached(rays, &mut occ[..rays.len()], &mut cache);
+                tracer.occluded_n_cached(rays, &mut occ[..rays.len()], cache);
                 for (o, h) in out.iter_mut().zip(occ) {
                     *o = f32::from(u8::from(h));
                 }
@@ -308,12 +312,11 @@ pub fn count_batch(
     results
         .par_chunks_mut(CHUNK)
         .zip(rays.par_chunks(CHUNK))
-        .for_each(|(out, rays)| {
+        .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
             let mut stats = TraceStats::default();
-            let mut cache = super::OccluderCache::new();
             for (rays, out) in rays.chunks(step).zip(out.chunks_mut(step)) {
                 let mut hits = [Hit::MISS; 16];
-                trace(rays, &mut hits[..rays.len()], &mut stats, &mut cache);
+                trace(rays, &mut hits[..rays.len()], &mut stats, cache);
                 for (o, h) in out.iter_mut().zip(hits) {
                     *o = result(query, h);
                 }

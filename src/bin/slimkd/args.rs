@@ -670,7 +670,7 @@ pub struct TraceArgs {
     pub occluded: bool,
     /// Traversal: `single` ray at a time, `packet`s of 16 consecutive
     /// rays (any-hit packets test first the triangles that blocked the
-    /// packet before them in the chunk of 256 rays), or single rays walked `from-hit`: from the context of their
+    /// last packet their thread traced), or single rays walked `from-hit`: from the context of their
     /// origin (located once for a run of rays with the same origin, as
     /// the shadow and AO rays of one hit point are; the location is
     /// timed), single rays walked leaf to leaf by `ropes` from the cell of
