@@ -581,7 +581,7 @@ fn min_num(a: f32, b: f32) -> f32 {
 /// without the target features of the packet traversal that inlines the
 /// walk for its small packets and one-lane cells.
 #[inline(always)]
-fn test_one<'a, W: Walk<'a>, const ANY: bool>(
+pub(crate) fn test_one<'a, W: Walk<'a>, const ANY: bool>(
     src: W,
     rp: &RayPrecomp,
     ray: &Ray,

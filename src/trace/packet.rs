@@ -437,7 +437,7 @@ impl<'a, S: KdSource> PacketTracer<'a, S> {
         if any {
             self.dispatch_cached::<true>(rays, out, stats, cache)
         } else {
-            self.dispatch::<false, true>(rays, out, stats)
+            self.trace_counted(rays, false, out, stats)
         }
     }
 }
@@ -659,7 +659,7 @@ fn write_hits(best: &Best, out: &mut [Hit]) {
 }
 
 /// The hit of the first of `tris` that `ray` hits in `(tmin, tmax)`, by the
-/// scalar traverser's test.
+/// scalar walk's any-hit test.
 #[inline(always)]
 fn cached_hit<'a, W: Walk<'a>, const COUNT: bool>(
     src: W,
@@ -671,17 +671,16 @@ fn cached_hit<'a, W: Walk<'a>, const COUNT: bool>(
         return None;
     }
     let rp = RayPrecomp::new(ray);
-    tris.iter().find_map(|&t| {
+    let mut hit = Hit::MISS;
+    for &t in tris {
         if COUNT {
             stats.cached += 1;
         }
-        intersect_triangle(&rp, &src.triangle(t), ray.tmin, ray.tmax)
-            .filter(|&th| th < ray.tmax)
-            .map(|th| Hit {
-                t: th,
-                tri: src.input_id(t),
-            })
-    })
+        if super::test_one::<W, true>(src, &rp, ray, t, &mut hit) {
+            return Some(hit);
+        }
+    }
+    None
 }
 
 /// [`super::clip_ray`] in 16 lanes: the lanes that enter the box, and

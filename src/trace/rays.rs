@@ -292,7 +292,7 @@ fn trace_chunk(
 }
 
 /// Traces the rays of one piece of a chunk into their hits, counting the
-/// work; packets of any-hit rays may use the chunk's occluder cache, as
+/// work; packets of any-hit rays may use the worker's occluder cache, as
 /// [`trace_batch`]'s do.
 pub type CountFn<'a> =
     dyn Fn(&[Ray], &mut [Hit], &mut TraceStats, &mut super::OccluderCache) + Sync + 'a;
