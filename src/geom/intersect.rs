@@ -77,7 +77,13 @@ impl RayPrecomp {
 
 /// Returns the hit distance `t` of the ray with the triangle if the triangle
 /// is hit with `tmin < t <= tmax`.
-#[inline]
+///
+/// Always inlined: with its seven arms LLVM otherwise keeps it out of line,
+/// and the walks then call it baseline-compiled (behind a `vzeroupper` in
+/// the vector copies) with their state spilled around each call. Inlined,
+/// single rays trace 1.1–1.5× faster (ravenbridge shadow rays 2.55 → 3.94
+/// Mrays/s, one thread, Zen 4).
+#[inline(always)]
 pub fn intersect_triangle(rp: &RayPrecomp, tri: &[Vec3; 3], tmin: f32, tmax: f32) -> Option<f32> {
     // The permutation picks components with constant indices (one arm per
     // permutation `RayPrecomp::new` makes; the same arithmetic in each):
