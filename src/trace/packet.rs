@@ -791,6 +791,12 @@ fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
 ) -> u16 {
     let tri = src.triangle(t_src);
     let id = src.input_id(t_src).0;
+    // The lanes' best hits are read here, before the kernel, and written
+    // back whole below: with the select's old value a load of the same
+    // address in the same block, LLVM stores only the taken lanes by a
+    // masked store (`vpmaskmovd` in the AVX2 copy), slow on AMD cores and
+    // not forwarded to the next triangle's loads.
+    let (old_t, old_id) = (best.t, best.id);
     let lanes = match perm {
         Some(k) => kernel_shared_perm::<M>(p, &tri, k, best),
         None => kernel_any_perm::<M>(p, &tri, best),
@@ -804,11 +810,11 @@ fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
         let better = if ANY {
             t < p.tmax[i]
         } else {
-            (t < best.t[i]) | ((t == best.t[i]) & (id < best.id[i]))
+            (t < old_t[i]) | ((t == old_t[i]) & (id < old_id[i]))
         };
         take[i] = (ok & (1 << i) != 0) & better;
-        best.t[i] = if take[i] { t } else { best.t[i] };
-        best.id[i] = if take[i] { id } else { best.id[i] };
+        best.t[i] = if take[i] { t } else { old_t[i] };
+        best.id[i] = if take[i] { id } else { old_id[i] };
     }
     let mut hit = bits::<M>(take);
     let mut fallback = lanes.fallback & mask;
