@@ -314,16 +314,21 @@ fn pack<const M: bool>(t: Lanes, ok: [bool; LANES], fallback: [bool; LANES]) -> 
 fn bits<const MASKS: bool>(b: [bool; LANES]) -> u16 {
     #[cfg(target_arch = "x86_64")]
     {
-        use std::arch::x86_64::{_mm_loadu_si128, _mm_movemask_epi8, _mm_slli_epi16};
+        use std::arch::x86_64::{
+            _mm_loadu_si128, _mm_movemask_epi8, _mm_setzero_si128, _mm_sub_epi8,
+        };
         let bytes = b.map(u8::from);
         // SAFETY: SSE2 is part of the x86-64 baseline, and the load reads
         // the 16 bytes of `bytes` (unaligned load).
         unsafe {
             let v = _mm_loadu_si128(bytes.as_ptr().cast());
-            // Each byte is 0 or 1: moving bit 0 to bit 7 of every byte (a
-            // 16-bit shift cannot carry between them) makes it the sign
-            // bit the byte mask collects.
-            _mm_movemask_epi8(_mm_slli_epi16::<7>(v)) as u16
+            // Each byte is 0 or 1: negated it is 0 or all ones, whose sign
+            // bit the byte mask collects. Written as a negation (not a
+            // shift of bit 0 to bit 7), the sign extension of the lane
+            // compares is visible to LLVM, which then takes the mask from
+            // the compares (the AVX-512 copy straight from its mask
+            // register): packets 2–6 % faster.
+            _mm_movemask_epi8(_mm_sub_epi8(_mm_setzero_si128(), v)) as u16
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
