@@ -537,10 +537,7 @@ impl AccelTracer<'_> {
 
     /// [`Accel::occluded_packet`].
     pub fn occluded_packet(&self, packet: &RayPacket, mask: u16) -> u16 {
-        let (rays, lanes, n) = gather(packet, mask);
-        let mut occ = [false; 16];
-        PacketTracer::with_level(&self.walk, self.level).occluded_n(&rays[..n], &mut occ[..n]);
-        (0..n).filter(|&i| occ[i]).fold(0, |m, i| m | 1 << lanes[i])
+        self.occluded_lanes(packet, mask, |t, rays, occ| t.occluded_n(rays, occ))
     }
 
     /// [`Accel::occluded_packet`] that tests the triangles of `cache`
@@ -554,12 +551,25 @@ impl AccelTracer<'_> {
         mask: u16,
         cache: &mut OccluderCache,
     ) -> u16 {
+        self.occluded_lanes(packet, mask, |t, rays, occ| {
+            t.occluded_n_cached(rays, occ, cache)
+        })
+    }
+
+    /// The lanes of `mask` that `trace` finds occluded, traced as one
+    /// packet of the active lanes.
+    fn occluded_lanes(
+        &self,
+        packet: &RayPacket,
+        mask: u16,
+        trace: impl FnOnce(&PacketTracer<'_, FileWalk<'_>>, &[Ray], &mut [bool]),
+    ) -> u16 {
         let (rays, lanes, n) = gather(packet, mask);
         let mut occ = [false; 16];
-        PacketTracer::with_level(&self.walk, self.level).occluded_n_cached(
+        trace(
+            &PacketTracer::with_level(&self.walk, self.level),
             &rays[..n],
             &mut occ[..n],
-            cache,
         );
         (0..n).filter(|&i| occ[i]).fold(0, |m, i| m | 1 << lanes[i])
     }

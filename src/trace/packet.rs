@@ -197,6 +197,14 @@ struct Best {
     id: [u32; LANES],
 }
 
+impl Best {
+    /// No hit in any lane.
+    const NONE: Best = Best {
+        t: [f32::INFINITY; LANES],
+        id: [u32::MAX; LANES],
+    };
+}
+
 /// The lanes a triangle test found: hits to keep, and lanes that leave
 /// `f32` (an edge function zero or out of range, or the distance out of
 /// range) and need the scalar test's double-precision fallback.
@@ -640,10 +648,7 @@ fn trace_rays<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: bool
         return;
     }
     let p = Packet::new(rays);
-    let mut best = Best {
-        t: [f32::INFINITY; LANES],
-        id: [u32::MAX; LANES],
-    };
+    let mut best = Best::NONE;
     walk_packet::<_, ANY, COUNT, M, _>(src, rays, &p, all_lanes(rays), &mut best, stats, &mut ());
     write_hits(&best, out);
 }
@@ -669,10 +674,7 @@ fn trace_rays_cached<'a, W: Walk<'a>, const COUNT: bool, const M: bool>(
         return;
     }
     let p = Packet::new(rays);
-    let mut best = Best {
-        t: [f32::INFINITY; LANES],
-        id: [u32::MAX; LANES],
-    };
+    let mut best = Best::NONE;
     let mask = all_lanes(rays);
     // The cache's triangles first, in all lanes; the walk takes the lanes
     // they leave.
