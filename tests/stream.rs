@@ -1,7 +1,8 @@
-//! Any-hit streams (`trace::stream::occluded_stream`) answer every ray
-//! exactly as `closest_hit(ray).t < tmax` by brute force: std and fully
-//! hoisted slim trees, in memory and in files, streams that thin out to
-//! the scalar walk and streams that stay whole.
+//! Any-hit streams (`trace::stream::occluded_stream`) and rays in lanes
+//! (`trace::lanes::occluded_lanes`, every instruction set) answer every
+//! ray exactly as `closest_hit(ray).t < tmax` by brute force: std and
+//! fully hoisted slim trees, in memory and in files, streams that thin
+//! out to the scalar walk and streams that stay whole.
 
 mod common;
 
@@ -13,16 +14,35 @@ use slimkd::format::{self, KdFile, WriteOptions};
 use slimkd::geom::Ray;
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, SlimParams};
-use slimkd::trace::{self, KdSource, TreeTracer};
+use slimkd::trace::packet::SimdLevel;
+use slimkd::trace::{self, FileWalk, KdSource, TreeTracer};
+
+fn brute(scene: &TriangleColumns, rays: &[Ray]) -> Vec<bool> {
+    rays.iter()
+        .map(|r| trace::brute_force(scene, r).t < r.tmax)
+        .collect()
+}
 
 fn check(src: &impl KdSource, scene: &TriangleColumns, rays: &[Ray]) {
-    let want: Vec<bool> = rays
-        .iter()
-        .map(|r| trace::brute_force(scene, r).t < r.tmax)
-        .collect();
+    let want = brute(scene, rays);
     let mut got = vec![true; rays.len()];
     trace::stream::occluded_stream(src.walk(), rays, &mut got);
     assert_eq!(got, want);
+}
+
+/// Rays in lanes, on every instruction set this CPU has, whole and in
+/// batches of fewer rays than lanes.
+fn check_lanes<D: AsRef<[u8]> + Sync>(file: &KdFile<D>, scene: &TriangleColumns, rays: &[Ray]) {
+    let want = brute(scene, rays);
+    for level in SimdLevel::available() {
+        for batch in [rays.len().max(1), 5] {
+            let mut got = vec![true; rays.len()];
+            for (r, o) in rays.chunks(batch).zip(got.chunks_mut(batch)) {
+                trace::lanes::occluded_lanes(FileWalk::new(file), level, r, o);
+            }
+            assert_eq!(got, want, "{level:?}, batches of {batch}");
+        }
+    }
 }
 
 /// Short and long rays from grid points in scattered directions, many
@@ -72,6 +92,7 @@ proptest! {
                 let bytes = format::write_to_vec(t, &scene, &options).unwrap();
                 let file = KdFile::from_bytes(format::aligned_copy(&bytes)).unwrap();
                 check(&file, &scene, &rays);
+                check_lanes(&file, &scene, &rays);
             }
         }
     }
@@ -90,4 +111,18 @@ fn a_scenes_ao_rays_as_one_stream() {
     assert!(sec.ao.len() > 500);
     check(&file, &scene, &sec.ao[..1000.min(sec.ao.len())]);
     check(&file, &scene, &sec.shadow);
+    check_lanes(&file, &scene, &sec.ao[..1000.min(sec.ao.len())]);
+    check_lanes(&file, &scene, &sec.shadow);
+    let (slim, _) = slimkd::slim::slim(
+        &tree,
+        &scene,
+        &BuildConfig::default(),
+        &SlimParams {
+            tau_occu: 0.0,
+            tau_freq: 0.0,
+            ..SlimParams::PAPER_SMALL
+        },
+    );
+    let slim_file = kd::read(&kd::write(&slim, &scene, true));
+    check_lanes(&slim_file, &scene, &sec.ao[..1000.min(sec.ao.len())]);
 }

@@ -35,11 +35,11 @@ pub(crate) const NO_WORD: u32 = u32::MAX;
 /// SIGBUS; see [`KdFile::open`].)
 #[derive(Clone, Copy)]
 pub struct FileWalk<'a> {
-    nodes: &'a [u64],
-    idx32: &'a [u32],
-    idx16: &'a [u16],
-    vertices: &'a [[f32; 3]],
-    triangles: &'a [[u32; 3]],
+    pub(super) nodes: &'a [u64],
+    pub(super) idx32: &'a [u32],
+    pub(super) idx16: &'a [u16],
+    pub(super) vertices: &'a [[f32; 3]],
+    pub(super) triangles: &'a [[u32; 3]],
     tri_map: Option<&'a [u32]>,
     bounds: Aabb,
     /// `2 · nodes.len() + 1` (at most 2^30 + 1: [`KdFile::from_bytes`]

@@ -24,6 +24,7 @@
 
 pub mod context;
 mod file;
+pub mod lanes;
 pub mod packet;
 pub mod rays;
 pub mod ropes;

@@ -319,7 +319,7 @@ fn pack<const M: bool>(t: Lanes, ok: [bool; LANES], fallback: [bool; LANES]) -> 
 /// primary packet's time). Elsewhere each 8 flags (bytes of 0 or 1) are
 /// gathered into one byte by one multiplication.
 #[inline(always)]
-fn bits<const MASKS: bool>(b: [bool; LANES]) -> u16 {
+pub(super) fn bits<const MASKS: bool>(b: [bool; LANES]) -> u16 {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{

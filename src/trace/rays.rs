@@ -251,6 +251,34 @@ pub fn trace_batch_stream<S: super::KdSource>(src: &S, rays: &[Ray], stream: usi
     }
 }
 
+/// Traces `rays` as any-hit queries in lanes
+/// ([`super::lanes::occluded_lanes`]), [`CHUNK`] rays at a time on the
+/// current rayon pool; results as [`trace_batch`]'s with
+/// [`Query::Occluded`].
+pub fn trace_batch_lanes<D: AsRef<[u8]> + Sync>(
+    file: &crate::format::KdFile<D>,
+    rays: &[Ray],
+) -> Traced {
+    let mut results = vec![0f32; rays.len()];
+    let start = Instant::now();
+    let walk = super::FileWalk::new(file);
+    let level = crate::simd::SimdLevel::detect();
+    results
+        .par_chunks_mut(CHUNK)
+        .zip(rays.par_chunks(CHUNK))
+        .for_each(|(out, rays)| {
+            let mut occ = [false; CHUNK];
+            super::lanes::occluded_lanes(walk, level, rays, &mut occ[..rays.len()]);
+            for (o, h) in out.iter_mut().zip(occ) {
+                *o = f32::from(u8::from(h));
+            }
+        });
+    Traced {
+        results,
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}
+
 /// Traces one chunk; any-hit packets go through `cache`, the worker's
 /// (the first packet of a chunk tests the occluders of the last packet the
 /// worker traced).

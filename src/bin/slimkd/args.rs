@@ -676,7 +676,9 @@ pub struct TraceArgs {
     /// timed), single rays walked leaf to leaf by `ropes` from the cell of
     /// their origin (located as from-hit's; the ropes are built after
     /// opening, untimed, and reported apart; std trees only), or any-hit
-    /// queries as a `stream` of 256 rays at a time (--occluded only).
+    /// queries as a `stream` of 256 rays at a time, or in `lanes`: 16 rays
+    /// at a time, each on its own path, refilled from chunks of 256
+    /// (both --occluded only).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).
@@ -701,6 +703,7 @@ pub enum TraceMode {
     FromHit,
     Ropes,
     Stream,
+    Lanes,
 }
 
 #[derive(clap::Args)]

@@ -69,8 +69,11 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         Query::Closest
     };
     let packets = args.mode == TraceMode::Packet;
-    if args.mode == TraceMode::Stream && !args.occluded {
-        return Err(crate::Usage("--mode stream answers --occluded queries only".into()).into());
+    if matches!(args.mode, TraceMode::Stream | TraceMode::Lanes) && !args.occluded {
+        return Err(crate::Usage(
+            "--mode stream and --mode lanes answer --occluded queries only".into(),
+        )
+        .into());
     }
     let scalar = Scalar::new(&file);
     let packet = PacketTracer::new(&file);
@@ -99,6 +102,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                 rays::trace_batch_from_hit(tracer, &rays, query)
             }
             TraceMode::Stream => rays::trace_batch_stream(&file, &rays, rays::STREAM),
+            TraceMode::Lanes => rays::trace_batch_lanes(&file, &rays),
             _ => rays::trace_batch(tracer, &rays, query, packets),
         };
         let mut last = batch();
@@ -157,7 +161,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         )?;
     }
     let mrays = crate::lab::figures::median(&rates);
-    let simd = if packets {
+    let simd = if packets || args.mode == TraceMode::Lanes {
         packet.level().name()
     } else {
         "scalar"
@@ -168,6 +172,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         TraceMode::FromHit => "from-hit",
         TraceMode::Ropes => "ropes",
         TraceMode::Stream => "stream",
+        TraceMode::Lanes => "lanes",
     };
     let query_name = if args.occluded { "occluded" } else { "closest" };
     let threads = pool.current_num_threads();
