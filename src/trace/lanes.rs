@@ -13,8 +13,15 @@
 //! stay full until the batch runs dry; the last few rays finish with the
 //! scalar walk from where they are. The rounds have no branch that
 //! depends on one ray's decisions, and the node loads of 16 rays are in
-//! flight together: the scalar walk's time goes to mispredicted decisions
-//! and to waiting on the next node.
+//! flight together.
+//!
+//! **Where it stands.** It loses to the packets: a round costs ~350
+//! cycles on Zen 4 (AVX-512), about eleven scalar steps, for ten lanes'
+//! steps, and a lane walks the scalar walk's steps (ambient-occlusion
+//! rays occluded, one thread: dieselpower 4.4 Mrays/s against packets'
+//! 9, ravenbridge 1.44 against 1.72; `docs/perf-notes.md`, "Rays in
+//! lanes"). It is `trace --mode lanes`, for the record and for the
+//! work that would make a round cheap; the renderer traces packets.
 //!
 //! Every lane makes the scalar walk's decisions with its expressions
 //! (margins, rays in a split plane, empty children, the step budget) and
@@ -150,9 +157,12 @@ struct Lanes {
     /// The lane's node is a type II node whose hoisted triangle is tested
     /// (or being tested): its split comes next.
     hoisted: L<u32>,
-    /// Pending cells, `stack[d][lane]` for `d < sp[lane]`.
+    /// Pending cells: `(stack_node, stack_t0, stack_t1)[d][lane]` for
+    /// `d < sp[lane]`, pushed and popped lane by lane.
     sp: L<u32>,
-    stack: [L<MaybeUninit<Pending>>; MAX_STACK],
+    stack_node: [L<u32>; MAX_STACK],
+    stack_t0: [L<f32>; MAX_STACK],
+    stack_t1: [L<f32>; MAX_STACK],
 }
 
 impl Lanes {
@@ -182,7 +192,9 @@ impl Lanes {
             upper: [0; LANES],
             hoisted: [0; LANES],
             sp: [0; LANES],
-            stack: [const { [const { MaybeUninit::uninit() }; LANES] }; MAX_STACK],
+            stack_node: [[0; LANES]; MAX_STACK],
+            stack_t0: [z; MAX_STACK],
+            stack_t1: [z; MAX_STACK],
         })
     }
 
@@ -250,8 +262,12 @@ impl Lanes {
                 return;
             }
             self.sp[i] -= 1;
-            // SAFETY: entries below `sp[i]` were written by `step_inner`.
-            let (node, t0, t1) = unsafe { self.stack[self.sp[i] as usize][i].assume_init() };
+            let d = self.sp[i] as usize;
+            let (node, t0, t1) = (
+                self.stack_node[d][i],
+                self.stack_t0[d][i],
+                self.stack_t1[d][i],
+            );
             if t0 - t0 * MARGIN <= f32::INFINITY {
                 (self.node[i], self.t0[i], self.t1[i]) = (node, t0, t1);
                 self.state[i] = INNER;
@@ -429,12 +445,220 @@ fn step_inner<const M: bool>(l: &mut Lanes, s: &Sections) {
         let i = m.trailing_zeros() as usize;
         m &= m - 1;
         let d = l.sp[i] as usize;
-        l.stack[d][i].write((push_node[i], push_t0[i], t1[i]));
+        (l.stack_node[d][i], l.stack_t0[d][i], l.stack_t1[d][i]) =
+            (push_node[i], push_t0[i], t1[i]);
         l.sp[i] += 1;
     }
     (l.state, l.hoisted, l.steps) = (n_state, n_hoisted, n_steps);
     (l.node, l.t0, l.t1) = (n_node, n_t0, n_t1);
     (l.cur, l.end, l.kind, l.upper) = (cur, end, kind, upper);
+}
+
+/// [`step_inner`] written in AVX-512 intrinsics (the same selects, in
+/// the same order of operations): LLVM's form of the lane loop assembled
+/// its gather indices lane by lane and copied every field through the
+/// stack, ~500 cycles a round.
+///
+/// # Safety
+/// The CPU has AVX-512 F, VL, BW and DQ.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512dq")]
+unsafe fn step_inner_512(l: &mut Lanes, s: &Sections) {
+    use std::arch::x86_64::*;
+    let u = |v: u32| _mm512_set1_epi32(v as i32);
+    let f = _mm512_set1_ps;
+    // SAFETY: `L<u32>` is 64 bytes, one unaligned vector load.
+    let ld = |a: &L<u32>| unsafe { _mm512_loadu_si512(a.as_ptr().cast()) };
+    // SAFETY: `L<f32>` is 64 bytes, one unaligned vector load.
+    let ldf = |a: &L<f32>| unsafe { _mm512_loadu_ps(a.as_ptr()) };
+    let state = ld(&l.state);
+    let active = _mm512_cmpeq_epi32_mask(state, u(INNER));
+    let node = ld(&l.node);
+    let hoisted = ld(&l.hoisted);
+    let visit = _mm512_cmpeq_epi32_mask(hoisted, u(0));
+    let steps = ld(&l.steps);
+    let out_of_steps = visit & _mm512_cmpeq_epi32_mask(steps, u(0));
+    let n_steps = _mm512_mask_sub_epi32(steps, active & visit, steps, u(1));
+    let valid = _mm512_cmplt_epu32_mask(node, u(s.n_nodes));
+    // The node words of the active lanes, 8 at a time.
+    let idx = _mm512_min_epu32(node, u(s.n_nodes - 1));
+    let load = active & valid;
+    let base = s.nodes.as_ptr().cast::<i64>();
+    // SAFETY: every index is below `nodes.len()` (clamped above).
+    let (w_lo, w_hi) = unsafe {
+        (
+            _mm512_mask_i32gather_epi64::<8>(
+                _mm512_setzero_si512(),
+                load as u8,
+                _mm512_castsi512_si256(idx),
+                base,
+            ),
+            _mm512_mask_i32gather_epi64::<8>(
+                _mm512_setzero_si512(),
+                (load >> 8) as u8,
+                _mm512_extracti64x4_epi64::<1>(idx),
+                base,
+            ),
+        )
+    };
+    let join = |a: __m512i, b: __m512i| {
+        _mm512_inserti64x4::<1>(
+            _mm512_castsi256_si512(_mm512_cvtepi64_epi32(a)),
+            _mm512_cvtepi64_epi32(b),
+        )
+    };
+    let lo = join(w_lo, w_hi);
+    let hi = join(_mm512_srli_epi64::<32>(w_lo), _mm512_srli_epi64::<32>(w_hi));
+    let inner = valid & _mm512_cmpneq_epi32_mask(_mm512_and_si512(lo, u(3)), u(3));
+    let type2 = _mm512_test_epi32_mask(lo, u(A_TYPE2 as u32));
+    let want_tref = inner & type2 & visit;
+    let leaf = valid & _mm512_cmpeq_epi32_mask(_mm512_and_si512(lo, u(7)), u(3));
+    let k_leaf = _mm512_and_si512(_mm512_srli_epi32::<3>(lo), u(3));
+    let is32 = _mm512_cmpeq_epi32_mask(k_leaf, u(K32));
+    let is16 = _mm512_cmpeq_epi32_mask(k_leaf, u(K16));
+    let is1 = _mm512_cmpeq_epi32_mask(k_leaf, u(KONE));
+    let lo5 = _mm512_srli_epi32::<5>(lo);
+    let mut count = _mm512_maskz_and_epi32(is32, lo5, u(MAX_LEAF32));
+    count = _mm512_mask_and_epi32(count, is16, lo5, u(0x7ff));
+    count = _mm512_mask_mov_epi32(count, is1, u(1));
+    let mut limit = _mm512_maskz_mov_epi32(is32, u(s.n_idx32));
+    limit = _mm512_mask_mov_epi32(limit, is16, u(s.n_idx16));
+    limit = _mm512_mask_mov_epi32(limit, is1, u(1));
+    let start = _mm512_mask_mov_epi32(hi, is1, u(0));
+    let in_range = _mm512_cmple_epu32_mask(start, limit)
+        & _mm512_cmple_epu32_mask(count, _mm512_sub_epi32(limit, start));
+    let leaf_ok = leaf & in_range & _mm512_cmpneq_epi32_mask(count, u(0));
+    // The split rule (the scalar walk's, see `walk_pending`).
+    let k = _mm512_and_si512(lo, u(3));
+    let (k1, k2) = (
+        _mm512_cmpeq_epi32_mask(k, u(1)),
+        _mm512_cmpeq_epi32_mask(k, u(2)),
+    );
+    let axis = |v: &[L<f32>; 3]| {
+        let r = _mm512_mask_mov_ps(ldf(&v[0]), k1, ldf(&v[1]));
+        _mm512_mask_mov_ps(r, k2, ldf(&v[2]))
+    };
+    let (o, d, iv) = (axis(&l.o), axis(&l.dir), axis(&l.inv));
+    let pos = _mm512_castsi512_ps(hi);
+    let first = _mm512_add_epi32(node, _mm512_mask_mov_epi32(u(1), type2, u(2)));
+    let field = _mm512_srli_epi32::<3>(lo);
+    let left = _mm512_mask_mov_epi32(first, _mm512_cmpeq_epi32_mask(field, first), u(NO_WORD));
+    let right = _mm512_mask_mov_epi32(u(NO_WORD), _mm512_cmpgt_epu32_mask(field, node), field);
+    let on_plane = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(o, pos);
+    let left_near = (on_plane & _mm512_cmp_ps_mask::<_CMP_LE_OQ>(d, f(0.0)))
+        | (!on_plane & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(o, pos));
+    let near = _mm512_mask_mov_epi32(right, left_near, left);
+    let far = _mm512_mask_mov_epi32(left, left_near, right);
+    let (t0, t1) = (ldf(&l.t0), ldf(&l.t1));
+    let m = f(MARGIN);
+    let ts = _mm512_mul_ps(_mm512_sub_ps(pos, o), iv);
+    let near_only = !on_plane
+        & (_mm512_cmp_ps_mask::<_CMP_LE_OQ>(ts, f(0.0))
+            | _mm512_cmp_ps_mask::<_CMP_GT_OQ>(_mm512_sub_ps(ts, _mm512_mul_ps(ts, m)), t1));
+    let far_only = !on_plane
+        & !near_only
+        & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_add_ps(ts, _mm512_mul_ps(ts, m)), t0);
+    let both = !near_only & !far_only;
+    // max_num / min_num: `ts` where it compares above / below, else the
+    // bound (so a NaN `ts` gives the bound, as in the scalar walk).
+    let max_t = _mm512_mask_mov_ps(t0, _mm512_cmp_ps_mask::<_CMP_GT_OQ>(ts, t0), ts);
+    let min_t = _mm512_mask_mov_ps(t1, _mm512_cmp_ps_mask::<_CMP_LT_OQ>(ts, t1), ts);
+    let lo_t = _mm512_mask_mov_ps(max_t, on_plane, t0);
+    let hi_t = _mm512_mask_mov_ps(min_t, on_plane, t1);
+    let near_ok = _mm512_cmpneq_epi32_mask(near, u(NO_WORD));
+    let far_ok = _mm512_cmpneq_epi32_mask(far, u(NO_WORD));
+    let reach = on_plane
+        | _mm512_cmp_ps_mask::<_CMP_LE_OQ>(
+            _mm512_sub_ps(lo_t, _mm512_mul_ps(lo_t, m)),
+            f(f32::INFINITY),
+        );
+    let to_near = near_only | (both & near_ok);
+    let nn = _mm512_mask_mov_epi32(far, to_near, near);
+    let nt0 = _mm512_mask_mov_ps(t0, both & !near_ok, lo_t);
+    let nt1 = _mm512_mask_mov_ps(t1, both & near_ok, hi_t);
+    let go = (near_only & near_ok)
+        | (far_only & far_ok)
+        | (both & near_ok)
+        | (both & !near_ok & far_ok & reach);
+    let split = inner & !want_tref;
+    let live = active & !out_of_steps;
+    let moves = live & split & go;
+    let to_leaf = live & !inner & leaf_ok;
+    let enters = live & want_tref;
+    let mut n_state = _mm512_mask_mov_epi32(state, active, u(POP));
+    n_state = _mm512_mask_mov_epi32(n_state, moves, u(INNER));
+    n_state = _mm512_mask_mov_epi32(n_state, enters | to_leaf, u(LEAF));
+    n_state = _mm512_mask_mov_epi32(n_state, active & out_of_steps, u(MISS));
+    let n_hoisted = _mm512_mask_mov_epi32(hoisted, active, _mm512_maskz_mov_epi32(enters, u(1)));
+    let cur = _mm512_mask_mov_epi32(ld(&l.cur), to_leaf, start);
+    let cur = _mm512_mask_mov_epi32(cur, enters, u(0));
+    let end = _mm512_mask_mov_epi32(ld(&l.end), to_leaf, _mm512_add_epi32(start, count));
+    let end = _mm512_mask_mov_epi32(end, enters, u(1));
+    let kind = _mm512_mask_mov_epi32(ld(&l.kind), to_leaf, k_leaf);
+    let kind = _mm512_mask_mov_epi32(kind, enters, u(KONE));
+    let up = _mm512_mask_mov_epi32(hi, is16, _mm512_and_si512(lo, u(0xffff_0000)));
+    let mut upper = _mm512_mask_mov_epi32(ld(&l.upper), to_leaf, up);
+    if enters != 0 {
+        // Hoisted triangles (slim trees): the T-reference word follows its
+        // node; where it is missing the node reads as empty.
+        let next = _mm512_add_epi32(node, u(1));
+        let there = enters & _mm512_cmplt_epu32_mask(next, u(s.n_nodes));
+        let nidx = _mm512_min_epu32(next, u(s.n_nodes - 1));
+        // SAFETY: indices clamped below `nodes.len()`; the high half of
+        // each word is read (little-endian), at `2 · index + 1` words of 4
+        // bytes, below `2 · nodes.len()`.
+        let tref = unsafe {
+            _mm512_mask_i32gather_epi32::<4>(
+                upper,
+                there,
+                _mm512_add_epi32(_mm512_add_epi32(nidx, nidx), u(1)),
+                s.nodes.as_ptr().cast::<i32>(),
+            )
+        };
+        upper = _mm512_mask_mov_epi32(upper, enters, tref);
+        n_state = _mm512_mask_mov_epi32(n_state, enters & !there, u(POP));
+    }
+    let n_hoisted = if enters != 0 {
+        let next = _mm512_add_epi32(node, u(1));
+        let gone = enters & !_mm512_cmplt_epu32_mask(next, u(s.n_nodes));
+        _mm512_mask_mov_epi32(n_hoisted, gone, u(0))
+    } else {
+        n_hoisted
+    };
+    let sp = ld(&l.sp);
+    let push = moves & both & near_ok & far_ok & _mm512_cmplt_epu32_mask(sp, u(MAX_STACK as u32));
+    // SAFETY: `L<u32>` is 64 bytes, one unaligned vector store.
+    let st = |a: &mut L<u32>, v: __m512i| unsafe { _mm512_storeu_si512(a.as_mut_ptr().cast(), v) };
+    // SAFETY: `L<f32>` is 64 bytes, one unaligned vector store.
+    let stf = |a: &mut L<f32>, v: __m512| unsafe { _mm512_storeu_ps(a.as_mut_ptr(), v) };
+    if push != 0 {
+        // The pushes, lane by lane (three masked scatters were 5–10 %
+        // slower on Zen 4).
+        let mut pn = [0u32; LANES];
+        let mut p0 = [0f32; LANES];
+        let mut p1 = [0f32; LANES];
+        st(&mut pn, far);
+        stf(&mut p0, lo_t);
+        stf(&mut p1, t1);
+        let mut m = push;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            let d = l.sp[i] as usize;
+            (l.stack_node[d][i], l.stack_t0[d][i], l.stack_t1[d][i]) = (pn[i], p0[i], p1[i]);
+        }
+    }
+    st(&mut l.sp, _mm512_mask_add_epi32(sp, push, sp, u(1)));
+    st(&mut l.state, n_state);
+    st(&mut l.hoisted, n_hoisted);
+    st(&mut l.steps, n_steps);
+    st(&mut l.node, _mm512_mask_mov_epi32(node, moves, nn));
+    stf(&mut l.t0, _mm512_mask_mov_ps(t0, moves, nt0));
+    stf(&mut l.t1, _mm512_mask_mov_ps(t1, moves, nt1));
+    st(&mut l.cur, cur);
+    st(&mut l.end, end);
+    st(&mut l.kind, kind);
+    st(&mut l.upper, upper);
 }
 
 /// One triangle round: every lane in a leaf tests its next triangle (the
@@ -527,8 +751,9 @@ pub fn occluded_lanes(walk: FileWalk<'_>, level: SimdLevel, rays: &[Ray], out: &
     crate::simd_dispatch!(level, |WIDE| run::<WIDE>(walk, rays, out))
 }
 
-/// Groups of lanes in flight together, round by round: a round waits on
-/// its lanes' node loads, which the rounds of the other groups hide.
+/// Groups of lanes in flight together, round by round, so that one
+/// group's node loads overlap another's round (2 groups: 5 % faster than
+/// 1; 4 no faster than 2).
 pub const GROUPS: usize = 2;
 
 #[inline(always)]
@@ -594,6 +819,15 @@ fn round<const M: bool>(
             out[l.ray[i] as usize] = true;
             l.state[i] = IDLE;
         }
+    } else if M {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `M` is true only in the AVX-512 copy (`simd_dispatch!`),
+        // which runs only where the CPU has these features.
+        unsafe {
+            step_inner_512(l, s)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        step_inner::<M>(l, s);
     } else {
         step_inner::<M>(l, s);
     }
@@ -610,33 +844,7 @@ fn round<const M: bool>(
             l.state[i] = IDLE;
         }
     }
-    // The next round's node words, fetched while the other groups run.
-    if PREFETCH {
-        let mut m = bits::<M>(l.state.map(|x| x == INNER));
-        while m != 0 {
-            let i = m.trailing_zeros() as usize;
-            m &= m - 1;
-            prefetch(s.nodes, l.node[i]);
-        }
-    }
     true
-}
-
-const PREFETCH: bool = true;
-
-/// Starts loading `s[min(i, len − 1)]` into the cache.
-#[inline(always)]
-fn prefetch<T>(s: &[T], i: u32) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        let p = s.as_ptr().wrapping_add((i as usize).min(s.len() - 1));
-        // SAFETY: a prefetch reads nothing and never faults; SSE is part
-        // of the x86-64 baseline.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (s, i);
 }
 
 /// Lane `i`'s ray finished by the scalar walk from where the lane stands:
@@ -648,8 +856,10 @@ fn finish(l: &Lanes, i: usize, walk: FileWalk<'_>, ray: &Ray) -> bool {
     let mut cells = [const { MaybeUninit::<Pending>::uninit() }; MAX_STACK];
     let mut pending = PendingStack::new(&mut cells);
     for d in 0..l.sp[i] as usize {
-        // SAFETY: entries below `sp[i]` were written by `step_inner`.
-        pending.push_if(unsafe { l.stack[d][i].assume_init() }, true);
+        pending.push_if(
+            (l.stack_node[d][i], l.stack_t0[d][i], l.stack_t1[d][i]),
+            true,
+        );
     }
     let mut start = (l.node[i], l.t0[i], l.t1[i]);
     if l.state[i] == LEAF {

@@ -28,6 +28,9 @@ pub const STREAM: usize = 256;
 /// Consecutive rays a thread takes at a time.
 pub const CHUNK: usize = 256;
 
+/// Rays a thread traces in lanes at a time.
+pub const LANES_CHUNK: usize = 2048;
+
 /// What is wrong with a ray file.
 #[derive(Debug, thiserror::Error)]
 pub enum RayFileError {
@@ -264,10 +267,10 @@ pub fn trace_batch_lanes<D: AsRef<[u8]> + Sync>(
     let walk = super::FileWalk::new(file);
     let level = crate::simd::SimdLevel::detect();
     results
-        .par_chunks_mut(CHUNK)
-        .zip(rays.par_chunks(CHUNK))
+        .par_chunks_mut(LANES_CHUNK)
+        .zip(rays.par_chunks(LANES_CHUNK))
         .for_each(|(out, rays)| {
-            let mut occ = [false; CHUNK];
+            let mut occ = [false; LANES_CHUNK];
             super::lanes::occluded_lanes(walk, level, rays, &mut occ[..rays.len()]);
             for (o, h) in out.iter_mut().zip(occ) {
                 *o = f32::from(u8::from(h));
