@@ -15,13 +15,16 @@
 //! depends on one ray's decisions, and the node loads of 16 rays are in
 //! flight together.
 //!
-//! **Where it stands.** It loses to the packets: a round costs ~350
-//! cycles on Zen 4 (AVX-512), about eleven scalar steps, for ten lanes'
-//! steps, and a lane walks the scalar walk's steps (ambient-occlusion
+//! **Where it stands.** It loses to the packets. On Zen 4 (AVX-512) a
+//! node round costs ~110 cycles, 11 a lane's step against the scalar
+//! walk's ~33, but a triangle round waits on three dependent gathers
+//! (~40 cycles a lane's test, the scalar test's), the lane-by-lane
+//! bookkeeping (refill, pops, state counts) takes a third of the time,
+//! and a lane walks all of the scalar walk's steps (ambient-occlusion
 //! rays occluded, one thread: dieselpower 4.4 Mrays/s against packets'
 //! 9, ravenbridge 1.44 against 1.72; `docs/perf-notes.md`, "Rays in
-//! lanes"). It is `trace --mode lanes`, for the record and for the
-//! work that would make a round cheap; the renderer traces packets.
+//! lanes"). It is `trace --mode lanes`, for the record; the renderer
+//! traces packets.
 //!
 //! Every lane makes the scalar walk's decisions with its expressions
 //! (margins, rays in a split plane, empty children, the step budget) and
