@@ -394,6 +394,16 @@ fn check_opened<D: AsRef<[u8]> + Sync>(file: &KdFile<D>, base: &Base) -> Result<
             }
         }
     }
+    // Rays in lanes read the words with their own checks: they end, and
+    // say what the scalar any-hit walk says.
+    let want: Vec<bool> = base.rays.iter().map(|r| trace::occluded(file, r)).collect();
+    for level in SimdLevel::available() {
+        let mut got = vec![false; base.rays.len()];
+        trace::lanes::occluded_lanes(trace::FileWalk::new(file), level, &base.rays, &mut got);
+        if got != want {
+            return Err(format!("lanes ({level:?}) disagree with the scalar walk"));
+        }
+    }
     let _ = std::hint::black_box((
         file.leaf_depth_histogram(),
         slimkd::stats::bytes::ByteSplit::of(file),

@@ -307,6 +307,11 @@ fn shared_subtrees_end_at_the_step_limit_and_are_refused_by_validate() {
             );
         }
     }
+    for level in SimdLevel::available() {
+        let mut occ = [true; 16];
+        trace::lanes::occluded_lanes(trace::FileWalk::new(&file), level, &rays, &mut occ);
+        assert_eq!(occ, [false; 16], "lanes, {level:?}");
+    }
     let leaves: u64 = file.leaf_depth_histogram().iter().sum();
     assert!(leaves <= limit, "{leaves} leaves counted");
     match file.validate() {

@@ -894,7 +894,9 @@ fn finish(l: &Lanes, i: usize, walk: FileWalk<'_>, ray: &Ray) -> bool {
             }
         }
     }
-    let mut steps_left = u64::from(l.steps[i]);
+    // A hoisted triangle's node was counted when the lane first visited
+    // it; the scalar walk counts it again as it resumes there.
+    let mut steps_left = u64::from(l.steps[i]) + u64::from(l.hoisted[i] != 0);
     walk_pending::<FileWalk<'_>, true, false>(
         walk,
         ray,

@@ -255,7 +255,7 @@ pub fn trace_batch_stream<S: super::KdSource>(src: &S, rays: &[Ray], stream: usi
 }
 
 /// Traces `rays` as any-hit queries in lanes
-/// ([`super::lanes::occluded_lanes`]), [`CHUNK`] rays at a time on the
+/// ([`super::lanes::occluded_lanes`]), [`LANES_CHUNK`] rays at a time on the
 /// current rayon pool; results as [`trace_batch`]'s with
 /// [`Query::Occluded`].
 pub fn trace_batch_lanes<D: AsRef<[u8]> + Sync>(

@@ -677,7 +677,7 @@ pub struct TraceArgs {
     /// their origin (located as from-hit's; the ropes are built after
     /// opening, untimed, and reported apart; std trees only), or any-hit
     /// queries as a `stream` of 256 rays at a time, or in `lanes`: 16 rays
-    /// at a time, each on its own path, refilled from chunks of 256
+    /// at a time, each on its own path, refilled from batches of 2048
     /// (both --occluded only).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
