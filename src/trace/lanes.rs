@@ -41,8 +41,8 @@
 use super::file::FileWalk;
 use super::packet::bits;
 use super::{
-    Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, TraceStats, Walk, clip_ray,
-    walk_pending,
+    Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, TraceStats, Walk, clip_ray, max_num,
+    min_num, walk_pending,
 };
 use crate::format::node::{A_TYPE2, E_IDX16, E_IDX32, E_ONE, MAX_LEAF32};
 use crate::geom::{
@@ -305,16 +305,6 @@ fn pick(c: bool, a: u32, b: u32) -> u32 {
 #[inline(always)]
 fn pickf(c: bool, a: f32, b: f32) -> f32 {
     f32::from_bits(pick(c, a.to_bits(), b.to_bits()))
-}
-
-#[inline(always)]
-fn max_num(a: f32, b: f32) -> f32 {
-    if a > b { a } else { b }
-}
-
-#[inline(always)]
-fn min_num(a: f32, b: f32) -> f32 {
-    if a < b { a } else { b }
 }
 
 const K32: u32 = E_IDX32 as u32;
