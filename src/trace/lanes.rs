@@ -39,16 +39,13 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::file::FileWalk;
-use super::packet::bits;
+use super::packet::{bits, watertight_lane};
 use super::{
     Hit, MARGIN, MAX_STACK, NO_WORD, Pending, PendingStack, TraceStats, Walk, clip_ray, max_num,
     min_num, walk_pending,
 };
 use crate::format::node::{A_TYPE2, E_IDX16, E_IDX32, E_ONE, MAX_LEAF32};
-use crate::geom::{
-    Ray, RayPrecomp, edges_need_f64, intersect_triangle, scaled_distance, sheared_edges,
-    t_needs_f64,
-};
+use crate::geom::{Ray, RayPrecomp, intersect_triangle};
 use crate::simd::SimdLevel;
 use glam::Vec3;
 use std::mem::MaybeUninit;
@@ -703,16 +700,10 @@ fn step_leaf<const M: bool>(l: &mut Lanes, s: &Sections, walk: &FileWalk) -> u16
             [sel(kx, v), sel(ky, v), sel(kz, v)]
         };
         let (a, b, c) = (rel(0), rel(1), rel(2));
-        let [u, v, w] = sheared_edges(l.sx[i], l.sy[i], a, b, c);
-        let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
-        let det = u + v + w;
-        let t_scaled = scaled_distance(l.sz[i], [u, v, w], a, b, c);
-        let t = t_scaled / det;
-        // Exactly where the scalar test leaves `f32` (see the packet
-        // kernel's `lane_test`).
-        let redo = edges_need_f64(u, v, w) | (!mixed & t_needs_f64(det, t_scaled, t));
-        let ok = !mixed & (det != 0.0) & (t > l.tmin[i]) & (t < l.tmax[i]);
-        hit[i] = active & real & !redo & ok;
+        let shear = [l.sx[i], l.sy[i], l.sz[i]];
+        let (t, ok, redo) = watertight_lane(shear, l.tmin[i], l.tmax[i], a, b, c);
+        // An any-hit query excludes `tmax`.
+        hit[i] = active & real & !redo & ok & (t < l.tmax[i]);
         fallback[i] = active & real & redo;
         // Lanes that go on: the next triangle, or past the list.
         let c1 = cur[i].wrapping_add(1);

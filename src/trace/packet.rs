@@ -274,8 +274,8 @@ fn kernel_shared_perm<const M: bool>(
 }
 
 /// The rest of the watertight test in lane `i`, given the vertices
-/// relative to the origin in permuted order `[x, y, z]`: the scalar
-/// test's expressions in its order.
+/// relative to the origin in permuted order `[x, y, z]`, up to the
+/// lane's best hit.
 #[inline(always)]
 fn lane_test(
     p: &Packet,
@@ -285,20 +285,37 @@ fn lane_test(
     b: [f32; 3],
     c: [f32; 3],
 ) -> (f32, bool, bool) {
-    let [u, v, w] = sheared_edges(p.sx[i], p.sy[i], a, b, c);
-    let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
-    let det = u + v + w;
-    let t_scaled = scaled_distance(p.sz[i], [u, v, w], a, b, c);
-    let t = t_scaled / det;
-    // Exactly where the scalar test leaves `f32` (`mixed` is only read
-    // where no edge needs `f64`, as there).
-    let fallback = edges_need_f64(u, v, w) | (!mixed & t_needs_f64(det, t_scaled, t));
     let limit = if best.t[i] < p.tmax[i] {
         best.t[i]
     } else {
         p.tmax[i]
     };
-    let ok = !mixed & (det != 0.0) & (t > p.tmin[i]) & (t <= limit);
+    watertight_lane([p.sx[i], p.sy[i], p.sz[i]], p.tmin[i], limit, a, b, c)
+}
+
+/// The watertight test of one lane after the permutation, for the shear
+/// `[sx, sy, sz]`: the scalar test's expressions in its order, so the
+/// packets' and the lanes' (`lanes.rs`) tests agree with it bit for bit.
+/// Returns `t`, whether it is a hit in `(tmin, limit]`, and whether the
+/// scalar test would redo it in `f64` (then `ok` is not to be read).
+#[inline(always)]
+pub(super) fn watertight_lane(
+    [sx, sy, sz]: [f32; 3],
+    tmin: f32,
+    limit: f32,
+    a: [f32; 3],
+    b: [f32; 3],
+    c: [f32; 3],
+) -> (f32, bool, bool) {
+    let [u, v, w] = sheared_edges(sx, sy, a, b, c);
+    let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
+    let det = u + v + w;
+    let t_scaled = scaled_distance(sz, [u, v, w], a, b, c);
+    let t = t_scaled / det;
+    // Exactly where the scalar test leaves `f32` (`mixed` is only read
+    // where no edge needs `f64`, as there).
+    let fallback = edges_need_f64(u, v, w) | (!mixed & t_needs_f64(det, t_scaled, t));
+    let ok = !mixed & (det != 0.0) & (t > tmin) & (t <= limit);
     (t, ok, fallback)
 }
 
