@@ -26,6 +26,7 @@ use glam::Vec3;
 use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::TestRunner;
+use slimkd::build::sah::LeafRule;
 use slimkd::build::sah::SahParams;
 use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::format::node::fits_leaf16;
@@ -34,13 +35,13 @@ use slimkd::geom::clip_triangle;
 use slimkd::geom::{Aabb, Ray};
 use slimkd::scene::TriangleColumns;
 use slimkd::slim::{
-    self, ByteLayout, HoistRule, SlimParams, SlimReport, above, min_subtree_bytes,
+    self, ByteLayout, HoistRule, Rebuild, SlimParams, SlimReport, above, joins, min_subtree_bytes,
     occupancy_weight, rebuild,
 };
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::{self, ClosestHit, Hit, KdSource, TreeTracer};
 use slimkd::tree::{Node, NodeId, TreeIr, TriId};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 // ---------------------------------------------------------------------
@@ -185,6 +186,68 @@ impl LTree {
         }
     }
 
+    /// The subtree under `n` (cell `cell`, depth `depth`) without `t`,
+    /// its splits kept ([`Rebuild::Prune`]), appended to `out`; returns
+    /// its root there. Each leaf loses `t`; then, children first, an inner
+    /// node without a hoisted triangle whose two children are leaves
+    /// becomes one leaf (the union of theirs, ascending) where `joins`
+    /// says so.
+    #[allow(clippy::too_many_arguments)]
+    fn pruned(
+        &self,
+        n: usize,
+        cell: Aabb,
+        depth: u32,
+        t: TriId,
+        sah: &SahParams,
+        rule: &LeafRule,
+        out: &mut LTree,
+    ) -> usize {
+        let node = match &self.nodes[n] {
+            LiteralNode::Leaf(tris) => {
+                LiteralNode::Leaf(tris.iter().copied().filter(|&u| u != t).collect())
+            }
+            LiteralNode::Inner {
+                axis,
+                pos,
+                left,
+                right,
+                t_ref,
+            } => {
+                let (left_cell, right_cell) = cell.split(*axis as usize, *pos);
+                let l = self.pruned(*left, left_cell, depth + 1, t, sah, rule, out);
+                let r = self.pruned(*right, right_cell, depth + 1, t, sah, rule, out);
+                let joined = match (&out.nodes[l], &out.nodes[r], t_ref) {
+                    (LiteralNode::Leaf(a), LiteralNode::Leaf(b), None) => {
+                        let union: BTreeSet<TriId> = a.iter().chain(b).copied().collect();
+                        joins(
+                            sah,
+                            rule,
+                            &cell,
+                            depth,
+                            *axis,
+                            *pos,
+                            a.len(),
+                            b.len(),
+                            union.len(),
+                        )
+                        .then(|| LiteralNode::Leaf(union.into_iter().collect()))
+                    }
+                    _ => None,
+                };
+                joined.unwrap_or(LiteralNode::Inner {
+                    axis: *axis,
+                    pos: *pos,
+                    left: l,
+                    right: r,
+                    t_ref: *t_ref,
+                })
+            }
+        };
+        out.nodes.push(node);
+        out.nodes.len() - 1
+    }
+
     /// Writes the subtree under `n` in canonical pre-order.
     fn emit(&self, n: usize, out: &mut TreeIr) {
         match &self.nodes[n] {
@@ -323,6 +386,14 @@ fn literal_slim(
     let per_byte = (ids.is_some() && p.cost_ratio.is_finite()).then(|| {
         p.cost_ratio * cost_of(&tree, root, std_tree.bounds) / tree.bytes(root, &file_id) as f64
     });
+    // What a pruned subtree's leaves are joined by: the rebuild's SAH,
+    // priced as the whole tree's.
+    let mut prune_sah = p.rebuild_config(config).sah;
+    prune_sah.price_scale = Some(slimkd::build::sah::price_scale(
+        &std_tree.bounds,
+        scene.len(),
+    ));
+    let prune_rule = prune_sah.leaf_rule(scene.len(), || std_tree.bounds);
     let mut stack = Vec::new();
     if p.max_t2rn > 0 {
         stack.push((root, std_tree.bounds, 0u32, 0u32));
@@ -338,16 +409,34 @@ fn literal_slim(
             tris.retain(|&u| u != t);
             tris.sort();
             tris.dedup();
-            let fresh = rebuild(scene, &p.rebuild_config(config), &tris, &cell, depth);
+            let fresh = match p.rebuild {
+                Rebuild::Sah => rebuild(scene, &p.rebuild_config(config), &tris, &cell, depth),
+                Rebuild::Prune => {
+                    let mut pruned = LTree::default();
+                    let top = tree.pruned(i, cell, depth, t, &prune_sah, &prune_rule, &mut pruned);
+                    let mut ir = TreeIr {
+                        bounds: cell,
+                        nodes: Vec::new(),
+                        leaf_tris: Vec::new(),
+                    };
+                    pruned.emit(top, &mut ir);
+                    ir
+                }
+            };
             let is_inner = matches!(fresh.nodes[0], Node::Inner { .. });
             // The byte rule: the replaced subtree's bytes, and whether the
             // rebuilt one is smaller by more than the T-reference word.
             let old = ids.is_some().then(|| tree.bytes(i, &file_id));
             let smaller = old.is_none_or(|old| ir_bytes(&fresh, &file_id) + 8 < old);
-            let refs = tris
-                .iter()
-                .filter(|u| clip_triangle(&scene.tri(u.0), &cell).is_some())
-                .count();
+            // A pruned subtree holds every one of `tris`; a rebuilt one
+            // those that meet the cell.
+            let refs = match p.rebuild {
+                Rebuild::Sah => tris
+                    .iter()
+                    .filter(|u| clip_triangle(&scene.tri(u.0), &cell).is_some())
+                    .count(),
+                Rebuild::Prune => tris.len(),
+            };
             if let Some(old) = old
                 && old <= 8 + min_subtree_bytes(refs)
             {
@@ -598,11 +687,19 @@ const PAPER_FAST_BYTES: SlimParams =
 const PAPER_SMALL_BYTES: SlimParams =
     SlimParams::PAPER_SMALL.with_rule(HoistRule::Bytes { reordered: true });
 
-/// The presets (byte rule), the paper's settings, and those with the byte
-/// rule.
-const PRESETS: [SlimParams; 6] = [
+/// The presets (byte rule), with the splits kept, the paper's settings,
+/// and those with the byte rule.
+const PRESETS: [SlimParams; 8] = [
     SlimParams::FAST,
     SlimParams::SMALL,
+    SlimParams {
+        rebuild: Rebuild::Prune,
+        ..SlimParams::FAST
+    },
+    SlimParams {
+        rebuild: Rebuild::Prune,
+        ..SlimParams::SMALL
+    },
     SlimParams::PAPER_FAST,
     SlimParams::PAPER_SMALL,
     PAPER_FAST_BYTES,
@@ -613,27 +710,32 @@ const PRESETS: [SlimParams; 6] = [
 /// preset's, and ones that price out most hoists or all.
 const COST_RATIOS: [f64; 4] = [f64::INFINITY, SlimParams::FAST.cost_ratio, 0.001, 0.0];
 
-/// Random thresholds in `0.05..0.95`, `max_t2rn` in `0..5`, any rule, a
-/// rebuild's `K_T` factor of 1, 1.5 or 2 and any of [`COST_RATIOS`].
+/// Random thresholds in `0.05..0.95`, `max_t2rn` in `0..5`, any rule,
+/// either rebuild, a rebuild's `K_T` factor of 1, 1.5 or 2 and any of
+/// [`COST_RATIOS`].
 fn params_strategy() -> impl Strategy<Value = SlimParams> {
     (
         0.05f64..0.95,
         0.05f64..0.95,
         0u32..5,
         0..RULES.len(),
+        any::<bool>(),
         0..3u32,
         0..COST_RATIOS.len(),
     )
-        .prop_map(|(tau_occu, tau_freq, max_t2rn, rule, c, r)| SlimParams {
-            tau_occu,
-            tau_freq,
-            max_t2rn,
-            rule: RULES[rule],
-            coarsen: 1.0 + 0.5 * f64::from(c),
-            cost_ratio: COST_RATIOS[r],
-            // The pass reads the configuration's price, never this.
-            split_price: None,
-        })
+        .prop_map(
+            |(tau_occu, tau_freq, max_t2rn, rule, prune, c, r)| SlimParams {
+                tau_occu,
+                tau_freq,
+                max_t2rn,
+                rule: RULES[rule],
+                rebuild: if prune { Rebuild::Prune } else { Rebuild::Sah },
+                coarsen: 1.0 + 0.5 * f64::from(c),
+                cost_ratio: COST_RATIOS[r],
+                // The pass reads the configuration's price, never this.
+                split_price: None,
+            },
+        )
 }
 
 /// Asserts that `src` answers every ray with `want` (brute force's hit),
@@ -834,6 +936,32 @@ fn coarsened_rebuilds_save_nodes_on_shipped_nexuiz() {
     assert!(coarse > 1.5, "{coarse}");
 }
 
+/// Pruned hoists ([`Rebuild::Prune`]) on the same map: with the rebuild's
+/// K_T at the std tree's they keep most of the subtree's nodes (0.34
+/// saved per hoist, where the leaves without the triangle no longer pay
+/// for their split), at twice K_T they save over 1.5 nodes a hoist, as
+/// coarsened rebuilds do.
+#[test]
+fn pruned_hoists_join_leaves_on_shipped_nexuiz() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
+    let scene = slimkd::scene::load_obj(&path).unwrap().0;
+    let std = std_tree(&scene);
+    let saved_per_hoist = |coarsen: f64| {
+        let p = SlimParams {
+            rebuild: Rebuild::Prune,
+            coarsen,
+            ..SlimParams::PAPER_SMALL
+        };
+        let (tree, report) = slim::slim(&std, &scene, &config(), &p);
+        assert!(report.hoisted > 1000, "{p:?}: {report:?}");
+        (std.nodes.len() as f64 - tree.nodes.len() as f64) / report.hoisted as f64
+    };
+    let kept = saved_per_hoist(1.0);
+    let joined = saved_per_hoist(2.0);
+    assert!(kept < 0.5, "{kept} {joined}");
+    assert!(joined > 1.5, "{kept} {joined}");
+}
+
 #[test]
 fn fast_equals_literal_with_big_triangles_over_small_ones() {
     let scene = columns(&big_over_small());
@@ -974,6 +1102,7 @@ fn slim_hits_on_shipped_bunny() {
         tau_freq: 0.1,
         max_t2rn: 4,
         rule: HoistRule::Paper,
+        rebuild: Rebuild::Sah,
         coarsen: 1.0,
         cost_ratio: f64::INFINITY,
         split_price: None,
@@ -1018,8 +1147,8 @@ proptest! {
         let scene = columns(&tris);
         let std = std_tree(&scene);
         for max_t2rn in 0..5 {
-            for rule in RULES {
-                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule, coarsen: 1.0, cost_ratio: f64::INFINITY, split_price: None };
+            for (rule, rebuild) in RULES.into_iter().flat_map(|r| [(r, Rebuild::Sah), (r, Rebuild::Prune)]) {
+                let p = SlimParams { tau_occu, tau_freq, max_t2rn, rule, rebuild, coarsen: 1.0, cost_ratio: f64::INFINITY, split_price: None };
                 let (tree, report) = slim::slim(&std, &scene, &config(), &p);
                 prop_assert!(max_t2_on_path(&tree) <= max_t2rn, "{:?}", p);
                 prop_assert_eq!(report.hoisted, tree.n_t_inner());
@@ -1536,6 +1665,7 @@ fn small_disjoint_triangles_are_not_hoisted() {
             tau_freq: 0.5,
             max_t2rn: 4,
             rule: HoistRule::Paper,
+            rebuild: Rebuild::Sah,
             coarsen: 1.0,
             cost_ratio: f64::INFINITY,
             split_price: None,

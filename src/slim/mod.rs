@@ -63,6 +63,15 @@
 //! indices; priced, and with rebuilds at 1.5 × `K_T`, `fast` is both
 //! smaller and faster (see the preset's docs).
 //!
+//! *Deviation from the paper ([`Rebuild::Prune`]):* a picked subtree may
+//! be remade from itself instead of rebuilt: its splits are kept, the
+//! triangle is taken out of its leaves, and bottom-up two sibling leaves
+//! become one where the rebuild's leaf rule (`K_T` × `coarsen`, the split
+//! price) prefers a leaf to their parent's split ([`joins`]). The hoist
+//! rule then decides as after a rebuild. Why: the SAH rebuilds make the
+//! slim build several times the std build, and pruning is linear in the
+//! subtree (see the variant's docs for what it keeps of the bytes).
+//!
 //! *The presets' split price ([`SlimParams::split_price`]):* the presets
 //! start from a std tree built at a higher split price than std's (1.5
 //! and 2 against 0.5), since the default price already removes much of
@@ -124,12 +133,15 @@ mod cost;
 mod oracle;
 mod params;
 mod pass;
+mod prune;
 mod work;
 
 pub use bytes::{ByteLayout, min_subtree_bytes, tree_bytes};
 #[doc(hidden)] // the literal Algorithm 1 of tests/slim.rs shares the oracle's formulas
 pub use oracle::{above, occupancy_weight};
-pub use params::{HoistRule, SlimParams, SlimPhases, SlimReport};
+pub use params::{HoistRule, Rebuild, SlimParams, SlimPhases, SlimReport};
+#[doc(hidden)] // the literal pass of tests/slim.rs joins leaves with it
+pub use prune::joins;
 
 use crate::build::level::SubtreeBuilder;
 use crate::build::{BuildConfig, TriRef, wald_havran};
@@ -140,7 +152,7 @@ use crate::sys::lap;
 use crate::tree::{Node, TreeIr, TriId};
 use bytes::ByteModel;
 use oracle::analyze;
-use pass::{Outcome, Pick, SlimInputs, Todo, find_picks, rebuild_pick};
+use pass::{Outcome, Pick, Rebuilder, SlimInputs, Todo, find_picks, rebuild_pick};
 use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
@@ -262,6 +274,9 @@ pub fn slim_with_progress(
     let mut rebuild_config = params.rebuild_config(config);
     (rebuild_config.sah.price_scale)
         .get_or_insert_with(|| crate::build::sah::price_scale(&tree.bounds, scene.len()));
+    let leaf_rule = rebuild_config
+        .sah
+        .leaf_rule(scene.len(), || unreachable!("the price scale is set"));
     let mut todo = vec![Todo {
         node: root,
         size: tree.nodes.len() as u32,
@@ -281,14 +296,13 @@ pub fn slim_with_progress(
         let outcomes: Vec<(Outcome, usize)> = picks
             .par_iter()
             .map_init(
-                || {
-                    (
-                        SubtreeBuilder::new(scene, &rebuild_config),
-                        Vec::new(),
-                        Vec::new(),
-                    )
+                || Rebuilder {
+                    builder: SubtreeBuilder::new(scene, &rebuild_config),
+                    pruner: prune::Pruner::new(rebuild_config.sah, leaf_rule),
+                    tris: Vec::new(),
+                    refs: Vec::new(),
                 },
-                |(builder, tris, refs), p| rebuild_pick(&work, p, &inputs, builder, tris, refs),
+                |r, p| rebuild_pick(&work, p, &inputs, r),
             )
             .collect();
         phases.rebuild_s += lap(&mut clock);

@@ -33,6 +33,21 @@ pub enum HoistRule {
     },
 }
 
+/// How a pick's subtree is made without its triangle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rebuild {
+    /// The paper's: the subtree's triangles less the picked one, each
+    /// clipped to the node's cell, built anew by the SAH builder at the
+    /// node's depth with `K_T` × [`SlimParams::coarsen`].
+    Sah,
+    /// The subtree's splits are kept: the picked triangle leaves its
+    /// leaves, and bottom-up two sibling leaves become one where the
+    /// rebuild's leaf rule (`K_T` × [`SlimParams::coarsen`], the split
+    /// price) prefers a leaf to their parent's split. Linear in the
+    /// subtree (no sweep, no clipping).
+    Prune,
+}
+
 /// The thresholds of the oracle, the hoisting limit, the hoist rule and
 /// the traversal cost of rebuilt subtrees.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -47,6 +62,8 @@ pub struct SlimParams {
     pub max_t2rn: u32,
     /// Which picked triangles are hoisted.
     pub rule: HoistRule,
+    /// How a picked subtree is remade without its triangle.
+    pub rebuild: Rebuild,
     /// The factor on `K_T` of the SAH that rebuilds a picked subtree
     /// ([`SlimParams::rebuild_config`]); 1 is the paper's rebuild. Above 1
     /// a rebuilt subtree stops splitting sooner, so with
@@ -98,6 +115,7 @@ impl SlimParams {
         tau_freq: 0.05,
         max_t2rn: 16,
         rule: HoistRule::Bytes { reordered: true },
+        rebuild: Rebuild::Sah,
         coarsen: 1.5,
         cost_ratio: 0.01,
         split_price: Some(1.5),
@@ -120,6 +138,7 @@ impl SlimParams {
         tau_freq: 0.7,
         max_t2rn: 4,
         rule: HoistRule::Paper,
+        rebuild: Rebuild::Sah,
         coarsen: 1.0,
         cost_ratio: f64::INFINITY,
         split_price: None,

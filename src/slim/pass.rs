@@ -3,11 +3,12 @@
 //! picks in each, and the rebuild of a pick's subtree without its triangle
 //! with the decision (hoisted, cancelled, rejected or skipped).
 
-use super::SlimParams;
 use super::bytes::{ByteModel, min_subtree_bytes};
 use super::cost::CostModel;
 use super::oracle::{Analysis, analyze};
+use super::prune::Pruner;
 use super::work::{Work, WorkNode};
+use super::{Rebuild, SlimParams};
 use crate::build::level::SubtreeBuilder;
 use crate::geom::{Aabb, clip_triangle};
 use crate::progress::Progress;
@@ -151,16 +152,29 @@ pub(super) struct SlimInputs<'a> {
     pub(super) progress: Option<&'a Progress>,
 }
 
+/// What a worker of the pass rebuilds with: the SAH finisher or the
+/// pruner ([`SlimParams::rebuild`]), and scratch lists.
+pub(super) struct Rebuilder<'a> {
+    pub(super) builder: SubtreeBuilder<'a>,
+    pub(super) pruner: Pruner,
+    pub(super) tris: Vec<TriId>,
+    pub(super) refs: Vec<(TriId, Aabb)>,
+}
+
 /// Rebuilds the subtree of a pick without its triangle and decides.
 /// Returns the outcome and the number of triangles rebuilt.
 pub(super) fn rebuild_pick(
     work: &Work,
     p: &Pick,
     inputs: &SlimInputs,
-    builder: &mut SubtreeBuilder,
-    tris: &mut Vec<TriId>,
-    refs: &mut Vec<(TriId, Aabb)>,
+    rebuilder: &mut Rebuilder<'_>,
 ) -> (Outcome, usize) {
+    let Rebuilder {
+        builder,
+        pruner,
+        tris,
+        refs,
+    } = rebuilder;
     let (s, e) = work.tri_range(p.at.node, p.at.size);
     tris.clear();
     tris.extend_from_slice(&work.tris[s..e]);
@@ -182,10 +196,12 @@ pub(super) fn rebuild_pick(
         .as_ref()
         .map(|m| m.subtree(work, p.at.node, p.at.size));
     // The skip test `old <= 8 + min_subtree_bytes(refs.len())`, clipping
-    // only when `0 <= refs.len() <= tris.len()` does not decide it.
+    // only when `0 <= refs.len() <= tris.len()` does not decide it. A
+    // pruned subtree holds every one of `tris`: no clipping.
     let skip = match old {
         None => false,
         Some(old) if old > 8 + min_subtree_bytes(tris.len()) => false,
+        Some(_) if inputs.params.rebuild == Rebuild::Prune => true,
         Some(old) if old <= 8 + min_subtree_bytes(0) => true,
         Some(old) => {
             clip_all(refs);
@@ -195,18 +211,24 @@ pub(super) fn rebuild_pick(
     if skip {
         return (Outcome::Skipped, tris.len());
     }
-    clip_all(refs);
-    // The byte rule rejects the hoist once the rebuilt subtree takes
-    // `old - 8` bytes, so the build stops as soon as a lower bound of its
-    // bytes reaches that (it stops at a split, so the root is inner and the
-    // hoist is not cancelled). What is built is decided on the builder's
-    // own slices: only a kept subtree is copied out (two in three rebuilds
-    // are cancelled or rejected).
-    let limit = old.map_or(u64::MAX, |old| old.saturating_sub(8));
-    let Some((nodes, leaf_tris)) =
-        builder.build(refs.iter().copied(), p.at.cell, p.at.depth, limit)
-    else {
-        return (Outcome::Rejected, tris.len());
+    let (nodes, leaf_tris): (&[Node], &[TriId]) = match inputs.params.rebuild {
+        Rebuild::Sah => {
+            clip_all(refs);
+            // The byte rule rejects the hoist once the rebuilt subtree
+            // takes `old - 8` bytes, so the build stops as soon as a lower
+            // bound of its bytes reaches that (it stops at a split, so the
+            // root is inner and the hoist is not cancelled). What is built
+            // is decided on the builder's own slices: only a kept subtree
+            // is copied out (two in three rebuilds are cancelled or
+            // rejected).
+            let limit = old.map_or(u64::MAX, |old| old.saturating_sub(8));
+            let Some(built) = builder.build(refs.iter().copied(), p.at.cell, p.at.depth, limit)
+            else {
+                return (Outcome::Rejected, tris.len());
+            };
+            built
+        }
+        Rebuild::Prune => pruner.prune(work, p.at.node, p.at.cell, p.at.depth, p.tri),
     };
     let new = inputs.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
     let outcome = if matches!(nodes[0], Node::Leaf { .. }) {

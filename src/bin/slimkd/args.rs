@@ -4,7 +4,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use slimkd::build::level;
 use slimkd::format::Preset;
 use slimkd::render::{self};
-use slimkd::slim::{HoistRule, SlimParams};
+use slimkd::slim::{HoistRule, Rebuild, SlimParams};
 use std::path::{Path, PathBuf};
 
 use crate::CmdResult;
@@ -319,6 +319,14 @@ pub(crate) struct BuildArgs {
     /// `--preset std` it needs --tau-occu and --tau-freq).
     #[arg(long, value_parser = parse_cost_ratio, allow_hyphen_values = true)]
     pub(crate) cost_ratio: Option<f64>,
+    /// How a picked subtree is remade without its triangle: `sah` builds
+    /// it anew (the paper's rebuild), `prune` keeps its splits, takes the
+    /// triangle out of its leaves and joins sibling leaves where the
+    /// rebuild's SAH (K_T × coarsen) prefers a leaf (overrides the
+    /// preset's: sah; with `--preset std` it needs --tau-occu and
+    /// --tau-freq).
+    #[arg(long, value_enum)]
+    pub(crate) rebuild: Option<RebuildArg>,
     /// Worker threads (default, or 0: all cores).
     #[arg(short = 'j', long)]
     pub(crate) threads: Option<usize>,
@@ -399,6 +407,14 @@ impl HoistRuleArg {
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum RebuildArg {
+    /// Build the subtree anew with the SAH builder.
+    Sah,
+    /// Keep the subtree's splits, joining leaves.
+    Prune,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub(crate) enum PresetArg {
     Std,
     Fast,
@@ -407,12 +423,13 @@ pub(crate) enum PresetArg {
 
 impl BuildArgs {
     /// The hoisting flags.
-    pub(crate) const HOISTING: [&str; 6] = [
+    pub(crate) const HOISTING: [&str; 7] = [
         "--tau-occu",
         "--tau-freq",
         "--max-t2rn",
         "--coarsen",
         "--cost-ratio",
+        "--rebuild",
         "--hoist-rule",
     ];
 
@@ -461,6 +478,7 @@ impl BuildArgs {
             || self.max_t2rn.is_some()
             || self.coarsen.is_some()
             || self.cost_ratio.is_some()
+            || self.rebuild.is_some()
             || paper;
         let mut p = base.unwrap_or(if paper {
             SlimParams::PAPER_SMALL
@@ -482,6 +500,11 @@ impl BuildArgs {
         }
         if let Some(v) = self.cost_ratio {
             p.cost_ratio = v;
+        }
+        match self.rebuild {
+            Some(RebuildArg::Sah) => p.rebuild = Rebuild::Sah,
+            Some(RebuildArg::Prune) => p.rebuild = Rebuild::Prune,
+            None => {}
         }
         // A given --split-price (in the build configuration) replaces the
         // preset's; hoisting on the std preset keeps std's.

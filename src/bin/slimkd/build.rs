@@ -17,6 +17,7 @@ use slimkd::format;
 use slimkd::pipeline::Pipeline;
 use slimkd::progress::Progress;
 use slimkd::scene::{self, LoadSummary, TriangleColumns};
+use slimkd::slim::Rebuild;
 use slimkd::slim::{SlimParams, SlimPhases, SlimReport};
 use slimkd::stats::{StatsSink, TreeStats};
 use slimkd::tree::TreeIr;
@@ -139,6 +140,7 @@ impl BuildJson {
             coarsen: slim.map(|(p, _, _)| p.coarsen),
             cost_ratio: slim.and_then(|(p, _, _)| Some(p.cost_ratio).filter(|r| r.is_finite())),
             hoist_rule: slim.map(|(p, _, _)| report::rule_name(p.rule)),
+            rebuild: slim.map(|(p, _, _)| rebuild_name(p.rebuild)),
             level: built.level.as_ref().map(|r| LevelJson {
                 sah_s: r.phases.sah_s,
                 classify_clip_s: r.phases.classify_clip_s,
@@ -357,7 +359,7 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats, v
     }
     if let Some((p, r, ph)) = &built.slim {
         println!(
-            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}, cost ratio {}, hoist rule {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} by the price rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
+            "slim       preset {} (τ_occu {}, τ_freq {}, max_t2rn {}, coarsen {}, cost ratio {}, hoist rule {}, rebuild {}): {} triangles hoisted, {} subtrees rebuilt ({} rejected by the byte rule, {} by the price rule, {} cancelled); std build {:.3} s, slim pass {:.3} s ({:.2}×)",
             built.pipeline.preset.name(),
             p.tau_occu,
             p.tau_freq,
@@ -365,6 +367,7 @@ pub(crate) fn print_summary(loaded: &Loaded, built: &Built, stats: &TreeStats, v
             p.coarsen,
             p.cost_ratio,
             report::rule_name(p.rule),
+            rebuild_name(p.rebuild),
             r.hoisted,
             r.rebuilds,
             r.rejected,
@@ -695,6 +698,14 @@ fn print_built(
         );
     }
     Ok(())
+}
+
+/// The `--rebuild` name of a rebuild.
+fn rebuild_name(r: Rebuild) -> &'static str {
+    match r {
+        Rebuild::Sah => "sah",
+        Rebuild::Prune => "prune",
+    }
 }
 
 #[cfg(test)]

@@ -123,6 +123,8 @@ pub(crate) struct BuildJson {
     /// `None` (JSON `null`) without a slim pass or without a price.
     pub(crate) cost_ratio: Option<f64>,
     pub(crate) hoist_rule: Option<&'static str>,
+    /// `sah` or `prune` (`slim::Rebuild`); `None` without a slim pass.
+    pub(crate) rebuild: Option<&'static str>,
     pub(crate) level: Option<LevelJson>,
     pub(crate) slim: Option<SlimJson>,
 }

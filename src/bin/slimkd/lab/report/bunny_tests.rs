@@ -274,6 +274,7 @@ fn table4_and_figure5_are_consistent() {
             tau_freq: p.tau_freq,
             max_t2rn: p.max_t2rn,
             rule: SlimParams::FAST.rule,
+            rebuild: slimkd::slim::Rebuild::Sah,
             coarsen: 1.0,
             cost_ratio: f64::INFINITY,
             split_price: None,

@@ -239,6 +239,7 @@ pub fn run_with_progress(
                         max_t2rn: SWEEP_MAX_T2RN,
                         rule: options.rule,
                         // The paper's rebuild: Figure 5 sweeps its thresholds.
+                        rebuild: slimkd::slim::Rebuild::Sah,
                         coarsen: 1.0,
                         cost_ratio: f64::INFINITY,
                         split_price: None,
