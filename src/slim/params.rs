@@ -189,7 +189,9 @@ pub struct SlimReport {
     pub skipped: usize,
     /// Subtrees rebuilt (`hoisted + cancelled + rejected + priced`).
     pub rebuilds: usize,
-    /// Triangle references rebuilt (the work of the rebuilds).
+    /// Triangle references rebuilt (the work of the rebuilds): with
+    /// [`Rebuild::Sah`] the triangles of each rebuild, with
+    /// [`Rebuild::Prune`] the references of each pruned subtree.
     pub rebuilt_refs: usize,
 }
 

@@ -162,7 +162,9 @@ pub(super) struct Rebuilder<'a> {
 }
 
 /// Rebuilds the subtree of a pick without its triangle and decides.
-/// Returns the outcome and the number of triangles rebuilt.
+/// Returns the outcome and the work done: the triangles rebuilt (with
+/// [`Rebuild::Sah`]) or the references of the pruned subtree (with
+/// [`Rebuild::Prune`]).
 pub(super) fn rebuild_pick(
     work: &Work,
     p: &Pick,
@@ -176,11 +178,41 @@ pub(super) fn rebuild_pick(
         refs,
     } = rebuilder;
     let (s, e) = work.tri_range(p.at.node, p.at.size);
-    tris.clear();
-    tris.extend_from_slice(&work.tris[s..e]);
-    tris.sort_unstable();
-    tris.dedup();
-    tris.retain(|&t| t != p.tri);
+    // The subtree's triangles but the pick's, ascending.
+    let distinct = |tris: &mut Vec<TriId>| {
+        tris.clear();
+        tris.extend_from_slice(&work.tris[s..e]);
+        tris.sort_unstable();
+        tris.dedup();
+        tris.retain(|&t| t != p.tri);
+    };
+    let old = inputs
+        .bytes
+        .as_ref()
+        .map(|m| m.subtree(work, p.at.node, p.at.size));
+    if inputs.params.rebuild == Rebuild::Prune {
+        // The skip test `old <= 8 + min_subtree_bytes(tris.len())`: a
+        // pruned subtree holds each of `tris`, no more (no clipping). The
+        // subtree's references bound `tris.len()`, so the sort is needed
+        // only where they do not decide it.
+        let skip = match old {
+            None => false,
+            Some(old) if old > 8 + min_subtree_bytes(e - s) => false,
+            Some(old) => {
+                distinct(tris);
+                old <= 8 + min_subtree_bytes(tris.len())
+            }
+        };
+        if skip {
+            return (Outcome::Skipped, 0);
+        }
+        let (nodes, leaf_tris) = pruner.prune(work, p.at.node, p.at.cell, p.at.depth, p.tri);
+        return (
+            decide(work, p, inputs, old, nodes, leaf_tris),
+            leaf_tris.len(),
+        );
+    }
+    distinct(tris);
     refs.clear();
     let mut clipped = false;
     let mut clip_all = |refs: &mut Vec<(TriId, Aabb)>| {
@@ -191,17 +223,11 @@ pub(super) fn rebuild_pick(
             }));
         }
     };
-    let old = inputs
-        .bytes
-        .as_ref()
-        .map(|m| m.subtree(work, p.at.node, p.at.size));
     // The skip test `old <= 8 + min_subtree_bytes(refs.len())`, clipping
-    // only when `0 <= refs.len() <= tris.len()` does not decide it. A
-    // pruned subtree holds every one of `tris`: no clipping.
+    // only when `0 <= refs.len() <= tris.len()` does not decide it.
     let skip = match old {
         None => false,
         Some(old) if old > 8 + min_subtree_bytes(tris.len()) => false,
-        Some(_) if inputs.params.rebuild == Rebuild::Prune => true,
         Some(old) if old <= 8 + min_subtree_bytes(0) => true,
         Some(old) => {
             clip_all(refs);
@@ -211,27 +237,34 @@ pub(super) fn rebuild_pick(
     if skip {
         return (Outcome::Skipped, tris.len());
     }
-    let (nodes, leaf_tris): (&[Node], &[TriId]) = match inputs.params.rebuild {
-        Rebuild::Sah => {
-            clip_all(refs);
-            // The byte rule rejects the hoist once the rebuilt subtree
-            // takes `old - 8` bytes, so the build stops as soon as a lower
-            // bound of its bytes reaches that (it stops at a split, so the
-            // root is inner and the hoist is not cancelled). What is built
-            // is decided on the builder's own slices: only a kept subtree
-            // is copied out (two in three rebuilds are cancelled or
-            // rejected).
-            let limit = old.map_or(u64::MAX, |old| old.saturating_sub(8));
-            let Some(built) = builder.build(refs.iter().copied(), p.at.cell, p.at.depth, limit)
-            else {
-                return (Outcome::Rejected, tris.len());
-            };
-            built
-        }
-        Rebuild::Prune => pruner.prune(work, p.at.node, p.at.cell, p.at.depth, p.tri),
+    clip_all(refs);
+    // The byte rule rejects the hoist once the rebuilt subtree takes
+    // `old - 8` bytes, so the build stops as soon as a lower bound of its
+    // bytes reaches that (it stops at a split, so the root is inner and the
+    // hoist is not cancelled). What is built is decided on the builder's
+    // own slices: only a kept subtree is copied out (two in three rebuilds
+    // are cancelled or rejected).
+    let limit = old.map_or(u64::MAX, |old| old.saturating_sub(8));
+    let Some((nodes, leaf_tris)) =
+        builder.build(refs.iter().copied(), p.at.cell, p.at.depth, limit)
+    else {
+        return (Outcome::Rejected, tris.len());
     };
+    (decide(work, p, inputs, old, nodes, leaf_tris), tris.len())
+}
+
+/// The outcome of a pick whose subtree (`old` bytes) is remade as `nodes`
+/// and `leaf_tris`.
+fn decide(
+    work: &Work,
+    p: &Pick,
+    inputs: &SlimInputs,
+    old: Option<u64>,
+    nodes: &[Node],
+    leaf_tris: &[TriId],
+) -> Outcome {
     let new = inputs.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
-    let outcome = if matches!(nodes[0], Node::Leaf { .. }) {
+    if matches!(nodes[0], Node::Leaf { .. }) {
         Outcome::Cancelled
     } else if let (Some(new), Some(old)) = (new, old)
         && new >= old
@@ -249,6 +282,5 @@ pub(super) fn rebuild_pick(
             nodes: nodes.to_vec(),
             leaf_tris: leaf_tris.to_vec(),
         })
-    };
-    (outcome, tris.len())
+    }
 }
