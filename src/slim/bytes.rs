@@ -73,7 +73,7 @@ impl ByteModel {
     /// The bytes of a leaf: its word and its indices. In version 2 an
     /// empty leaf counts none here (its parent's word says it is empty; the
     /// exception is counted with the parent, [`ByteModel::inner`]).
-    fn leaf(&self, tris: &[TriId]) -> u64 {
+    pub(super) fn leaf(&self, tris: &[TriId]) -> u64 {
         match (self.layout, tris.len()) {
             (ByteLayout::V2, 0) => return 0,
             (ByteLayout::V2, 1) => return 8,
@@ -90,7 +90,7 @@ impl ByteModel {
     /// The bytes of an inner node: its word, its T-reference word, and in
     /// version 2 the empty-leaf word its left child keeps when both
     /// children are empty leaves.
-    fn inner(&self, t_ref: bool, both_empty: bool) -> u64 {
+    pub(super) fn inner(&self, t_ref: bool, both_empty: bool) -> u64 {
         let kept = self.layout == ByteLayout::V2 && both_empty;
         8 + 8 * u64::from(t_ref) + 8 * u64::from(kept)
     }
@@ -115,13 +115,13 @@ impl ByteModel {
                 }
             })
             .sum();
-        // An empty root keeps its word.
-        let root = if self.layout == ByteLayout::V2 && empty(0) {
-            8
-        } else {
-            0
-        };
-        words + root
+        words + if empty(0) { self.empty_root() } else { 0 }
+    }
+
+    /// The word an empty root keeps (in version 2; in version 1 it is
+    /// counted as a leaf).
+    pub(super) fn empty_root(&self) -> u64 {
+        if self.layout == ByteLayout::V2 { 8 } else { 0 }
     }
 
     /// The bytes of the contiguous subtree `work.nodes[node..node + size]`

@@ -119,7 +119,7 @@ impl CostModel {
         self.k_i * cell.surface_area()
     }
 
-    fn inner(&self, hoisted: bool, cell: &Aabb) -> f64 {
+    pub(super) fn inner(&self, hoisted: bool, cell: &Aabb) -> f64 {
         let k = if hoisted {
             self.k_t + self.k_i
         } else {
@@ -128,7 +128,7 @@ impl CostModel {
         k * cell.surface_area()
     }
 
-    fn leaf(&self, count: u32, cell: &Aabb) -> f64 {
+    pub(super) fn leaf(&self, count: u32, cell: &Aabb) -> f64 {
         self.k_i * f64::from(count) * cell.surface_area()
     }
 }

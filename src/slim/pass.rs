@@ -6,7 +6,7 @@
 use super::bytes::{ByteModel, min_subtree_bytes};
 use super::cost::CostModel;
 use super::oracle::{Analysis, analyze};
-use super::prune::Pruner;
+use super::prune::{PruneOf, Pruner};
 use super::work::{Work, WorkNode};
 use super::{Rebuild, SlimParams};
 use crate::build::level::SubtreeBuilder;
@@ -186,11 +186,15 @@ pub(super) fn rebuild_pick(
         tris.dedup();
         tris.retain(|&t| t != p.tri);
     };
-    let old = inputs
-        .bytes
-        .as_ref()
-        .map(|m| m.subtree(work, p.at.node, p.at.size));
     if inputs.params.rebuild == Rebuild::Prune {
+        let of = PruneOf {
+            work,
+            t: p.tri,
+            bytes: inputs.bytes.as_ref(),
+            cost: inputs.price.as_ref().map(|(model, _)| model),
+        };
+        let pruned = pruner.prune(&of, p.at.node, p.at.cell, p.at.depth);
+        let old = inputs.bytes.as_ref().map(|_| pruned.old_bytes);
         // The skip test `old <= 8 + min_subtree_bytes(tris.len())`: a
         // pruned subtree holds each of `tris`, no more (no clipping). The
         // subtree's references bound `tris.len()`, so the sort is needed
@@ -206,12 +210,22 @@ pub(super) fn rebuild_pick(
         if skip {
             return (Outcome::Skipped, 0);
         }
-        let (nodes, leaf_tris) = pruner.prune(work, p.at.node, p.at.cell, p.at.depth, p.tri);
-        return (
-            decide(work, p, inputs, old, nodes, leaf_tris),
-            leaf_tris.len(),
+        let new = old.map(|_| pruned.new_bytes + 8);
+        let outcome = decide(
+            work,
+            p,
+            inputs,
+            (old, new),
+            Some(pruned.old_cost),
+            pruned.nodes,
+            pruned.tris,
         );
+        return (outcome, pruned.tris.len());
     }
+    let old = inputs
+        .bytes
+        .as_ref()
+        .map(|m| m.subtree(work, p.at.node, p.at.size));
     distinct(tris);
     refs.clear();
     let mut clipped = false;
@@ -250,20 +264,23 @@ pub(super) fn rebuild_pick(
     else {
         return (Outcome::Rejected, tris.len());
     };
-    (decide(work, p, inputs, old, nodes, leaf_tris), tris.len())
+    let new = inputs.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
+    let outcome = decide(work, p, inputs, (old, new), None, nodes, leaf_tris);
+    (outcome, tris.len())
 }
 
-/// The outcome of a pick whose subtree (`old` bytes) is remade as `nodes`
-/// and `leaf_tris`.
+/// The outcome of a pick whose subtree (`old` bytes, SAH cost `old_cost`
+/// if known) is remade as `nodes` and `leaf_tris` (`new` bytes with the
+/// hoisted triangle's word).
 fn decide(
     work: &Work,
     p: &Pick,
     inputs: &SlimInputs,
-    old: Option<u64>,
+    (old, new): (Option<u64>, Option<u64>),
+    old_cost: Option<f64>,
     nodes: &[Node],
     leaf_tris: &[TriId],
 ) -> Outcome {
-    let new = inputs.bytes.as_ref().map(|m| m.nodes(nodes, leaf_tris) + 8);
     if matches!(nodes[0], Node::Leaf { .. }) {
         Outcome::Cancelled
     } else if let (Some(new), Some(old)) = (new, old)
@@ -272,7 +289,7 @@ fn decide(
         Outcome::Rejected
     } else if let (Some((model, per_byte)), Some(new), Some(old)) = (&inputs.price, new, old)
         && model.nodes(nodes, p.at.cell) + model.hoisted(&p.at.cell)
-            - model.work_subtree(work, p.at.node, p.at.cell)
+            - old_cost.unwrap_or_else(|| model.work_subtree(work, p.at.node, p.at.cell))
             > per_byte * (old - new) as f64
     {
         Outcome::Priced
