@@ -44,7 +44,9 @@ pub enum Rebuild {
     /// leaves, and bottom-up two sibling leaves become one where the
     /// rebuild's leaf rule (`K_T` × [`SlimParams::coarsen`], the split
     /// price) prefers a leaf to their parent's split. Linear in the
-    /// subtree (no sweep, no clipping).
+    /// subtree (no sweep, no clipping): the slim build takes 1.35–1.85×
+    /// the std build on the shared scenes against 2.7–4.5×, for 1–7
+    /// points less of the bytes saved.
     Prune,
 }
 

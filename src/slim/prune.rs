@@ -6,8 +6,8 @@
 //!
 //! Why: the SAH rebuild of every pick is what makes the slim build cost
 //! 2.7–4.5× the std build on the shared scenes; pruning is linear in the
-//! subtree, and the slim build takes 1.5–2.1× for 1–7 points less of the
-//! bytes saved (`docs/perf-notes.md`, "Hoists that keep the splits").
+//! subtree, and the slim build takes 1.35–1.85× for 1–7 points less of
+//! the bytes saved (`docs/perf-notes.md`, "Hoists that keep the splits").
 
 use super::bytes::ByteModel;
 use super::cost::CostModel;
