@@ -98,9 +98,11 @@
 //! - *Skips.* Under the byte rule, a pick whose subtree takes at most 8
 //!   bytes more than the least any rebuilt subtree of its references could
 //!   take ([`min_subtree_bytes`]) is rejected without a rebuild; it could
-//!   not pass the rule. A rebuild stops, rejected, as soon as a lower
-//!   bound of its bytes (the finished nodes' bytes, 8 to 16 per pending
-//!   node with references) reaches the replaced subtree's bytes less 8,
+//!   not pass the rule (with [`Rebuild::Prune`] the test follows the
+//!   prune, whose walk counts the subtree's bytes). A rebuild stops,
+//!   rejected, as soon as a lower bound of its bytes (the finished nodes'
+//!   bytes, 8 to 16 per pending node with references) reaches the
+//!   replaced subtree's bytes less 8,
 //!   which the rule rejects (`SubtreeBuilder::build`'s byte limit).
 //! - *Passes.* Each pass finds, in every pending subtree, the highest nodes
 //!   where a triangle is picked, rebuilds those (disjoint) subtrees in

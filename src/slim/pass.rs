@@ -195,10 +195,12 @@ pub(super) fn rebuild_pick(
         };
         let pruned = pruner.prune(&of, p.at.node, p.at.cell, p.at.depth);
         let old = inputs.bytes.as_ref().map(|_| pruned.old_bytes);
-        // The skip test `old <= 8 + min_subtree_bytes(tris.len())`: a
-        // pruned subtree holds each of `tris`, no more (no clipping). The
-        // subtree's references bound `tris.len()`, so the sort is needed
-        // only where they do not decide it.
+        // The skip test `old <= 8 + min_subtree_bytes(tris.len())`, taken
+        // after the prune (its walk counts `old`) so that a pick is
+        // reported as with a rebuild: a pruned subtree holds each of
+        // `tris`, no more (no clipping). The subtree's references bound
+        // `tris.len()`, so the sort is needed only where they do not
+        // decide it.
         let skip = match old {
             None => false,
             Some(old) if old > 8 + min_subtree_bytes(e - s) => false,
@@ -216,7 +218,7 @@ pub(super) fn rebuild_pick(
             p,
             inputs,
             (old, new),
-            Some(pruned.old_cost),
+            of.cost.map(|_| pruned.old_cost),
             pruned.nodes,
             pruned.tris,
         );
