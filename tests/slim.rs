@@ -389,10 +389,8 @@ fn literal_slim(
     // What a pruned subtree's leaves are joined by: the rebuild's SAH,
     // priced as the whole tree's.
     let mut prune_sah = p.rebuild_config(config).sah;
-    prune_sah.price_scale = Some(slimkd::build::sah::price_scale(
-        &std_tree.bounds,
-        scene.len(),
-    ));
+    (prune_sah.price_scale)
+        .get_or_insert_with(|| slimkd::build::sah::price_scale(&std_tree.bounds, scene.len()));
     let prune_rule = prune_sah.leaf_rule(scene.len(), || std_tree.bounds);
     let mut stack = Vec::new();
     if p.max_t2rn > 0 {
