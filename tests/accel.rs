@@ -177,6 +177,24 @@ fn assert_tracer_matches(accel: &Accel, rays: &[Ray]) {
             );
         }
     }
+    // A batch in any order: the rays, and each reversed from half way
+    // along (so every octant), interleaved.
+    let batch: Vec<Ray> = rays
+        .iter()
+        .flat_map(|r| {
+            let mid = r.origin + r.dir * 0.5 * r.tmax.min(1e3);
+            [*r, Ray::new(mid, -r.dir)]
+        })
+        .collect();
+    let mut records = vec![None; batch.len()];
+    tracer.intersect_batch(&batch, &mut records);
+    let mut blocked = vec![false; batch.len()];
+    tracer.occluded_batch(&batch, &mut blocked, &mut cache);
+    for (i, r) in batch.iter().enumerate() {
+        assert_eq!(records[i], tracer.intersect(r), "batch ray {i}");
+        assert_eq!(blocked[i], tracer.occluded(r), "batch ray {i}");
+    }
+    assert!(records.iter().any(Option::is_some) && blocked.iter().any(|b| !b));
 }
 
 fn round_trip(preset: Preset, reorder: bool) {

@@ -365,7 +365,7 @@ fn trace_matches_brute_force_in_every_mode() {
         .map(|(i, _)| i as f64)
         .sum();
     assert!(hits > 100 && occ_hits < hits, "{hits} {occ_hits}");
-    for mode in ["single", "packet", "from-hit", "ropes"] {
+    for mode in ["single", "packet", "sorted", "from-hit", "ropes"] {
         let dump = dir.join(format!("{mode}.f32"));
         let j = json(&slimkd(&[
             "trace",

@@ -9,6 +9,7 @@
 //! threads in chunks of [`CHUNK`] consecutive rays; packets are 16
 //! consecutive rays of a chunk (the chunk's last packet may be shorter).
 
+use super::packet::LANES;
 use super::{ClosestHit, Hit, HitContext, TraceStats};
 use crate::geom::Ray;
 use glam::Vec3;
@@ -27,6 +28,11 @@ pub const STREAM: usize = 256;
 
 /// Consecutive rays a thread takes at a time.
 pub const CHUNK: usize = 256;
+
+/// Consecutive rays a thread orders by octant at a time in
+/// [`trace_batch_sorted`]: the most of 256, 1,024 and 4,096 that keeps a
+/// chunk's rays neighbours in a ray file's pixel order.
+pub const SORT_CHUNK: usize = 1024;
 
 /// Rays a thread traces in lanes at a time.
 pub const LANES_CHUNK: usize = 2048;
@@ -200,6 +206,121 @@ pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets:
     }
 }
 
+/// Traces `rays` in chunks of [`SORT_CHUNK`] on the current rayon pool,
+/// each chunk in packets of rays of one octant ([`closest_by_octant`],
+/// [`occluded_by_octant`]); the ordering is timed with the rays.
+pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
+    let mut results = vec![0f32; rays.len()];
+    let start = Instant::now();
+    results
+        .par_chunks_mut(SORT_CHUNK)
+        .zip(rays.par_chunks(SORT_CHUNK))
+        .for_each_init(
+            || (super::OccluderCache::new(), Vec::new(), Vec::new()),
+            |(cache, order, hits), (out, rays)| match query {
+                Query::Closest => {
+                    hits.clear();
+                    hits.resize(rays.len(), Hit::MISS);
+                    closest_by_octant(tracer, rays, hits, order);
+                    for (o, h) in out.iter_mut().zip(hits.iter()) {
+                        *o = h.t;
+                    }
+                }
+                Query::Occluded => {
+                    let mut occ = vec![false; rays.len()];
+                    occluded_by_octant(tracer, rays, &mut occ, cache, order);
+                    for (o, h) in out.iter_mut().zip(occ) {
+                        *o = f32::from(u8::from(h));
+                    }
+                }
+            },
+        );
+    Traced {
+        results,
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}
+
+/// The octant of a direction: bit 0 set where `x < 0`, bit 1 `y`, bit 2
+/// `z`. Rays of one octant take every split's children in one order.
+#[inline]
+pub fn octant(dir: Vec3) -> usize {
+    usize::from(dir.x < 0.0) | usize::from(dir.y < 0.0) << 1 | usize::from(dir.z < 0.0) << 2
+}
+
+/// `order` := the indices of `rays` by octant, in their own order within
+/// an octant (a counting sort: stable, so that rays that start close
+/// together stay together).
+pub fn order_by_octant(rays: &[Ray], order: &mut Vec<u32>) {
+    let mut start = [0usize; 9];
+    for r in rays {
+        start[octant(r.dir) + 1] += 1;
+    }
+    for k in 1..9 {
+        start[k] += start[k - 1];
+    }
+    order.clear();
+    order.resize(rays.len(), 0);
+    for (i, r) in rays.iter().enumerate() {
+        let k = octant(r.dir);
+        order[start[k]] = i as u32;
+        start[k] += 1;
+    }
+}
+
+/// The 16 rays of `rays` that `group` names, gathered for a packet.
+fn gather(rays: &[Ray], group: &[u32]) -> [Ray; LANES] {
+    let mut batch = [Ray::new(Vec3::ZERO, Vec3::X); LANES];
+    for (b, &i) in batch.iter_mut().zip(group) {
+        *b = rays[i as usize];
+    }
+    batch
+}
+
+/// Closest hits of `rays` into `out`, traced 16 at a time
+/// ([`ClosestHit::closest_hit_n`]) in octant order ([`order_by_octant`]),
+/// so that a packet's lanes mostly share their direction's signs; a
+/// packet may hold the last rays of one octant and the first of the next.
+/// Incoherent rays (a renderer's AO rays, 4 a pixel in pixel order) trace
+/// 1.4x as fast as in packets of 16 consecutive rays (dieselpower).
+/// `order` is scratch.
+pub fn closest_by_octant(
+    tracer: &dyn ClosestHit,
+    rays: &[Ray],
+    out: &mut [Hit],
+    order: &mut Vec<u32>,
+) {
+    order_by_octant(rays, order);
+    for group in order.chunks(LANES) {
+        let batch = gather(rays, group);
+        let mut hits = [Hit::MISS; LANES];
+        tracer.closest_hit_n(&batch[..group.len()], &mut hits[..group.len()]);
+        for (&i, h) in group.iter().zip(hits) {
+            out[i as usize] = h;
+        }
+    }
+}
+
+/// [`closest_by_octant`] for any-hit queries, through the worker's
+/// occluder cache ([`ClosestHit::occluded_n_cached`]).
+pub fn occluded_by_octant(
+    tracer: &dyn ClosestHit,
+    rays: &[Ray],
+    out: &mut [bool],
+    cache: &mut super::OccluderCache,
+    order: &mut Vec<u32>,
+) {
+    order_by_octant(rays, order);
+    for group in order.chunks(LANES) {
+        let batch = gather(rays, group);
+        let mut occ = [false; LANES];
+        tracer.occluded_n_cached(&batch[..group.len()], &mut occ[..group.len()], cache);
+        for (&i, o) in group.iter().zip(occ) {
+            out[i as usize] = o;
+        }
+    }
+}
+
 /// Traces `rays` like [`trace_batch`] one by one, each walked from the
 /// [`HitContext`] of its origin: a run of consecutive rays with the same
 /// origin (the shadow and AO rays of one hit point, as the peer program
@@ -328,28 +449,56 @@ fn trace_chunk(
 pub type CountFn<'a> =
     dyn Fn(&[Ray], &mut [Hit], &mut TraceStats, &mut super::OccluderCache) + Sync + 'a;
 
-/// Traces `rays` like [`trace_batch`] with a counting traversal (`trace`
-/// gets the rays of one chunk piece and returns their hits) and returns the
-/// work done; it is slower, so it is never timed.
+/// How a batch is cut into the pieces a tracer takes at a time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pieces {
+    /// One ray at a time ([`trace_batch`] without packets).
+    Single,
+    /// 16 consecutive rays ([`trace_batch`] with packets).
+    Packets,
+    /// 16 rays of one octant ([`trace_batch_sorted`]).
+    Sorted,
+}
+
+/// Traces `rays` as [`trace_batch`] or [`trace_batch_sorted`] cut them
+/// (`pieces`), with a counting traversal (`trace` gets the rays of one
+/// piece and returns their hits), and returns the work done; it is slower,
+/// so it is never timed.
 pub fn count_batch(
     rays: &[Ray],
     query: Query,
-    packets: bool,
+    pieces: Pieces,
     trace: &CountFn<'_>,
 ) -> (Vec<f32>, TraceStats) {
     let total = Mutex::new(TraceStats::default());
     let mut results = vec![0f32; rays.len()];
-    let step = if packets { 16 } else { 1 };
+    let (chunk, step) = match pieces {
+        Pieces::Single => (CHUNK, 1),
+        Pieces::Packets => (CHUNK, LANES),
+        Pieces::Sorted => (SORT_CHUNK, LANES),
+    };
     results
-        .par_chunks_mut(CHUNK)
-        .zip(rays.par_chunks(CHUNK))
+        .par_chunks_mut(chunk)
+        .zip(rays.par_chunks(chunk))
         .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
             let mut stats = TraceStats::default();
-            for (rays, out) in rays.chunks(step).zip(out.chunks_mut(step)) {
-                let mut hits = [Hit::MISS; 16];
-                trace(rays, &mut hits[..rays.len()], &mut stats, cache);
-                for (o, h) in out.iter_mut().zip(hits) {
-                    *o = result(query, h);
+            let mut order = Vec::new();
+            if pieces == Pieces::Sorted {
+                order_by_octant(rays, &mut order);
+            } else {
+                order.extend(0..rays.len() as u32);
+            }
+            for group in order.chunks(step) {
+                let batch = gather(rays, group);
+                let mut hits = [Hit::MISS; LANES];
+                trace(
+                    &batch[..group.len()],
+                    &mut hits[..group.len()],
+                    &mut stats,
+                    cache,
+                );
+                for (&i, h) in group.iter().zip(hits) {
+                    out[i as usize] = result(query, h);
                 }
             }
             total.lock().expect("no panics while held").add(&stats);

@@ -68,7 +68,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     } else {
         Query::Closest
     };
-    let packets = args.mode == TraceMode::Packet;
+    let packets = matches!(args.mode, TraceMode::Packet | TraceMode::Sorted);
     if matches!(args.mode, TraceMode::Stream | TraceMode::Lanes) && !args.occluded {
         return Err(crate::Usage(
             "--mode stream and --mode lanes answer --occluded queries only".into(),
@@ -103,6 +103,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
             }
             TraceMode::Stream => rays::trace_batch_stream(&file, &rays, rays::STREAM),
             TraceMode::Lanes => rays::trace_batch_lanes(&file, &rays),
+            TraceMode::Sorted => rays::trace_batch_sorted(tracer, &rays, query),
             _ => rays::trace_batch(tracer, &rays, query, packets),
         };
         let mut last = batch();
@@ -138,7 +139,12 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                 }
             }
         };
-        let (results, stats) = pool.install(|| rays::count_batch(&rays, query, packets, &count));
+        let pieces = match args.mode {
+            TraceMode::Sorted => rays::Pieces::Sorted,
+            _ if packets => rays::Pieces::Packets,
+            _ => rays::Pieces::Single,
+        };
+        let (results, stats) = pool.install(|| rays::count_batch(&rays, query, pieces, &count));
         // The counting traversal must answer as the timed one did.
         let same = results
             .iter()
@@ -169,6 +175,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     let mode = match args.mode {
         TraceMode::Single => "single",
         TraceMode::Packet => "packet",
+        TraceMode::Sorted => "sorted",
         TraceMode::FromHit => "from-hit",
         TraceMode::Ropes => "ropes",
         TraceMode::Stream => "stream",

@@ -321,7 +321,16 @@ pub fn measure_scene(
                             }
                         }
                     };
-                let (_, s) = rays::count_batch(rays, set.query(), mode == Mode::Packet, &count);
+                let (_, s) = rays::count_batch(
+                    rays,
+                    set.query(),
+                    if mode == Mode::Packet {
+                        rays::Pieces::Packets
+                    } else {
+                        rays::Pieces::Single
+                    },
+                    &count,
+                );
                 let per_ray = |v: u64| v as f64 / rays.len().max(1) as f64;
                 samples.push(Sample {
                     k_t: options.kt_values[k],
