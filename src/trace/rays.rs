@@ -283,8 +283,9 @@ fn gather(rays: &[Ray], group: &[u32]) -> [Ray; LANES] {
 /// ([`ClosestHit::closest_hit_n`]) in octant order ([`order_by_octant`]),
 /// so that a packet's lanes mostly share their direction's signs; a
 /// packet may hold the last rays of one octant and the first of the next.
-/// Incoherent rays (a renderer's AO rays, 4 a pixel in pixel order) trace
-/// 1.4x as fast as in packets of 16 consecutive rays (dieselpower).
+/// Incoherent rays trace faster so: the peer's AO rays of dieselpower (4
+/// a pixel, pixel order) 1.10x (closest) and 1.13x (any hit) as fast as
+/// in packets of 16 consecutive rays.
 /// `order` is scratch.
 pub fn closest_by_octant(
     tracer: &dyn ClosestHit,
