@@ -218,8 +218,15 @@ pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -
         .par_chunks_mut(SORT_CHUNK)
         .zip(rays.par_chunks(SORT_CHUNK))
         .for_each_init(
-            || (super::OccluderCache::new(), Vec::new(), Vec::new()),
-            |(cache, order, hits), (out, rays)| match query {
+            || {
+                (
+                    super::OccluderCache::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                )
+            },
+            |(cache, order, hits, occ), (out, rays)| match query {
                 Query::Closest => {
                     hits.clear();
                     hits.resize(rays.len(), Hit::MISS);
@@ -229,9 +236,10 @@ pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -
                     }
                 }
                 Query::Occluded => {
-                    let mut occ = vec![false; rays.len()];
-                    occluded_by_octant(tracer, rays, &mut occ, cache, order);
-                    for (o, h) in out.iter_mut().zip(occ) {
+                    occ.clear();
+                    occ.resize(rays.len(), false);
+                    occluded_by_octant(tracer, rays, occ, cache, order);
+                    for (o, &h) in out.iter_mut().zip(occ.iter()) {
                         *o = f32::from(u8::from(h));
                     }
                 }
