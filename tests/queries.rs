@@ -449,7 +449,7 @@ fn sorted_batches_match_brute_force_in_every_octant() {
     let (lo, ext) = (b.min, b.max - b.min);
     // 2,500 rays (not a multiple of 16 or 1,024) from points inside the
     // box in every direction, short and long, as AO rays of many pixels
-    // interleaved.
+    // interleaved: batches that mix octants, traced in octant order.
     let mut seed = 7u64;
     let mut unit = move || {
         seed = seed
@@ -457,10 +457,11 @@ fn sorted_batches_match_brute_force_in_every_octant() {
             .wrapping_add(1_442_695_040_888_963_407);
         (seed >> 40) as f32 / (1u64 << 24) as f32
     };
+    let mut point = || lo + ext * Vec3::new(unit(), unit(), unit());
     let rays: Vec<Ray> = (0..2500)
         .map(|i| {
-            let o = lo + ext * Vec3::new(unit(), unit(), unit());
-            let d = Vec3::new(unit() - 0.5, unit() - 0.5, unit() - 0.5);
+            let o = point();
+            let d = point() - point();
             let mut r = Ray::new(o, d);
             r.tmax = if i % 3 == 0 {
                 f32::INFINITY
@@ -473,23 +474,71 @@ fn sorted_batches_match_brute_force_in_every_octant() {
     let octants: std::collections::HashSet<usize> =
         rays.iter().map(|r| rays::octant(r.dir)).collect();
     assert_eq!(octants.len(), 8);
-    let want: Vec<Hit> = rays.iter().map(|r| trace::brute_force(&scene, r)).collect();
+    assert!(rays.chunks(rays::SORT_CHUNK).all(rays::mixed_octants));
+    check_sorted_batches(&scene, &file, &rays);
+    // Shadow rays toward a light inside the box, 50 from each of 50
+    // points: runs of one octant far longer than a packet, traced in
+    // their own order.
+    let light = lo + ext * Vec3::new(0.6, 0.7, 0.4);
+    let shadow: Vec<Ray> = (0..2500)
+        .map(|_| point())
+        .collect::<Vec<_>>()
+        .chunks(50)
+        .flat_map(|c| {
+            let d = light - c[0];
+            c.iter().map(move |&o| {
+                let mut r = Ray::new(o, d);
+                r.tmax = 1.0;
+                r
+            })
+        })
+        .collect();
+    let octants: std::collections::HashSet<usize> =
+        shadow.iter().map(|r| rays::octant(r.dir)).collect();
+    assert!(octants.len() >= 4, "{octants:?}");
+    assert!(!shadow.chunks(rays::SORT_CHUNK).any(rays::mixed_octants));
+    check_sorted_batches(&scene, &file, &shadow);
+}
+
+/// `trace_batch_sorted` returns the brute-force results for `rays` with
+/// every instruction set and both tracers, and finds occluded and free
+/// rays among them.
+fn check_sorted_batches(
+    scene: &slimkd::scene::TriangleColumns,
+    file: &KdFile<format::AlignedBytes>,
+    rays: &[Ray],
+) {
+    let want: Vec<Hit> = rays.iter().map(|r| trace::brute_force(scene, r)).collect();
     let t: Vec<f32> = want.iter().map(|h| h.t).collect();
     let o: Vec<f32> = want
         .iter()
-        .zip(&rays)
+        .zip(rays)
         .map(|(h, r)| f32::from(u8::from(h.t < r.tmax)))
         .collect();
     assert!(o.iter().filter(|&&v| v == 1.0).count() > 200);
     assert!(o.iter().filter(|&&v| v == 0.0).count() > 200);
     for level in SimdLevel::available() {
-        let scalar = Scalar::with_level(&file, level);
-        let packet = PacketTracer::with_level(&file, level);
+        let scalar = Scalar::with_level(file, level);
+        let packet = PacketTracer::with_level(file, level);
         for tracer in [&scalar as &dyn ClosestHit, &packet as &dyn ClosestHit] {
-            let closest = rays::trace_batch_sorted(tracer, &rays, Query::Closest);
+            let closest = rays::trace_batch_sorted(tracer, rays, Query::Closest);
             assert_eq!(closest.results, t, "{level:?}");
-            let occ = rays::trace_batch_sorted(tracer, &rays, Query::Occluded);
+            let occ = rays::trace_batch_sorted(tracer, rays, Query::Occluded);
             assert_eq!(occ.results, o, "{level:?}");
+            // The whole batch at once, as the renderer and the facade
+            // trace theirs.
+            let mut hits = vec![Hit::MISS; rays.len()];
+            rays::closest_by_octant(tracer, rays, &mut hits, &mut Vec::new());
+            assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
+            let mut occ = vec![false; rays.len()];
+            let mut cache = slimkd::trace::OccluderCache::new();
+            rays::occluded_by_octant(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
+            assert!(
+                occ.iter()
+                    .map(|&b| f32::from(u8::from(b)))
+                    .eq(o.iter().copied()),
+                "{level:?}"
+            );
         }
     }
 }

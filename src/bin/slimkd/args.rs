@@ -696,7 +696,8 @@ pub struct TraceArgs {
     /// last packet their thread traced), packets of 16 rays of one octant
     /// (`sorted`: each run of 1,024 consecutive rays ordered by the signs
     /// of its directions, stably and timed, as `render` orders its
-    /// AO rays), or single rays walked `from-hit`: from the context of their
+    /// AO rays; a run whose packets mostly keep one octant, as shadow rays
+    /// toward one light do, stays in its order), or single rays walked `from-hit`: from the context of their
     /// origin (located once for a run of rays with the same origin, as
     /// the shadow and AO rays of one hit point are; the location is
     /// timed), single rays walked leaf to leaf by `ropes` from the cell of
