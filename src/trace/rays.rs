@@ -210,7 +210,8 @@ pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets:
 
 /// Traces `rays` in chunks of [`SORT_CHUNK`] on the current rayon pool,
 /// each chunk in packets of rays of one octant ([`closest_by_octant`],
-/// [`occluded_by_octant`]); the ordering is timed with the rays.
+/// [`occluded_by_octant`]) where it mixes octants ([`mixed_octants`]),
+/// else in packets of its own order; the ordering is timed with the rays.
 pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
     let mut results = vec![0f32; rays.len()];
     let start = Instant::now();
@@ -503,7 +504,8 @@ pub enum Pieces {
     Single,
     /// 16 consecutive rays ([`trace_batch`] with packets).
     Packets,
-    /// 16 rays of one octant ([`trace_batch_sorted`]).
+    /// 16 rays of one octant where a chunk mixes octants, as
+    /// [`trace_batch_sorted`] cuts them.
     Sorted,
 }
 
@@ -530,7 +532,7 @@ pub fn count_batch(
         .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
             let mut stats = TraceStats::default();
             let mut order = Vec::new();
-            if pieces == Pieces::Sorted {
+            if pieces == Pieces::Sorted && mixed_octants(rays) {
                 order_by_octant(rays, &mut order);
             } else {
                 order.extend(0..rays.len() as u32);

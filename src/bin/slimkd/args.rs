@@ -697,10 +697,10 @@ pub struct TraceArgs {
     /// (`sorted`: each run of 1,024 consecutive rays ordered by the signs
     /// of its directions, stably and timed, as `render` orders its
     /// AO rays; a run whose packets mostly keep one octant, as shadow rays
-    /// toward one light do, stays in its order), or single rays walked `from-hit`: from the context of their
-    /// origin (located once for a run of rays with the same origin, as
-    /// the shadow and AO rays of one hit point are; the location is
-    /// timed), single rays walked leaf to leaf by `ropes` from the cell of
+    /// toward one light do, stays in its order), or single rays walked
+    /// `from-hit`: from the context of their origin (located once for a
+    /// run of rays with the same origin, as the shadow and AO rays of one
+    /// hit point are; the location is timed), single rays walked leaf to leaf by `ropes` from the cell of
     /// their origin (located as from-hit's; the ropes are built after
     /// opening, untimed, and reported apart; std trees only), or any-hit
     /// queries as a `stream` of 256 rays at a time, or in `lanes`: 16 rays
