@@ -32,7 +32,7 @@ use crate::pipeline::{Pipeline, PipelineError};
 use crate::scene::{InvalidColumns, TriangleColumns};
 use crate::slim::{HoistRule, SlimParams};
 use crate::trace::packet::{PacketTracer, SimdLevel};
-use crate::trace::rays::{closest_by_octant, occluded_by_octant};
+use crate::trace::rays::{closest_batch, occluded_batch};
 use crate::trace::{ClosestHit, FileWalk, Hit, HitContext, OccluderCache, Scalar, Walk};
 use glam::Vec3;
 use std::fmt;
@@ -572,7 +572,7 @@ impl AccelTracer<'_> {
         assert_eq!(rays.len(), out.len(), "one record per ray");
         let mut hits = vec![Hit::MISS; rays.len()];
         let tracer = PacketTracer::with_level(&self.walk, self.level);
-        closest_by_octant(&tracer, rays, &mut hits, &mut Vec::new());
+        closest_batch(&tracer, rays, &mut hits, &mut Vec::new());
         for ((o, r), h) in out.iter_mut().zip(rays).zip(hits) {
             *o = self.record(r, h);
         }
@@ -589,7 +589,7 @@ impl AccelTracer<'_> {
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool], cache: &mut OccluderCache) {
         assert_eq!(rays.len(), out.len(), "one answer per ray");
         let tracer = PacketTracer::with_level(&self.walk, self.level);
-        occluded_by_octant(&tracer, rays, out, cache, &mut Vec::new());
+        occluded_batch(&tracer, rays, out, cache, &mut Vec::new());
     }
 
     /// The lanes of `mask` that `trace` finds occluded, traced as one

@@ -525,20 +525,31 @@ fn check_sorted_batches(
             assert_eq!(closest.results, t, "{level:?}");
             let occ = rays::trace_batch_sorted(tracer, rays, Query::Occluded);
             assert_eq!(occ.results, o, "{level:?}");
-            // The whole batch at once, as the renderer and the facade
-            // trace theirs.
-            let mut hits = vec![Hit::MISS; rays.len()];
+            // The whole batch at once, as the facade traces its batches
+            // (and the renderer its AO rays, always by octant), into
+            // answers that start wrong.
+            let wrong = Hit {
+                t: -1.0,
+                tri: slimkd::tree::TriId(0),
+            };
+            let mut hits = vec![wrong; rays.len()];
+            rays::closest_batch(tracer, rays, &mut hits, &mut Vec::new());
+            assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
+            hits.fill(wrong);
             rays::closest_by_octant(tracer, rays, &mut hits, &mut Vec::new());
             assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
-            let mut occ = vec![false; rays.len()];
             let mut cache = slimkd::trace::OccluderCache::new();
-            rays::occluded_by_octant(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
-            assert!(
+            let answers = |occ: &[bool]| {
                 occ.iter()
                     .map(|&b| f32::from(u8::from(b)))
-                    .eq(o.iter().copied()),
-                "{level:?}"
-            );
+                    .collect::<Vec<_>>()
+            };
+            let mut occ: Vec<bool> = o.iter().map(|&v| v == 0.0).collect();
+            rays::occluded_batch(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
+            assert_eq!(answers(&occ), o, "{level:?}");
+            occ = o.iter().map(|&v| v == 0.0).collect();
+            rays::occluded_by_octant(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
+            assert_eq!(answers(&occ), o, "{level:?}");
         }
     }
 }
