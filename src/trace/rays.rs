@@ -194,14 +194,29 @@ fn result(query: Query, hit: Hit) -> f32 {
 /// Traces `rays` in chunks of [`CHUNK`] on the current rayon pool, one by
 /// one or, with `packets`, 16 consecutive rays at a time.
 pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets: bool) -> Traced {
+    timed_chunks(
+        rays,
+        CHUNK,
+        super::OccluderCache::new,
+        |cache, rays, out| trace_chunk(tracer, rays, query, packets, out, cache),
+    )
+}
+
+/// Traces `rays` in chunks of `chunk` on the current rayon pool, each by
+/// `each(state, rays, results)` with a state from `init` per rayon job,
+/// and times the whole batch.
+fn timed_chunks<S>(
+    rays: &[Ray],
+    chunk: usize,
+    init: impl Fn() -> S + Sync + Send,
+    each: impl Fn(&mut S, &[Ray], &mut [f32]) + Sync + Send,
+) -> Traced {
     let mut results = vec![0f32; rays.len()];
     let start = Instant::now();
     results
-        .par_chunks_mut(CHUNK)
-        .zip(rays.par_chunks(CHUNK))
-        .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
-            trace_chunk(tracer, rays, query, packets, out, cache)
-        });
+        .par_chunks_mut(chunk)
+        .zip(rays.par_chunks(chunk))
+        .for_each_init(init, |state, (out, rays)| each(state, rays, out));
     Traced {
         results,
         seconds: start.elapsed().as_secs_f64(),
@@ -209,49 +224,41 @@ pub fn trace_batch(tracer: &dyn ClosestHit, rays: &[Ray], query: Query, packets:
 }
 
 /// Traces `rays` in chunks of [`SORT_CHUNK`] on the current rayon pool,
-/// each chunk in packets of rays of one octant ([`closest_by_octant`],
-/// [`occluded_by_octant`]) where it mixes octants ([`mixed_octants`]),
-/// else in packets of its own order; the ordering is timed with the rays.
+/// each chunk as one batch ([`closest_batch`], [`occluded_batch`]: in
+/// packets of one octant where it mixes octants, else of its own order);
+/// the ordering is timed with the rays.
 pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
-    let mut results = vec![0f32; rays.len()];
-    let start = Instant::now();
-    results
-        .par_chunks_mut(SORT_CHUNK)
-        .zip(rays.par_chunks(SORT_CHUNK))
-        .for_each_init(
-            || {
-                (
-                    super::OccluderCache::new(),
-                    Vec::new(),
-                    Vec::new(),
-                    Vec::new(),
-                )
-            },
-            |(cache, order, hits, occ), (out, rays)| match query {
-                // A run in packets of its own order, without the scratch.
-                _ if !mixed_octants(rays) => trace_chunk(tracer, rays, query, true, out, cache),
-                Query::Closest => {
-                    hits.clear();
-                    hits.resize(rays.len(), Hit::MISS);
-                    closest_by_octant(tracer, rays, hits, order);
-                    for (o, h) in out.iter_mut().zip(hits.iter()) {
-                        *o = h.t;
-                    }
+    let init = || {
+        (
+            super::OccluderCache::new(),
+            Vec::new(),
+            Vec::new(),
+            Vec::new(),
+        )
+    };
+    timed_chunks(
+        rays,
+        SORT_CHUNK,
+        init,
+        |(cache, order, hits, occ), rays, out| match query {
+            Query::Closest => {
+                hits.clear();
+                hits.resize(rays.len(), Hit::MISS);
+                closest_batch(tracer, rays, hits, order);
+                for (o, h) in out.iter_mut().zip(hits.iter()) {
+                    *o = h.t;
                 }
-                Query::Occluded => {
-                    occ.clear();
-                    occ.resize(rays.len(), false);
-                    occluded_by_octant(tracer, rays, occ, cache, order);
-                    for (o, &h) in out.iter_mut().zip(occ.iter()) {
-                        *o = f32::from(u8::from(h));
-                    }
+            }
+            Query::Occluded => {
+                occ.clear();
+                occ.resize(rays.len(), false);
+                occluded_batch(tracer, rays, occ, cache, order);
+                for (o, &h) in out.iter_mut().zip(occ.iter()) {
+                    *o = f32::from(u8::from(h));
                 }
-            },
-        );
-    Traced {
-        results,
-        seconds: start.elapsed().as_secs_f64(),
-    }
+            }
+        },
+    )
 }
 
 /// The octant of a direction: bit 0 set where `x < 0`, bit 1 `y`, bit 2
@@ -394,12 +401,11 @@ pub fn occluded_batch(
 /// writes them) shares one context, located for the first of them and
 /// timed with the rays.
 pub fn trace_batch_from_hit(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
-    let mut results = vec![0f32; rays.len()];
-    let start = Instant::now();
-    results
-        .par_chunks_mut(CHUNK)
-        .zip(rays.par_chunks(CHUNK))
-        .for_each(|(out, rays)| {
+    timed_chunks(
+        rays,
+        CHUNK,
+        || (),
+        |(), rays, out| {
             let mut ctx = HitContext::default();
             let mut at = None;
             for (r, o) in rays.iter().zip(out.iter_mut()) {
@@ -412,34 +418,27 @@ pub fn trace_batch_from_hit(tracer: &dyn ClosestHit, rays: &[Ray], query: Query)
                     Query::Occluded => f32::from(u8::from(tracer.occluded_from(&ctx, r))),
                 };
             }
-        });
-    Traced {
-        results,
-        seconds: start.elapsed().as_secs_f64(),
-    }
+        },
+    )
 }
 
 /// Traces `rays` as any-hit queries in streams of `stream` consecutive
 /// rays ([`super::stream::occluded_stream`]), the streams on the current
 /// rayon pool; results as [`trace_batch`]'s with [`Query::Occluded`].
 pub fn trace_batch_stream<S: super::KdSource>(src: &S, rays: &[Ray], stream: usize) -> Traced {
-    let mut results = vec![0f32; rays.len()];
-    let start = Instant::now();
     let walk = src.walk();
-    results
-        .par_chunks_mut(stream.max(1))
-        .zip(rays.par_chunks(stream.max(1)))
-        .for_each(|(out, rays)| {
+    timed_chunks(
+        rays,
+        stream.max(1),
+        || (),
+        |(), rays, out| {
             let mut occ = vec![false; rays.len()];
             super::stream::occluded_stream(walk, rays, &mut occ);
             for (o, h) in out.iter_mut().zip(occ) {
                 *o = f32::from(u8::from(h));
             }
-        });
-    Traced {
-        results,
-        seconds: start.elapsed().as_secs_f64(),
-    }
+        },
+    )
 }
 
 /// Traces `rays` as any-hit queries in lanes
@@ -450,24 +449,20 @@ pub fn trace_batch_lanes<D: AsRef<[u8]> + Sync>(
     file: &crate::format::KdFile<D>,
     rays: &[Ray],
 ) -> Traced {
-    let mut results = vec![0f32; rays.len()];
-    let start = Instant::now();
     let walk = super::FileWalk::new(file);
     let level = crate::simd::SimdLevel::detect();
-    results
-        .par_chunks_mut(LANES_CHUNK)
-        .zip(rays.par_chunks(LANES_CHUNK))
-        .for_each(|(out, rays)| {
+    timed_chunks(
+        rays,
+        LANES_CHUNK,
+        || (),
+        |(), rays, out| {
             let mut occ = [false; LANES_CHUNK];
             super::lanes::occluded_lanes(walk, level, rays, &mut occ[..rays.len()]);
             for (o, h) in out.iter_mut().zip(occ) {
                 *o = f32::from(u8::from(h));
             }
-        });
-    Traced {
-        results,
-        seconds: start.elapsed().as_secs_f64(),
-    }
+        },
+    )
 }
 
 /// Traces one chunk; any-hit packets go through `cache`, the worker's
