@@ -550,6 +550,15 @@ fn check_sorted_batches(
             occ = o.iter().map(|&v| v == 0.0).collect();
             rays::occluded_by_octant(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
             assert_eq!(answers(&occ), o, "{level:?}");
+            // By direction cell, as the renderer traces a tile's AO rays.
+            let mut order = Vec::new();
+            rays::order_by_direction(rays, &mut order);
+            hits.fill(wrong);
+            rays::closest_in_order(tracer, rays, &order, &mut hits);
+            assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
+            occ = o.iter().map(|&v| v == 0.0).collect();
+            rays::occluded_in_order(tracer, rays, &order, &mut occ, &mut cache);
+            assert_eq!(answers(&occ), o, "{level:?}");
         }
     }
 }
@@ -570,4 +579,92 @@ fn octant_order_is_stable_and_grouped() {
     // Octants 0 (rays 1 and 4), 1 (0, 3), 4 (5: -0.0 is not negative),
     // 6 (2); within an octant, the rays' own order.
     assert_eq!(order, [1, 4, 0, 3, 5, 2]);
+}
+
+#[test]
+fn direction_cells_number_the_octahedron_in_morton_order() {
+    let cell = |x: f32, y: f32, z: f32| rays::direction_cell(Vec3::new(x, y, z));
+    assert_eq!(rays::DIRECTION_BINS, 8);
+    // u = |x| / (|x| + |y| + |z|) and v alike, in eighths; the cell
+    // interleaves their bits, u in the lower bit of each pair.
+    assert_eq!(cell(0.0, 0.0, 1.0), 0);
+    assert_eq!(cell(1.0, 0.0, 0.0), 0b01_01_01); // u = 1 clamps to 7
+    assert_eq!(cell(0.0, -1.0, 0.0), 0b10_10_10);
+    assert_eq!(cell(1.0, 1.0, 0.0), 0b11_00_00); // u = v = 4
+    assert_eq!(cell(-1.0, 1.0, 2.0), 0b00_11_00); // u = v = 2
+    assert_eq!(cell(3.0, 1.0, 4.0), 0b00_01_11); // u = 3, v = 1
+    // The sign and the length do not matter; a zero or NaN direction is
+    // cell 0.
+    assert_eq!(cell(-6.0, 2.0, -8.0), cell(3.0, 1.0, 4.0));
+    assert_eq!(cell(0.0, 0.0, 0.0), 0);
+    assert_eq!(cell(f32::NAN, 1.0, 0.0), 0);
+    assert!(cell(f32::INFINITY, 1.0, 0.0) < 64);
+}
+
+#[test]
+fn packets_by_direction_cell_only_from_close_origins() {
+    // Rays of length 10 (tmax 5 along directions of length 2).
+    let ray = |o: Vec3, d: Vec3| {
+        let mut r = Ray::new(o, d.normalize() * 2.0);
+        r.tmax = 5.0;
+        r
+    };
+    let dirs = [
+        Vec3::new(1.0, 0.1, 0.2),
+        Vec3::new(-1.0, 1.0, 1.0),
+        Vec3::new(0.1, 1.0, 0.2),
+        Vec3::new(1.0, 0.15, 0.2),
+        Vec3::new(-1.0, 1.1, 1.0),
+        Vec3::new(0.2, 1.0, 0.1),
+    ];
+    let at = |spread: f32| -> Vec<Ray> {
+        dirs.iter()
+            .enumerate()
+            .map(|(i, &d)| ray(Vec3::new(100.0 + spread * (i % 2) as f32, 0.0, 0.0), d))
+            .collect()
+    };
+    // The origins span 1.9 and 2.1 of the rays' length 10 (0.2 of it).
+    let (close, far) = (at(1.9), at(2.1));
+    assert!(rays::close_origins(&close));
+    assert!(!rays::close_origins(&far));
+    assert!(!rays::close_origins(&[]));
+    let mut flat = close.clone();
+    flat[3].tmax = 0.0;
+    assert!(!rays::close_origins(&flat), "a ray of no length");
+    // Octant 0 holds rays 0, 2, 3 and 5, in cells 20 (u = 6, v = 0), 40
+    // (0, 6), 17 (5, 0) and 41 (1, 6); octant 1 rays 1 and 4, both in
+    // cell 12 (2, 2).
+    let mut got = Vec::new();
+    rays::order_for_packets(&close, &mut got);
+    assert_eq!(got, [3, 0, 2, 5, 1, 4]);
+    rays::order_for_packets(&far, &mut got);
+    assert_eq!(got, [0, 2, 3, 5, 1, 4]);
+}
+
+#[test]
+fn direction_order_groups_octants_then_cells_stably() {
+    let mut seed = 3u64;
+    let mut unit = move || {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (seed >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+    };
+    let rays: Vec<Ray> = (0..3000)
+        .map(|_| Ray::new(Vec3::ZERO, Vec3::new(unit(), unit(), unit())))
+        .collect();
+    let mut order = vec![7; 5];
+    rays::order_by_direction(&rays, &mut order);
+    let mut seen = order.clone();
+    seen.sort_unstable();
+    assert!(seen.iter().copied().eq(0..rays.len() as u32));
+    let key = |i: u32| {
+        let d = rays[i as usize].dir;
+        (rays::octant(d), rays::direction_cell(d), i)
+    };
+    assert!(order.windows(2).all(|w| key(w[0]) < key(w[1])));
+    // Most cells of every octant are used (u + v ≤ 1 is half the square).
+    let cells: std::collections::HashSet<(usize, usize)> =
+        order.iter().map(|&i| (key(i).0, key(i).1)).collect();
+    assert!(cells.len() > 8 * 30, "{}", cells.len());
 }

@@ -17,7 +17,7 @@
 use super::{Camera, Frame, HitBuffer, TriangleNormals, trace_frame};
 use crate::geom::{Aabb, Ray};
 use crate::trace::packet::LANES;
-use crate::trace::rays::occluded_by_octant;
+use crate::trace::rays::{occluded_in_order, order_for_packets};
 use crate::trace::{ClosestHit, HitContext, OccluderCache};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
@@ -211,7 +211,7 @@ fn secondary_rays(
     let mut ao = Vec::new();
     // The hit pixels in tiles of [`TILE_SIDE`]², in Morton order within
     // each, so that a chunk is a square of neighbours and the 16 rays of
-    // an octant that make a packet start close together.
+    // an octant or direction cell that make a packet start close together.
     let mut per_pixel: Vec<(PixelRays, Vec<Ray>)> = per_pixel.into_iter().flatten().collect();
     per_pixel.sort_by_cached_key(|(px, _)| {
         let (x, y) = (px.pixel % width, px.pixel / width);
@@ -230,9 +230,12 @@ fn secondary_rays(
 
 /// The side of the pixel tiles the secondary rays are traced in; a tile
 /// is a chunk ([`CHUNK`]). The AO rays of a chunk are cut into packets of
-/// one octant, and a chunk of 1,024 pixels leaves fewer octants' packets
-/// part-filled than one of 64 (8×8 tiles): the AO frame at view 1 ran
-/// 1.09–1.17× as fast on bunny_scan, dieselpower and ravenbridge.
+/// one octant or direction cell (`order_for_packets`), and a chunk of
+/// 1,024 pixels leaves fewer packets part-filled than one of 64 (8×8
+/// tiles, by octant: the AO frame at view 1 ran 1.09–1.17× as fast on
+/// bunny_scan, dieselpower and ravenbridge). Tiles of 64², every tile by
+/// direction cell, ran ravenbridge's frame 1.10× and dieselpower's 0.96×
+/// as fast as tiles of 32².
 const TILE_SIDE: u32 = 32;
 
 /// Hit pixels a worker takes at a time (a tile's worth); each chunk's
@@ -350,7 +353,7 @@ struct Scratch {
     contexts: Vec<HitContext>,
     shadow: OccluderCache,
     ao: OccluderCache,
-    /// Scratch of the AO rays' octant order.
+    /// Scratch of the AO rays' order.
     order: Vec<u32>,
 }
 
@@ -430,11 +433,13 @@ fn trace_chunk(
             };
             let mut open = vec![0u32; chunk.len()];
             let rays = &ao[first..last];
-            // Packets of one octant, neighbouring pixels together
-            // (ravenbridge AO rays: 2.41 → 2.75 Mrays/s against packets of
-            // consecutive rays, dieselpower 12.1 → 12.8; the sort is timed).
+            // Packets of one direction cell where the tile's origins lie
+            // close together against the rays' length, else of one octant,
+            // neighbouring pixels together (`order_for_packets`; the sort
+            // is timed).
             let mut occ = vec![false; rays.len()];
-            occluded_by_octant(tracer, rays, &mut occ, &mut scratch.ao, &mut scratch.order);
+            order_for_packets(rays, &mut scratch.order);
+            occluded_in_order(tracer, rays, &scratch.order, &mut occ, &mut scratch.ao);
             for (i, o) in occ.into_iter().enumerate() {
                 open[i / spp.max(1)] += u32::from(!o);
             }
