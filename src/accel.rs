@@ -561,10 +561,13 @@ impl AccelTracer<'_> {
     /// to thousands, any directions), into `out`: traced in packets of 16
     /// rays of one octant, in the batch's order within an octant (so a
     /// batch whose neighbouring rays start close together, as neighbouring
-    /// pixels' do, makes coherent packets); a batch whose packets mostly
-    /// keep one octant already (shadow rays toward one light) is traced in
-    /// its own order ([`crate::trace::rays::mixed_octants`]). The same
-    /// records as ray by ray.
+    /// pixels' do, makes coherent packets), or of one direction cell where
+    /// the batch's origins lie close together against its rays' length (a
+    /// tile's AO rays; [`crate::trace::rays::order_for_packets`]); a batch
+    /// whose packets mostly keep one octant already (shadow rays toward
+    /// one light) is traced in its own order
+    /// ([`crate::trace::rays::mixed_octants`]). The same records as ray by
+    /// ray.
     ///
     /// # Panics
     /// If `out` and `rays` differ in length.

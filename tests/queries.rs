@@ -498,6 +498,24 @@ fn sorted_batches_match_brute_force_in_every_octant() {
     assert!(octants.len() >= 4, "{octants:?}");
     assert!(!shadow.chunks(rays::SORT_CHUNK).any(rays::mixed_octants));
     check_sorted_batches(&scene, &file, &shadow);
+    // AO-like rays: each run of 1,024 from close origins around a point of
+    // its own (a tile's hits), in every direction, 0.3 of the box's
+    // diagonal long: batches that mix octants, traced by direction cell.
+    let centres: Vec<Vec3> = (0..3).map(|_| point()).collect();
+    let spread = 0.01 * ext.length();
+    let ao: Vec<Ray> = (0..2500)
+        .map(|i| {
+            let c = centres[i / rays::SORT_CHUNK];
+            let o = c + ((point() - lo) / ext - 0.5) * spread;
+            let d = point() - point();
+            let mut r = Ray::new(o, d);
+            r.tmax = 0.3 * ext.length() / d.length();
+            r
+        })
+        .collect();
+    assert!(ao.chunks(rays::SORT_CHUNK).all(rays::mixed_octants));
+    assert!(ao.chunks(rays::SORT_CHUNK).all(rays::close_origins));
+    check_sorted_batches(&scene, &file, &ao);
 }
 
 /// `trace_batch_sorted` returns the brute-force results for `rays` with

@@ -477,13 +477,15 @@ pub fn occluded_in_order(
     }
 }
 
-/// Closest hits of a batch of `rays` into `out`, 16 at a time: by
-/// [`closest_by_octant`] where the batch mixes octants
+/// Closest hits of a batch of `rays` into `out`, 16 at a time: in the
+/// order of [`order_for_packets`] (by direction cell where the origins
+/// lie close together, else by octant) where the batch mixes octants
 /// ([`mixed_octants`]), else in packets of its own order. `order` is
 /// scratch.
 pub fn closest_batch(tracer: &dyn ClosestHit, rays: &[Ray], out: &mut [Hit], order: &mut Vec<u32>) {
     if mixed_octants(rays) {
-        closest_by_octant(tracer, rays, out, order);
+        order_for_packets(rays, order);
+        closest_in_order(tracer, rays, order, out);
     } else {
         for (rays, out) in rays.chunks(LANES).zip(out.chunks_mut(LANES)) {
             tracer.closest_hit_n(rays, out);
@@ -492,7 +494,7 @@ pub fn closest_batch(tracer: &dyn ClosestHit, rays: &[Ray], out: &mut [Hit], ord
 }
 
 /// [`closest_batch`] for any-hit queries, through the worker's occluder
-/// cache ([`occluded_by_octant`] where the batch mixes octants).
+/// cache.
 pub fn occluded_batch(
     tracer: &dyn ClosestHit,
     rays: &[Ray],
@@ -501,7 +503,8 @@ pub fn occluded_batch(
     order: &mut Vec<u32>,
 ) {
     if mixed_octants(rays) {
-        occluded_by_octant(tracer, rays, out, cache, order);
+        order_for_packets(rays, order);
+        occluded_in_order(tracer, rays, order, out, cache);
     } else {
         for (rays, out) in rays.chunks(LANES).zip(out.chunks_mut(LANES)) {
             tracer.occluded_n_cached(rays, out, cache);
@@ -661,7 +664,7 @@ pub fn count_batch(
             let mut stats = TraceStats::default();
             let mut order = Vec::new();
             if pieces == Pieces::Sorted && mixed_octants(rays) {
-                order_by_direction(rays, &mut order);
+                order_for_packets(rays, &mut order);
             } else {
                 order.extend(0..rays.len() as u32);
             }

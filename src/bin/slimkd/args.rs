@@ -695,9 +695,10 @@ pub struct TraceArgs {
     /// rays (any-hit packets test first the triangles that blocked the
     /// last packet their thread traced), packets of 16 rays of one octant
     /// (`sorted`: each run of 1,024 consecutive rays ordered by the signs
-    /// of its directions, stably and timed, as `render` orders its
-    /// AO rays; a run whose packets mostly keep one octant, as shadow rays
-    /// toward one light do, stays in its order), or single rays walked
+    /// of its directions, or by direction cell where the run's origins lie
+    /// close together against its rays' length, stably and timed, as
+    /// `render` orders its AO rays; a run whose packets mostly keep one
+    /// octant, as shadow rays toward one light do, stays in its order), or single rays walked
     /// `from-hit`: from the context of their origin (located once for a
     /// run of rays with the same origin, as the shadow and AO rays of one
     /// hit point are; the location is timed), single rays walked leaf to leaf by `ropes` from the cell of
