@@ -649,6 +649,9 @@ fn packets_by_direction_cell_only_from_close_origins() {
     let mut flat = close.clone();
     flat[3].tmax = 0.0;
     assert!(!rays::close_origins(&flat), "a ray of no length");
+    let mut endless = far.clone();
+    endless.iter_mut().for_each(|r| r.tmax = f32::INFINITY);
+    assert!(rays::close_origins(&endless), "rays without an end");
     // Octant 0 holds rays 0, 2, 3 and 5, in cells 20 (u = 6, v = 0), 40
     // (0, 6), 17 (5, 0) and 41 (1, 6); octant 1 rays 1 and 4, both in
     // cell 12 (2, 2).

@@ -327,7 +327,7 @@ fn direction_key(dir: Vec3) -> usize {
 /// (a counting sort: stable, so that rays that start close together stay
 /// together). A packet of such rays from close origins shares its sign
 /// bits (one order of every split's children) and, mostly, its path: the
-/// renderer's AO rays of ravenbridge, in 32×32 tiles, took 15.2 packet
+/// renderer's AO rays of ravenbridge, in 32×32 tiles, took 15.4 packet
 /// steps a ray at 3.9 active lanes against 22.1 at 2.4 by octant alone.
 /// From origins far apart it loses: the peer's AO files in chunks of
 /// 1,024 rays (256 pixels of a row) ran 0.83–0.91× as fast as by octant.
@@ -345,7 +345,7 @@ pub fn order_by_direction(rays: &[Ray], order: &mut Vec<u32>) {
 /// pixels, rays of 5 % of the scene's diagonal) on the six shared scenes
 /// at view 1: a tile's origins span a median 0.00–0.04 of the rays'
 /// length on candela_city, black_forest and ravenbridge, whose AO frames
-/// ran 1.25–1.37× as fast by direction cell, and 0.20–0.26 on
+/// ran 1.28–1.35× as fast by direction cell, and 0.20–0.26 on
 /// dieselpower, aneurysm and bunny_scan: by direction cell everywhere
 /// 1.04×, 1.07× and 0.86×; at 0.1, 0.98–1.02×; at 0.3, 1.05×, 1.09× and
 /// 0.97×.
@@ -353,8 +353,9 @@ pub const CLOSE_ORIGINS: f32 = 0.2;
 
 /// Whether the origins of `rays` lie within a box whose diagonal is below
 /// [`CLOSE_ORIGINS`] times the shortest ray's length (`tmax · |dir|`).
-/// False for an empty batch or rays of no length; a NaN coordinate or
-/// length is passed over (`f32::min`, `max`).
+/// False for an empty batch or rays of no length, true for rays without
+/// an end (`tmax` ∞) from finite origins; a NaN coordinate or length is
+/// passed over (`f32::min`, `max`).
 pub fn close_origins(rays: &[Ray]) -> bool {
     let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
     let mut length = f32::INFINITY;
