@@ -543,8 +543,8 @@ fn check_sorted_batches(
             assert_eq!(closest.results, t, "{level:?}");
             let occ = rays::trace_batch_sorted(tracer, rays, Query::Occluded);
             assert_eq!(occ.results, o, "{level:?}");
-            // The whole batch at once, as the facade traces its batches
-            // (and the renderer its AO rays, always by octant), into
+            // The whole batch at once, as the facade traces its batches,
+            // and in each order the renderer takes for its AO rays, into
             // answers that start wrong.
             let wrong = Hit {
                 t: -1.0,
@@ -553,8 +553,10 @@ fn check_sorted_batches(
             let mut hits = vec![wrong; rays.len()];
             rays::closest_batch(tracer, rays, &mut hits, &mut Vec::new());
             assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
+            let mut octants = Vec::new();
+            rays::order_by_octant(rays, &mut octants);
             hits.fill(wrong);
-            rays::closest_by_octant(tracer, rays, &mut hits, &mut Vec::new());
+            rays::closest_in_order(tracer, rays, &octants, &mut hits);
             assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
             let mut cache = slimkd::trace::OccluderCache::new();
             let answers = |occ: &[bool]| {
@@ -566,7 +568,7 @@ fn check_sorted_batches(
             rays::occluded_batch(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
             assert_eq!(answers(&occ), o, "{level:?}");
             occ = o.iter().map(|&v| v == 0.0).collect();
-            rays::occluded_by_octant(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
+            rays::occluded_in_order(tracer, rays, &octants, &mut occ, &mut cache);
             assert_eq!(answers(&occ), o, "{level:?}");
             // By direction cell, as the renderer traces a tile's AO rays.
             let mut order = Vec::new();
