@@ -72,27 +72,6 @@ fn check_from(src: &impl KdSource, scene: &TriangleColumns, rays: &[Ray], other:
     }
 }
 
-/// Rays from grid points (often on split planes) in scattered directions,
-/// short and long, as shadow and ambient-occlusion rays are.
-fn secondary_ray(g: i32) -> impl Strategy<Value = Ray> {
-    let coord = move || (-1..=2 * g + 1).prop_map(|k| k as f32 * 0.5);
-    let point = (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
-    let dir = (-4i32..=4, -4i32..=4, -4i32..=4)
-        .prop_filter("zero direction", |&(x, y, z)| (x, y, z) != (0, 0, 0))
-        .prop_map(|(x, y, z)| Vec3::new(x as f32, y as f32, z as f32));
-    (
-        point,
-        dir,
-        0.0f32..0.5,
-        prop_oneof![Just(f32::INFINITY), 0.1f32..4.0],
-    )
-        .prop_map(|(o, d, tmin, span)| Ray {
-            tmin,
-            tmax: tmin + span,
-            ..Ray::new(o, d)
-        })
-}
-
 fn trees(scene: &TriangleColumns) -> Vec<slimkd::tree::TreeIr> {
     let tree = build::build(scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
     // Everything that can be hoisted is: hoisted triangles on the path of

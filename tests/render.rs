@@ -265,6 +265,7 @@ fn ao_frames_match_brute_force_in_every_mode() {
     use slimkd::render::{AoOptions, Secondary};
     use slimkd::trace::packet::PacketTracer;
     use slimkd::trace::ropes::{RopeTracer, Ropes};
+    use slimkd::trace::wide::{WideBoxes, WideTracer};
     use slimkd::trace::{ClosestHit, KdSource, Scalar};
     let views =
         render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
@@ -299,7 +300,9 @@ fn ao_frames_match_brute_force_in_every_mode() {
         let packet = PacketTracer::new(&file);
         let ropes = Ropes::new(file.walk()).unwrap();
         let rope_tracer = RopeTracer::new(&file, &ropes);
-        let tracers: [&dyn ClosestHit; 3] = [&scalar, &packet, &rope_tracer];
+        let boxes = WideBoxes::new(file.walk()).unwrap();
+        let wide_tracer = WideTracer::new(&file, &boxes);
+        let tracers: [&dyn ClosestHit; 4] = [&scalar, &packet, &rope_tracer, &wide_tracer];
         for tracer in tracers {
             for secondary in [Secondary::Single, Secondary::Packet, Secondary::FromHit] {
                 let got = render::trace_ao_frame(
@@ -375,6 +378,30 @@ fn cli_ao_frame_reports_each_ray_kind() {
     assert_eq!(common::json(&run)["ao"]["secondary"], "ropes");
     assert_eq!(
         std::fs::read(&by_ropes).unwrap(),
+        std::fs::read(&out).unwrap()
+    );
+    // Over wide boxes: the same picture, the mode named.
+    let by_wide = dir.join("wide.png");
+    let run = slimkd(&[
+        "render",
+        "default",
+        "--view",
+        "1",
+        "--size",
+        "64x48",
+        "--shading",
+        "ao",
+        "--spp",
+        "2",
+        "--secondary",
+        "wide",
+        "--json",
+        "-o",
+        by_wide.to_str().unwrap(),
+    ]);
+    assert_eq!(common::json(&run)["ao"]["secondary"], "wide");
+    assert_eq!(
+        std::fs::read(&by_wide).unwrap(),
         std::fs::read(&out).unwrap()
     );
     // --spp without --shading ao is a usage error.

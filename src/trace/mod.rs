@@ -29,6 +29,7 @@ pub mod packet;
 pub mod rays;
 pub mod ropes;
 pub mod stream;
+pub mod wide;
 
 pub use context::{HitContext, locate, locate_into};
 pub use file::FileWalk;

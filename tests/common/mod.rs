@@ -347,3 +347,26 @@ pub fn skip(reason: &str) {
     );
     let _ = writeln!(std::io::stderr(), "skipped {test}: {reason}");
 }
+
+/// Rays from grid points of `[0, g]³` at half-integer steps (on split
+/// planes, box faces, edges and corners of cells) in scattered directions
+/// (many along an axis, so with zero components, or a diagonal), short
+/// and long, as shadow and ambient-occlusion rays are.
+pub fn secondary_ray(g: i32) -> impl Strategy<Value = Ray> {
+    let coord = move || (-1..=2 * g + 1).prop_map(|k| k as f32 * 0.5);
+    let point = (coord(), coord(), coord()).prop_map(|(x, y, z)| Vec3::new(x, y, z));
+    let dir = (-4i32..=4, -4i32..=4, -4i32..=4)
+        .prop_filter("zero direction", |&(x, y, z)| (x, y, z) != (0, 0, 0))
+        .prop_map(|(x, y, z)| Vec3::new(x as f32, y as f32, z as f32));
+    (
+        point,
+        dir,
+        prop_oneof![Just(0.0f32), 0.0f32..0.5],
+        prop_oneof![Just(f32::INFINITY), 0.1f32..4.0],
+    )
+        .prop_map(|(o, d, tmin, span)| Ray {
+            tmin,
+            tmax: tmin + span,
+            ..Ray::new(o, d)
+        })
+}

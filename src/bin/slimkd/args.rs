@@ -590,6 +590,9 @@ pub(crate) enum SecondaryArg {
     /// One ray at a time leaf to leaf by ropes from the cell of its hit
     /// point (std trees; primary rays in packets).
     Ropes,
+    /// One ray at a time over a hierarchy of eight boxes a node around the
+    /// tree's leaves (primary rays in packets).
+    Wide,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -661,7 +664,9 @@ pub(crate) struct RenderArgs {
     /// (one at a time from the root), `from-hit` (one at a time from the
     /// context of the hit point, one per pixel) or `ropes` (one at a time
     /// leaf to leaf from the cell of the hit point, by ropes built after
-    /// opening and reported apart; std trees, `--mode packet`).
+    /// opening and reported apart; std trees, `--mode packet`) or `wide`
+    /// (one at a time over boxes around the tree's leaves, eight a node,
+    /// built after opening and reported apart; `--mode packet`).
     #[arg(long, value_enum)]
     pub(crate) secondary: Option<SecondaryArg>,
     /// Traversal mode: 4×4 packets (the default, as the main job), single
@@ -706,7 +711,9 @@ pub struct TraceArgs {
     /// opening, untimed, and reported apart; std trees only), or any-hit
     /// queries as a `stream` of 256 rays at a time, or in `lanes`: 16 rays
     /// at a time, each on its own path, refilled from batches of 2048
-    /// (both --occluded only).
+    /// (both --occluded only), or single rays over `wide` boxes (the
+    /// tree's leaves in a hierarchy of eight boxes a node, built after
+    /// opening, untimed, and reported apart).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).
@@ -733,6 +740,7 @@ pub enum TraceMode {
     Ropes,
     Stream,
     Lanes,
+    Wide,
 }
 
 #[derive(clap::Args)]

@@ -23,6 +23,7 @@ use slimkd::scene::TriangleColumns;
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::ropes::{RopeTracer, Ropes};
+use slimkd::trace::wide::{WideBoxes, WideTracer};
 use slimkd::trace::{BruteForce, ClosestHit, KdSource, Scalar, TreeTracer};
 use std::path::Path;
 use std::time::Instant;
@@ -193,7 +194,24 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
         .transpose()
         .map_err(|e| format!("{}: {e}", args.scene.display()))?;
         let ropes_ms = ropes_start.elapsed().as_secs_f64() * 1e3;
+        let use_wide = args.secondary == Some(SecondaryArg::Wide);
+        if use_wide && args.mode != ModeArg::Packet {
+            return Err(Usage("--secondary wide traces its primary rays in packets (--mode packet)".into()).into());
+        }
+        let wide_start = Instant::now();
+        let wide = match (&source, use_wide) {
+            (_, false) => None,
+            (Source::Built { .. }, true) => Some(WideBoxes::new(tree_tracer.as_ref().expect("built").walk())),
+            (Source::File { file, .. }, true) => Some(WideBoxes::new(file.walk())),
+        }
+        .transpose()
+        .map_err(|e| format!("{}: {e}", args.scene.display()))?;
+        let wide_ms = wide_start.elapsed().as_secs_f64() * 1e3;
         let tracer: Box<dyn ClosestHit + '_> = match (&source, args.mode, &ropes) {
+            (Source::Built { .. }, _, _) if let Some(w) = &wide => {
+                Box::new(WideTracer::new(tree_tracer.as_ref().expect("built"), w))
+            }
+            (Source::File { file, .. }, _, _) if let Some(w) = &wide => Box::new(WideTracer::new(file, w)),
             (Source::Built { .. }, _, Some(r)) => Box::new(RopeTracer::new(tree_tracer.as_ref().expect("built"), r)),
             (Source::File { file, .. }, _, Some(r)) => Box::new(RopeTracer::new(file, r)),
             (_, ModeArg::Brute, None) => Box::new(BruteForce(columns.expect("columns for brute force"))),
@@ -216,6 +234,21 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
                 r.bytes() as f64 / tris.max(1) as f64
             );
         }
+        if let Some(w) = &wide
+            && !ui.quiet
+            && !ui.json
+        {
+            let tris = match &source {
+                Source::File { file, .. } => file.triangles().len(),
+                Source::Built { loaded, .. } => loaded.scene.len(),
+            };
+            eprintln!(
+                "wide boxes {} nodes over {} leaves, {:.1} bytes/triangle (not in the tree's bytes), built in {wide_ms:.0} ms",
+                w.nodes(),
+                w.leaves(),
+                w.bytes() as f64 / tris.max(1) as f64
+            );
+        }
         let mut rates = Vec::new();
         let mut last: Option<HitBuffer> = None;
         let mut ao_reps: Vec<AoTimes> = Vec::new();
@@ -227,6 +260,8 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
                 SecondaryArg::Packet => Secondary::Packet,
                 // A rope tracer's contexts are its cells.
                 SecondaryArg::FromHit | SecondaryArg::Ropes => Secondary::FromHit,
+                // A wide tracer's single rays walk its boxes.
+                SecondaryArg::Wide => Secondary::Single,
             },
         };
         for rep in 0..args.reps {
@@ -290,6 +325,9 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
             let mut ao = AoJson::of(&ao_options, &ao_reps);
             if use_ropes {
                 ao.secondary = "ropes";
+            }
+            if use_wide {
+                ao.secondary = "wide";
             }
             ao
         });

@@ -7,6 +7,7 @@ use slimkd::fsio;
 use slimkd::trace::packet::PacketTracer;
 use slimkd::trace::rays::{self, Query};
 use slimkd::trace::ropes::{RopeTracer, Ropes};
+use slimkd::trace::wide::{WideBoxes, WideTracer};
 use slimkd::trace::{self as tr, ClosestHit, Hit, KdSource, Scalar, TraceStats};
 use std::io::Write;
 use std::time::Instant;
@@ -32,6 +33,8 @@ struct TraceJson {
     open_ms: f64,
     /// `--mode ropes`: the ropes' build and size, apart from the tree's.
     ropes: Option<RopesJson>,
+    /// `--mode wide`: the boxes' build and size, apart from the tree's.
+    wide: Option<WideJson>,
     stats: Option<TraceStatsJson>,
 }
 
@@ -41,6 +44,15 @@ struct RopesJson {
     bytes: usize,
     bytes_per_tri: f64,
     cells: usize,
+}
+
+#[derive(Serialize)]
+struct WideJson {
+    build_ms: f64,
+    bytes: usize,
+    bytes_per_tri: f64,
+    nodes: usize,
+    leaves: usize,
 }
 
 #[derive(Serialize)]
@@ -91,10 +103,26 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         cells: r.cells(),
     });
     let rope_tracer = ropes.as_ref().map(|r| RopeTracer::new(&file, r));
-    let tracer: &dyn ClosestHit = match (&rope_tracer, packets) {
-        (Some(r), _) => r,
-        (None, true) => &packet,
-        (None, false) => &scalar,
+    let wide_start = Instant::now();
+    let wide = match args.mode {
+        TraceMode::Wide => {
+            Some(WideBoxes::new(file.walk()).map_err(|e| format!("{}: {e}", args.file.display()))?)
+        }
+        _ => None,
+    };
+    let wide_json = wide.as_ref().map(|b| WideJson {
+        build_ms: wide_start.elapsed().as_secs_f64() * 1e3,
+        bytes: b.bytes(),
+        bytes_per_tri: b.bytes() as f64 / file.triangles().len().max(1) as f64,
+        nodes: b.nodes(),
+        leaves: b.leaves(),
+    });
+    let wide_tracer = wide.as_ref().map(|b| WideTracer::new(&file, b));
+    let tracer: &dyn ClosestHit = match (&rope_tracer, &wide_tracer, packets) {
+        (Some(r), _, _) => r,
+        (None, Some(w), _) => w,
+        (None, None, true) => &packet,
+        (None, None, false) => &scalar,
     };
     let (rates, last) = pool.install(|| {
         let batch = || match args.mode {
@@ -122,6 +150,10 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                      cache: &mut slimkd::trace::OccluderCache| {
             if packets {
                 packet.trace_counted_cached(r, any, out, s, cache);
+            } else if let Some(wt) = &wide_tracer {
+                for (ray, h) in r.iter().zip(out.iter_mut()) {
+                    *h = wt.trace_counted(ray, any, s);
+                }
             } else if let Some(rt) = &rope_tracer {
                 let mut ctx = slimkd::trace::context::HitContext::default();
                 for (ray, h) in r.iter().zip(out.iter_mut()) {
@@ -180,6 +212,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         TraceMode::Ropes => "ropes",
         TraceMode::Stream => "stream",
         TraceMode::Lanes => "lanes",
+        TraceMode::Wide => "wide",
     };
     let query_name = if args.occluded { "occluded" } else { "closest" };
     let threads = pool.current_num_threads();
@@ -208,6 +241,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                 checksum: last.checksum(query),
                 open_ms,
                 ropes: ropes_json,
+                wide: wide_json,
                 stats: stats.as_ref().map(|(s, _)| TraceStatsJson {
                     rays: s.rays,
                     nodes_per_ray: per_ray(s, s.nodes),
@@ -233,6 +267,12 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
             println!(
                 "ropes: {} cells, {:.1} bytes/triangle (not in the tree's bytes), built in {:.0} ms",
                 r.cells, r.bytes_per_tri, r.build_ms
+            );
+        }
+        if let Some(w) = &wide_json {
+            println!(
+                "wide boxes: {} nodes over {} leaves, {:.1} bytes/triangle (not in the tree's bytes), built in {:.0} ms",
+                w.nodes, w.leaves, w.bytes_per_tri, w.build_ms
             );
         }
         if let Some((s, _)) = &stats {

@@ -1,0 +1,679 @@
+//! Single rays over a wide box hierarchy of the tree's leaves, built in
+//! memory when a tree is opened for it: per leaf the tight bounds of its
+//! triangles clipped to its cell, per inner node the union of its
+//! children's (and of its hoisted triangle's part of its cell), and the
+//! tree collapsed into nodes of up to eight such boxes, empty cells left
+//! out. A ray tests a node's eight boxes in the lanes of one register and
+//! visits the ones it enters nearest first.
+//!
+//! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
+//! where it starts and then crosses ~10 cells, 7 of them empty
+//! (ravenbridge's AO rays, perf-notes "Ropes"): ~60 binary steps. The
+//! boxes drop the empty cells and take about three levels a step: 13
+//! node visits an AO ray there, 1.5× the single walk's rays a second.
+//! Packets of 16 still run the renderer's AO rays faster (perf-notes
+//! "Single rays over wide boxes"), so this is a mode, not the default.
+//!
+//! **Exact, as the other walks.** A triangle's part of a leaf's cell lies
+//! in that leaf's box (the clip's bounds are rounded outward, and padded
+//! by [`PAD`] of their magnitude), and every ancestor's box holds its
+//! children's, so the ray enters every box that holds a hit point. A box
+//! is visited when its entry distance lies within [`MARGIN`] of its exit
+//! and of the best hit so far (ties included: the smaller input id wins,
+//! as in brute force), so rounding of the slab distances never drops one.
+//! Each node's boxes are tested once per ray, so a hoisted triangle is
+//! tested once; a leaf's triangles may be tested again in another leaf,
+//! which changes nothing. Rays whose direction has a component so small
+//! that its inverse overflows go to the walk from the root.
+
+use super::packet::PacketTracer;
+use super::{
+    ClosestHit, Hit, KdSource, MARGIN, Scalar, SourceNode, TraceStats, Walk, test_one, walk_ray,
+};
+use crate::geom::{Aabb, Ray, RayPrecomp, clip_triangle};
+use crate::tree::MAX_DEPTH;
+use glam::Vec3;
+use std::mem::MaybeUninit;
+use thiserror::Error;
+
+/// Boxes a node holds: one AVX2 register of `f32` per plane.
+pub const WIDTH: usize = 8;
+
+/// Relative padding of every box: the clip's bounds are already rounded
+/// outward; this covers a hit point that the watertight test accepts a
+/// rounding off its triangle.
+pub const PAD: f32 = 1.0 / (1 << 18) as f32;
+
+/// A child slot that holds a leaf: `LEAF | kd node id`.
+const LEAF: u32 = 1 << 31;
+/// An unused slot (its box is empty, so it is never entered).
+const NONE: u32 = u32::MAX;
+
+/// Pending nodes a walk can hold: each level of the hierarchy (at most
+/// one a level of the kd-tree) pushes at most `WIDTH - 1` more than it
+/// pops.
+const STACK: usize = WIDTH * (MAX_DEPTH as usize + 2);
+
+/// Why a tree has no wide boxes.
+#[derive(Debug, Error, PartialEq, Eq)]
+pub enum WideError {
+    /// More nodes than the source holds, or deeper than any tree (a file
+    /// whose children share subtrees or loop).
+    #[error("the tree's nodes do not form a tree of at most {0} nodes")]
+    NotATree(usize),
+}
+
+/// One node: the boxes of up to eight children, plane by plane, their
+/// references, and the hoisted triangle of the kd node it stands for.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct WideNode {
+    lo: [[f32; WIDTH]; 3],
+    hi: [[f32; WIDTH]; 3],
+    /// A child node's index, `LEAF | start` of a leaf's list in
+    /// [`WideBoxes`]'s `tris`, or `NONE`.
+    child: [u32; WIDTH],
+    /// The kd node's hoisted triangle (source numbering), or `NONE`.
+    hoist: u32,
+    /// Bit `j` set where slot `j` holds a leaf.
+    leaves: u32,
+}
+
+impl WideNode {
+    const EMPTY: WideNode = WideNode {
+        lo: [[f32::INFINITY; WIDTH]; 3],
+        hi: [[f32::NEG_INFINITY; WIDTH]; 3],
+        child: [NONE; WIDTH],
+        hoist: NONE,
+        leaves: 0,
+    };
+}
+
+/// The wide box hierarchy of one tree ([`WideBoxes::new`]).
+pub struct WideBoxes {
+    nodes: Vec<WideNode>,
+    /// Per leaf slot (`LEAF | start`): its triangle count at `start`,
+    /// then their ids (source numbering).
+    tris: Vec<u32>,
+    leaves: usize,
+    /// The tree's identity ([`Walk::tag`]).
+    tag: (usize, usize),
+}
+
+/// `b` grown by [`PAD`] of its magnitude on every side.
+fn padded(b: &Aabb) -> Aabb {
+    let grow = |x: Vec3| x.abs() * PAD + Vec3::splat(f32::MIN_POSITIVE);
+    Aabb::new(b.min - grow(b.min), b.max + grow(b.max))
+}
+
+impl WideBoxes {
+    /// The hierarchy of the tree `walk` views: one pass computes every
+    /// node's tight box (each reference clipped to its leaf's cell), a
+    /// second collapses the tree top-down, opening the child with the
+    /// largest box until a node holds eight.
+    pub fn new<'a, W: Walk<'a>>(walk: W) -> Result<WideBoxes, WideError> {
+        let n_ids = walk.tag().1;
+        let limit = walk.step_limit() as usize;
+        let tight = tight_boxes(walk, n_ids, limit)?;
+        let is_node = |c: u32| (c as usize) < n_ids;
+        let mut nodes = vec![WideNode::EMPTY];
+        let mut leaves = 0usize;
+        let mut tris: Vec<u32> = Vec::new();
+        // (kd node, wide node it fills)
+        let mut todo = vec![(0u32, 0u32)];
+        if !is_node(0) {
+            // An empty tree: a root without children.
+            todo.clear();
+        }
+        while let Some((kd, w)) = todo.pop() {
+            let mut front: Vec<u32> = Vec::with_capacity(WIDTH + 1);
+            match walk.node(kd) {
+                SourceNode::Leaf(tris) => {
+                    // Only the root can be a leaf here.
+                    if !tris.is_empty() {
+                        front.push(kd);
+                    }
+                }
+                SourceNode::Inner(i) => {
+                    nodes[w as usize].hoist = i.t_ref.unwrap_or(NONE);
+                    for c in [i.left, i.right] {
+                        if is_node(c) && !tight[c as usize].is_empty() {
+                            front.push(c);
+                        }
+                    }
+                }
+            }
+            // Open the largest inner child without a hoisted triangle
+            // until the node is full.
+            loop {
+                let mut pick: Option<(usize, f64)> = None;
+                for (k, &c) in front.iter().enumerate() {
+                    if let SourceNode::Inner(i) = walk.node(c)
+                        && i.t_ref.is_none()
+                    {
+                        let area = tight[c as usize].surface_area();
+                        if pick.is_none_or(|(_, a)| area > a) {
+                            pick = Some((k, area));
+                        }
+                    }
+                }
+                let Some((k, _)) = pick else { break };
+                let SourceNode::Inner(i) = walk.node(front[k]) else {
+                    unreachable!("picked an inner node")
+                };
+                let kids: Vec<u32> = [i.left, i.right]
+                    .into_iter()
+                    .filter(|&c| is_node(c) && !tight[c as usize].is_empty())
+                    .collect();
+                if front.len() - 1 + kids.len() > WIDTH {
+                    break;
+                }
+                front.swap_remove(k);
+                front.extend(kids);
+            }
+            for (slot, &c) in front.iter().enumerate() {
+                let b = padded(&tight[c as usize]);
+                let child = match walk.node(c) {
+                    SourceNode::Leaf(ids) => {
+                        leaves += 1;
+                        let start = tris.len();
+                        if start + 1 + ids.len() >= LEAF as usize {
+                            return Err(WideError::NotATree(limit));
+                        }
+                        tris.push(ids.len() as u32);
+                        tris.extend((0..ids.len()).map(|i| ids.get(i)));
+                        LEAF | start as u32
+                    }
+                    SourceNode::Inner(_) => {
+                        let id = nodes.len() as u32;
+                        nodes.push(WideNode::EMPTY);
+                        todo.push((c, id));
+                        id
+                    }
+                };
+                let node = &mut nodes[w as usize];
+                for k in 0..3 {
+                    node.lo[k][slot] = b.min[k];
+                    node.hi[k][slot] = b.max[k];
+                }
+                node.child[slot] = child;
+                if child & LEAF != 0 {
+                    node.leaves |= 1 << slot;
+                }
+            }
+        }
+        let nodes = pull_up(&nodes);
+        Ok(WideBoxes {
+            nodes,
+            tris,
+            leaves,
+            tag: walk.tag(),
+        })
+    }
+
+    /// Bytes held in memory (not part of the tree's bytes).
+    pub fn bytes(&self) -> usize {
+        self.nodes.len() * std::mem::size_of::<WideNode>() + self.tris.len() * 4
+    }
+
+    /// Nodes of the hierarchy.
+    pub fn nodes(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Non-empty leaves it holds.
+    pub fn leaves(&self) -> usize {
+        self.leaves
+    }
+}
+
+/// The same hierarchy with every child node that fits into its
+/// parent's free slots taken into it (its boxes replace its own), and the
+/// nodes renumbered from the root: the top-down collapse leaves nodes of
+/// few slots at the bottom (ravenbridge: 3.8 slots a node).
+fn pull_up(old: &[WideNode]) -> Vec<WideNode> {
+    let slots = |n: &WideNode| n.child.iter().filter(|&&c| c != NONE).count();
+    let mut out: Vec<WideNode> = Vec::with_capacity(old.len());
+    if old.is_empty() {
+        return out;
+    }
+    out.push(old[0]);
+    let mut at = 0usize;
+    while at < out.len() {
+        let mut n = out[at];
+        // Take in the child that fits with the most slots, while one fits.
+        loop {
+            let used = slots(&n);
+            let mut pick: Option<(usize, usize)> = None;
+            for j in 0..WIDTH {
+                let c = n.child[j];
+                if c == NONE || c & LEAF != 0 {
+                    continue;
+                }
+                let cn = &old[c as usize];
+                let k = slots(cn);
+                if cn.hoist == NONE && used - 1 + k <= WIDTH && pick.is_none_or(|(_, b)| k > b) {
+                    pick = Some((j, k));
+                }
+            }
+            let Some((j, _)) = pick else { break };
+            let cn = old[n.child[j] as usize];
+            // Slot `j` takes the child's first slot, free slots the rest.
+            let free_slots: Vec<usize> = (0..WIDTH).filter(|&s| n.child[s] == NONE).collect();
+            let mut free = free_slots.into_iter();
+            let mut first = true;
+            for s in 0..WIDTH {
+                if cn.child[s] == NONE {
+                    continue;
+                }
+                let dst = if first {
+                    first = false;
+                    j
+                } else {
+                    free.next().expect("the child fits")
+                };
+                for k in 0..3 {
+                    n.lo[k][dst] = cn.lo[k][s];
+                    n.hi[k][dst] = cn.hi[k][s];
+                }
+                n.child[dst] = cn.child[s];
+            }
+            if first {
+                // A child without slots: its own slot goes empty.
+                n.child[j] = NONE;
+                for k in 0..3 {
+                    n.lo[k][j] = f32::INFINITY;
+                    n.hi[k][j] = f32::NEG_INFINITY;
+                }
+            }
+        }
+        // Renumber the inner children into `out`.
+        n.leaves = 0;
+        for j in 0..WIDTH {
+            let c = n.child[j];
+            if c == NONE {
+                continue;
+            }
+            if c & LEAF != 0 {
+                n.leaves |= 1 << j;
+            } else {
+                n.child[j] = out.len() as u32;
+                out.push(old[c as usize]);
+            }
+        }
+        out[at] = n;
+        at += 1;
+    }
+    out
+}
+
+/// Every kd node's tight box: its references clipped to its cell, its
+/// hoisted triangle's part, its children's boxes; empty for a subtree
+/// without triangles. Errors when the nodes do not form a tree.
+fn tight_boxes<'a, W: Walk<'a>>(
+    walk: W,
+    n_ids: usize,
+    limit: usize,
+) -> Result<Vec<Aabb>, WideError> {
+    let mut tight = vec![Aabb::EMPTY; n_ids];
+    if n_ids == 0 {
+        return Ok(tight);
+    }
+    // Depth-first; an inner node is met twice: going down (`false`), and
+    // after its children (`true`), when their boxes are known.
+    let mut stack: Vec<(u32, Aabb, u32, bool)> = vec![(0, walk.bounds(), 0, false)];
+    let mut steps = 0usize;
+    while let Some((n, cell, depth, done)) = stack.pop() {
+        match walk.node(n) {
+            SourceNode::Leaf(tris) => {
+                steps += 1;
+                if steps > limit {
+                    return Err(WideError::NotATree(limit));
+                }
+                let mut b = Aabb::EMPTY;
+                for i in 0..tris.len() {
+                    if let Some(c) = clip_triangle(&walk.triangle(tris.get(i)), &cell) {
+                        b = b.union(&c);
+                    }
+                }
+                tight[n as usize] = b;
+            }
+            SourceNode::Inner(i) if done => {
+                let mut b = Aabb::EMPTY;
+                if let Some(t) = i.t_ref
+                    && let Some(c) = clip_triangle(&walk.triangle(t), &cell)
+                {
+                    b = c;
+                }
+                for c in [i.left, i.right] {
+                    if (c as usize) < n_ids {
+                        b = b.union(&tight[c as usize]);
+                    }
+                }
+                tight[n as usize] = b;
+            }
+            SourceNode::Inner(i) => {
+                steps += 1;
+                if steps > limit || depth > MAX_DEPTH {
+                    return Err(WideError::NotATree(limit));
+                }
+                stack.push((n, cell, depth, true));
+                let (l, r) = cell.split(usize::from(i.axis), i.pos);
+                for (c, b) in [(i.left, l), (i.right, r)] {
+                    if (c as usize) < n_ids {
+                        stack.push((c, b, depth + 1, false));
+                    }
+                }
+            }
+        }
+    }
+    Ok(tight)
+}
+
+/// Packs eight flags into a byte, flag `i` into bit `i`.
+#[inline(always)]
+fn mask8(b: [bool; WIDTH]) -> u32 {
+    const GATHER: u64 = 0x0102_0408_1020_4080;
+    let x = u64::from_le_bytes(b.map(u8::from));
+    (x.wrapping_mul(GATHER) >> 56) as u32
+}
+
+/// A ray as the box tests read it.
+struct Slabs {
+    o: [f32; 3],
+    inv: [f32; 3],
+    /// Per axis: the direction is negative (the entry plane is `hi`).
+    neg: [bool; 3],
+    tmin: f32,
+}
+
+/// The boxes of `wn` the ray enters in `(tmin, limit]` (bit `j` for slot
+/// `j`), and their entry distances. Each axis's entry and exit planes are
+/// chosen once by the direction's sign. A NaN (a zero component with the
+/// origin in the face plane) compares false and leaves the bound as it
+/// was: the ray runs in the closed slab. An empty slot's `∞` planes give
+/// an entry at `+∞`.
+#[inline(always)]
+fn enter(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]) {
+    let planes = |k: usize| {
+        if r.neg[k] {
+            (&wn.hi[k], &wn.lo[k])
+        } else {
+            (&wn.lo[k], &wn.hi[k])
+        }
+    };
+    let p = [planes(0), planes(1), planes(2)];
+    let mut near = [0f32; WIDTH];
+    let mut hit = [false; WIDTH];
+    for j in 0..WIDTH {
+        let mut tn = r.tmin;
+        let mut tf = limit;
+        for (k, (np, fp)) in p.iter().enumerate() {
+            let n = (np[j] - r.o[k]) * r.inv[k];
+            let f = (fp[j] - r.o[k]) * r.inv[k];
+            tn = if n > tn { n } else { tn };
+            tf = if f < tf { f } else { tf };
+        }
+        near[j] = tn;
+        hit[j] = tn <= tf + tf.abs() * MARGIN;
+    }
+    (mask8(hit), near)
+}
+
+/// [`enter`] in AVX2 intrinsics, the same operations in the same order
+/// (`maxps`/`minps` return their second operand where either is NaN, as
+/// `enter`'s selects do): LLVM's form of the lane loop assembled its
+/// vectors lane by lane.
+///
+/// # Safety
+/// The CPU has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn enter_avx2(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]) {
+    use std::arch::x86_64::*;
+    // SAFETY: a plane array is 8 `f32`, one unaligned vector load.
+    let ld = |a: &[f32; WIDTH]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
+    let mut tn = _mm256_set1_ps(r.tmin);
+    let mut tf = _mm256_set1_ps(limit);
+    for k in 0..3 {
+        let (np, fp) = if r.neg[k] {
+            (&wn.hi[k], &wn.lo[k])
+        } else {
+            (&wn.lo[k], &wn.hi[k])
+        };
+        let (o, inv) = (_mm256_set1_ps(r.o[k]), _mm256_set1_ps(r.inv[k]));
+        let n = _mm256_mul_ps(_mm256_sub_ps(ld(np), o), inv);
+        let f = _mm256_mul_ps(_mm256_sub_ps(ld(fp), o), inv);
+        tn = _mm256_max_ps(n, tn);
+        tf = _mm256_min_ps(f, tf);
+    }
+    let abs = _mm256_andnot_ps(_mm256_set1_ps(-0.0), tf);
+    let reach = _mm256_add_ps(tf, _mm256_mul_ps(abs, _mm256_set1_ps(MARGIN)));
+    let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(tn, reach);
+    let mut near = [0f32; WIDTH];
+    // SAFETY: `near` is 8 `f32`, one unaligned vector store.
+    unsafe { _mm256_storeu_ps(near.as_mut_ptr(), tn) };
+    (_mm256_movemask_ps(hit) as u32, near)
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+unsafe fn enter_avx2(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]) {
+    enter(wn, r, limit)
+}
+
+/// The slot of the smallest entry distance among the bits of `m` (not
+/// zero).
+#[inline(always)]
+fn nearest(m: u32, near: &[f32; WIDTH]) -> usize {
+    let mut jn = m.trailing_zeros() as usize;
+    let mut rest = m & (m - 1);
+    while rest != 0 {
+        let j = rest.trailing_zeros() as usize;
+        rest &= rest - 1;
+        if near[j] < near[jn] {
+            jn = j;
+        }
+    }
+    jn
+}
+
+/// One ray through the hierarchy, nearest box first. `ANY`: stop at the
+/// first hit in `(tmin, tmax)`; `COUNT`: add the work to `stats` (a
+/// node visit is a node step).
+#[inline(always)]
+pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool>(
+    src: W,
+    boxes: &WideBoxes,
+    ray: &Ray,
+    stats: &mut TraceStats,
+) -> Hit {
+    let inv = Vec3::ONE / ray.dir;
+    let d = ray.dir.to_array();
+    let o = ray.origin.to_array();
+    let inv_a = inv.to_array();
+    // A direction component whose inverse overflows (or a NaN) is left to
+    // the walk from the root; an exact zero gives ±∞, which the slab
+    // arithmetic below handles.
+    if boxes.tag != src.tag()
+        || (0..3).any(|k| d[k] != 0.0 && !inv_a[k].is_finite())
+        || !(o.iter().all(|x| x.is_finite()) && ray.tmin <= ray.tmax)
+    {
+        return walk_ray::<_, ANY, COUNT>(src, ray, stats);
+    }
+    if COUNT {
+        stats.rays += 1;
+    }
+    let rp = RayPrecomp::new(ray);
+    let slabs = Slabs {
+        o,
+        inv: inv_a,
+        neg: [inv_a[0] < 0.0, inv_a[1] < 0.0, inv_a[2] < 0.0],
+        tmin: ray.tmin,
+    };
+    let mut best = Hit::MISS;
+    let (nodes, tris) = (&boxes.nodes[..], &boxes.tris[..]);
+    let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK];
+    let mut sp = 0usize;
+    let mut node = 0u32;
+    'walk: loop {
+        let wn = &nodes[node as usize];
+        if COUNT {
+            stats.nodes += 1;
+        }
+        if wn.hoist != NONE {
+            if COUNT {
+                stats.hoisted += 1;
+            }
+            if test_one::<_, ANY>(src, &rp, ray, wn.hoist, &mut best) {
+                return best;
+            }
+        }
+        let limit = best.t.min(ray.tmax);
+        let (entered, near) = if AVX2 {
+            // SAFETY: `AVX2` is set only where this CPU has AVX2
+            // (`WideTracer::walk`).
+            unsafe { enter_avx2(wn, &slabs, limit) }
+        } else {
+            enter(wn, &slabs, limit)
+        };
+        // The entered leaves (nearest first for closest hits: a hit
+        // shortens the rest).
+        let mut lm = entered & wn.leaves;
+        while lm != 0 {
+            let j = if ANY {
+                lm.trailing_zeros() as usize
+            } else {
+                nearest(lm, &near)
+            };
+            lm &= !(1 << j);
+            if !ANY {
+                let cut = best.t.min(ray.tmax);
+                if near[j] > cut + cut.abs() * MARGIN {
+                    continue;
+                }
+            }
+            let start = (wn.child[j] & !LEAF) as usize;
+            let n = tris[start] as usize;
+            let ids = &tris[start + 1..start + 1 + n];
+            if COUNT {
+                stats.leaves += 1;
+                stats.tris += n as u64;
+            }
+            for &t in ids {
+                if test_one::<_, ANY>(src, &rp, ray, t, &mut best) {
+                    return best;
+                }
+            }
+        }
+        // The entered inner children: the nearest next, the others
+        // pushed.
+        let mut im = entered & !wn.leaves;
+        if im != 0 {
+            let mut next = im.trailing_zeros() as usize;
+            im &= im - 1;
+            while im != 0 {
+                let j = im.trailing_zeros() as usize;
+                im &= im - 1;
+                let (keep, push) = if near[j] < near[next] {
+                    (j, next)
+                } else {
+                    (next, j)
+                };
+                stack[sp] = MaybeUninit::new((wn.child[push], near[push]));
+                sp += 1;
+                next = keep;
+            }
+            let cut = best.t.min(ray.tmax);
+            if near[next] <= cut + cut.abs() * MARGIN {
+                node = wn.child[next];
+                continue 'walk;
+            }
+        }
+        // The next pending node still in reach.
+        while sp > 0 {
+            sp -= 1;
+            // SAFETY: every entry below the old `sp` was written.
+            let (c, t) = unsafe { stack[sp].assume_init() };
+            let cut = best.t.min(ray.tmax);
+            if t <= cut + cut.abs() * MARGIN {
+                node = c;
+                continue 'walk;
+            }
+        }
+        break;
+    }
+    if ANY { Hit::MISS } else { best }
+}
+
+/// A tracer whose single rays walk the wide boxes; its batches are a
+/// [`PacketTracer`]'s packets, so that a renderer traces its primary rays
+/// in packets and its secondary rays one by one over the boxes.
+pub struct WideTracer<'a, S: KdSource + 'a> {
+    packet: PacketTracer<'a, S>,
+    boxes: &'a WideBoxes,
+}
+
+impl<'a, S: KdSource> WideTracer<'a, S> {
+    /// A tracer over `src` and its `boxes` (made by [`WideBoxes::new`]
+    /// from `src`'s walk: the boxes of another tree are never used, every
+    /// query then walks from the root).
+    pub fn new(src: &'a S, boxes: &'a WideBoxes) -> Self {
+        WideTracer {
+            packet: PacketTracer::new(src),
+            boxes,
+        }
+    }
+
+    /// [`WideTracer::new`] compiled for `level` where this CPU has it;
+    /// for the tests of every level's copy.
+    pub fn with_level(src: &'a S, boxes: &'a WideBoxes, level: crate::simd::SimdLevel) -> Self {
+        WideTracer {
+            packet: PacketTracer::with_level(src, level),
+            boxes,
+        }
+    }
+
+    fn scalar(&self) -> &Scalar<'a, S> {
+        self.packet.scalar()
+    }
+
+    /// One ray over the boxes with its work added to `stats`.
+    pub fn trace_counted(&self, ray: &Ray, any: bool, stats: &mut TraceStats) -> Hit {
+        let w = self.scalar().walk;
+        if any {
+            walk_wide::<_, true, true, false>(w, self.boxes, ray, stats)
+        } else {
+            walk_wide::<_, false, true, false>(w, self.boxes, ray, stats)
+        }
+    }
+
+    #[inline(always)]
+    fn walk<const ANY: bool>(&self, ray: &Ray) -> Hit {
+        let (w, boxes, level) = (self.scalar().walk, self.boxes, self.scalar().level);
+        if level == crate::simd::SimdLevel::Baseline {
+            return walk_wide::<_, ANY, false, false>(w, boxes, ray, &mut TraceStats::default());
+        }
+        crate::simd_dispatch!(level, |_WIDE| {
+            walk_wide::<_, ANY, false, true>(w, boxes, ray, &mut TraceStats::default())
+        })
+    }
+}
+
+impl<'a, S: KdSource> ClosestHit for WideTracer<'a, S> {
+    fn closest_hit(&self, ray: &Ray) -> Hit {
+        self.walk::<false>(ray)
+    }
+
+    fn occluded(&self, ray: &Ray) -> bool {
+        self.walk::<true>(ray).is_hit()
+    }
+
+    fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
+        self.packet.closest_hit_n(rays, out)
+    }
+
+    fn closest_hit_4x4(&self, rays: &[Ray; 16], out: &mut [Hit; 16]) {
+        self.packet.closest_hit_4x4(rays, out)
+    }
+}
