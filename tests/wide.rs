@@ -1,6 +1,6 @@
 //! Single rays over the wide box hierarchy (`trace::wide`) return brute
-//! force's hit bit for bit, and `occluded` is exactly
-//! `closest_hit(ray).t < tmax`: on grid scenes whose rays start and run
+//! force's hit bit for bit, and `occluded` (single rays and packets, with
+//! and without an occluder cache) is exactly `closest_hit(ray).t < tmax`: on grid scenes whose rays start and run
 //! in split planes, along box faces and through edges, std trees and
 //! trees with hoisted triangles, in memory and in files (reordered or
 //! not), on every instruction set this CPU has; on a real scene's shadow
@@ -20,7 +20,9 @@ use slimkd::scene::TriangleColumns;
 use slimkd::slim::{self, SlimParams};
 use slimkd::trace::packet::SimdLevel;
 use slimkd::trace::wide::{WideBoxes, WideTracer};
-use slimkd::trace::{self, ClosestHit, Hit, KdSource, Scalar, TraceStats, TreeTracer};
+use slimkd::trace::{
+    self, ClosestHit, Hit, KdSource, OccluderCache, Scalar, TraceStats, TreeTracer,
+};
 
 /// Every query over `src`'s wide boxes against brute force, on every
 /// instruction set, and the counting walk against the fast one.
@@ -38,6 +40,7 @@ fn check_wide(src: &impl KdSource, scene: &TriangleColumns, rays: &[Ray]) {
             );
         }
     }
+    check_wide_packets(src, &boxes, rays, &want);
     let tracer = WideTracer::new(src, &boxes);
     for (i, r) in rays.iter().enumerate() {
         let mut stats = TraceStats::default();
@@ -46,6 +49,42 @@ fn check_wide(src: &impl KdSource, scene: &TriangleColumns, rays: &[Ray]) {
             tracer.trace_counted(r, true, &mut stats).is_hit(),
             want[i].t < r.tmax
         );
+    }
+}
+
+/// Any-hit packets over the boxes (runs of up to 16 rays, with and
+/// without an occluder cache carried from run to run, fewer than
+/// `MIN_LANES` walked alone) against brute force's hits `want`, on every
+/// instruction set, and the counting walk against the fast one.
+fn check_wide_packets(src: &impl KdSource, boxes: &WideBoxes, rays: &[Ray], want: &[Hit]) {
+    for level in SimdLevel::available() {
+        let tracer = WideTracer::with_level(src, boxes, level);
+        let mut cache = OccluderCache::new();
+        for (c, chunk) in rays.chunks(16).enumerate() {
+            let expect: Vec<bool> = chunk
+                .iter()
+                .zip(&want[c * 16..])
+                .map(|(r, h)| h.t < r.tmax)
+                .collect();
+            let mut got = vec![false; chunk.len()];
+            tracer.occluded_n(chunk, &mut got);
+            assert_eq!(got, expect, "{level:?} packet {c}");
+            tracer.occluded_n_cached(chunk, &mut got, &mut cache);
+            assert_eq!(got, expect, "{level:?} cached packet {c}");
+        }
+    }
+    let tracer = WideTracer::new(src, boxes);
+    let mut cache = OccluderCache::new();
+    for (c, chunk) in rays.chunks(16).enumerate() {
+        let mut hits = vec![Hit::MISS; chunk.len()];
+        tracer.occluded_counted(chunk, &mut hits, &mut TraceStats::default(), &mut cache);
+        for (i, (h, r)) in hits.iter().zip(chunk).enumerate() {
+            assert_eq!(
+                h.is_hit(),
+                want[c * 16 + i].t < r.tmax,
+                "counted packet {c}"
+            );
+        }
     }
 }
 
@@ -159,6 +198,15 @@ fn secondary_rays_of_a_scene_over_wide_boxes() {
             wide.nodes,
             root.nodes
         );
+        // Packets as the renderer makes them (one octant, so the lanes
+        // share their directions' signs) and in the rays' own order.
+        let mut order = Vec::new();
+        trace::rays::order_by_octant(&sec.ao, &mut order);
+        let by_octant: Vec<Ray> = order.iter().map(|&i| sec.ao[i as usize]).collect();
+        for batch in [&by_octant, &sec.ao, &sec.shadow] {
+            let want: Vec<Hit> = batch.iter().map(|r| scalar.closest_hit(r)).collect();
+            check_wide_packets(&file, &boxes, batch, &want);
+        }
     }
 }
 

@@ -60,17 +60,17 @@ pub const MIN_LANES: u32 = 8;
 /// 1 lane, primary packets traced 15 % slower).
 pub const SCALAR_LANES: u32 = 1;
 
-type Lanes = [f32; LANES];
+pub(super) type Lanes = [f32; LANES];
 
 /// Structure-of-arrays form of up to 16 rays, with the per-ray constants
 /// of the watertight test. Lanes past the last ray repeat ray 0 and are
 /// never active.
-struct Packet {
-    o: [Lanes; 3],
+pub(super) struct Packet {
+    pub(super) o: [Lanes; 3],
     dir: [Lanes; 3],
-    inv: [Lanes; 3],
-    tmin: Lanes,
-    tmax: Lanes,
+    pub(super) inv: [Lanes; 3],
+    pub(super) tmin: Lanes,
+    pub(super) tmax: Lanes,
     /// Axis permutation as selectors: `kx[i] == k` picks component `k`.
     kx: [u8; LANES],
     ky: [u8; LANES],
@@ -84,7 +84,7 @@ struct Packet {
 // functions of their own they would run as baseline (SSE2) code.
 impl Packet {
     #[inline(always)]
-    fn new(rays: &[Ray]) -> Packet {
+    pub(super) fn new(rays: &[Ray]) -> Packet {
         debug_assert!(!rays.is_empty() && rays.len() <= LANES);
         let mut p = Packet {
             o: [[0.0; LANES]; 3],
@@ -181,7 +181,7 @@ impl Packet {
 
     /// The permutation all lanes of `mask` share, if they do.
     #[inline(always)]
-    fn shared_permutation(&self, mask: u16) -> Option<[usize; 3]> {
+    pub(super) fn shared_permutation(&self, mask: u16) -> Option<[usize; 3]> {
         let first = mask.trailing_zeros() as usize;
         let (kx, kz) = (self.kx[first], self.kz[first]);
         let same = (0..LANES)
@@ -192,14 +192,14 @@ impl Packet {
 }
 
 /// The best hit per lane.
-struct Best {
-    t: Lanes,
-    id: [u32; LANES],
+pub(super) struct Best {
+    pub(super) t: Lanes,
+    pub(super) id: [u32; LANES],
 }
 
 impl Best {
     /// No hit in any lane.
-    const NONE: Best = Best {
+    pub(super) const NONE: Best = Best {
         t: [f32::INFINITY; LANES],
         id: [u32::MAX; LANES],
     };
@@ -696,19 +696,7 @@ fn trace_rays_cached<'a, W: Walk<'a>, const COUNT: bool, const M: bool>(
     // The cache's triangles first, in all lanes; the walk takes the lanes
     // they leave.
     let mut occ = [u32::MAX; LANES];
-    let mut done = 0u16;
-    let perm = p.shared_permutation(mask);
-    for t in cached {
-        if COUNT {
-            stats.cached += u64::from((mask & !done).count_ones());
-        }
-        let h = test_triangle::<_, true, M>(src, &p, perm, t, mask & !done, &mut best);
-        occ.note(h, t);
-        done |= h;
-        if done == mask {
-            break;
-        }
-    }
+    let done = test_cached::<_, COUNT, M>(src, &p, &cached, mask, &mut best, stats, &mut occ);
     if mask & !done != 0 {
         walk_packet::<_, true, COUNT, M, _>(
             src,
@@ -724,9 +712,37 @@ fn trace_rays_cached<'a, W: Walk<'a>, const COUNT: bool, const M: bool>(
     write_hits(&best, out);
 }
 
+/// Tests `cached`'s triangles in the lanes of `mask` until all are
+/// blocked; returns the blocked lanes, their occluders noted in `occ`.
+#[inline(always)]
+pub(super) fn test_cached<'a, W: Walk<'a>, const COUNT: bool, const M: bool>(
+    src: W,
+    p: &Packet,
+    cached: &[u32],
+    mask: u16,
+    best: &mut Best,
+    stats: &mut TraceStats,
+    occ: &mut [u32; LANES],
+) -> u16 {
+    let mut done = 0u16;
+    let perm = p.shared_permutation(mask);
+    for &t in cached {
+        if COUNT {
+            stats.cached += u64::from((mask & !done).count_ones());
+        }
+        let h = test_triangle::<_, true, M>(src, p, perm, t, mask & !done, best);
+        occ.note(h, t);
+        done |= h;
+        if done == mask {
+            break;
+        }
+    }
+    done
+}
+
 /// The lane mask of a packet of `rays`.
 #[inline(always)]
-fn all_lanes(rays: &[Ray]) -> u16 {
+pub(super) fn all_lanes(rays: &[Ray]) -> u16 {
     if rays.len() == LANES {
         u16::MAX
     } else {
@@ -736,7 +752,7 @@ fn all_lanes(rays: &[Ray]) -> u16 {
 
 /// The packet's hits, one per ray.
 #[inline(always)]
-fn write_hits(best: &Best, out: &mut [Hit]) {
+pub(super) fn write_hits(best: &Best, out: &mut [Hit]) {
     for (i, o) in out.iter_mut().enumerate() {
         *o = if best.id[i] == u32::MAX {
             Hit::MISS
@@ -805,7 +821,7 @@ fn clip_lanes<const M: bool>(p: &Packet, bounds: &crate::geom::Aabb) -> (u16, La
 /// (their first hit, for any-hit queries). Always inlined into the walk
 /// (as a closure called from two places it was a call per triangle).
 #[inline(always)]
-fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
+pub(super) fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
     src: W,
     p: &Packet,
     perm: Option<[usize; 3]>,
@@ -906,7 +922,7 @@ impl OccluderCache {
 
     /// The cached triangles, once the cache is known to be `src`'s.
     #[inline(always)]
-    fn tris<'a, W: Walk<'a>>(&mut self, src: &W) -> ArrayVec<u32, OCCLUDERS> {
+    pub(super) fn tris<'a, W: Walk<'a>>(&mut self, src: &W) -> ArrayVec<u32, OCCLUDERS> {
         let tag = src.tag();
         if self.tag != tag {
             *self = OccluderCache {
@@ -928,7 +944,7 @@ impl OccluderCache {
     /// k packets it did not help lost 7 % of the shadow rays' speed and
     /// gained no ambient-occlusion speed.
     #[inline(never)]
-    fn update(&mut self, occ: &[u32; LANES]) {
+    pub(super) fn update(&mut self, occ: &[u32; LANES]) {
         let mut n = 0usize;
         for &t in occ {
             if t != u32::MAX && !self.tris[..n].contains(&t) {
@@ -946,7 +962,7 @@ impl OccluderCache {
 /// Where a packet walk notes the triangle that blocked each lane: per lane
 /// (`[u32; LANES]`, for the cache) or nowhere (`()`: closest hits and
 /// uncached any-hit queries, whose code is then the walk alone).
-trait Occluders {
+pub(super) trait Occluders {
     /// Notes triangle `t` as the occluder of the lanes of `hit`.
     fn note(&mut self, hit: u16, t: u32);
 }

@@ -1,18 +1,24 @@
-//! Single rays over a wide box hierarchy of the tree's leaves, built in
-//! memory when a tree is opened for it: per leaf the tight bounds of its
-//! triangles clipped to its cell, per inner node the union of its
+//! Secondary rays over a wide box hierarchy of the tree's leaves, built
+//! in memory when a tree is opened for it: per leaf the tight bounds of
+//! its triangles clipped to its cell, per inner node the union of its
 //! children's (and of its hoisted triangle's part of its cell), and the
 //! tree collapsed into nodes of up to eight such boxes, empty cells left
-//! out. A ray tests a node's eight boxes in the lanes of one register and
-//! visits the ones it enters nearest first.
+//! out. A single ray tests a node's eight boxes in the lanes of one AVX2
+//! register and visits the ones it enters nearest first; an any-hit
+//! packet of 16 rays decides every box in every lane, visits a child
+//! with the lanes that enter it, and tests a leaf's triangles in those
+//! lanes with the packet kernel.
 //!
 //! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
 //! where it starts and then crosses ~10 cells, 7 of them empty
 //! (ravenbridge's AO rays, perf-notes "Ropes"): ~60 binary steps. The
 //! boxes drop the empty cells and take about three levels a step: 13
-//! node visits an AO ray there, 1.5× the single walk's rays a second.
-//! Packets of 16 still run the renderer's AO rays faster (perf-notes
-//! "Single rays over wide boxes"), so this is a mode, not the default.
+//! node visits an AO ray there, and a renderer's AO packet takes 2.8
+//! node visits a ray against the kd packets' 15.4 steps. The renderer's
+//! AO frame runs 1.05–1.4× faster on four of the shared scenes
+//! (`render --secondary wide`; perf-notes "Secondary rays over wide
+//! boxes"). It costs memory besides the tree (71–89 bytes a triangle
+//! against the tree's 26–39), so it is built on request.
 //!
 //! **Exact, as the other walks.** A triangle's part of a leaf's cell lies
 //! in that leaf's box (the clip's bounds are rounded outward, and padded
@@ -26,7 +32,10 @@
 //! which changes nothing. Rays whose direction has a component so small
 //! that its inverse overflows go to the walk from the root.
 
-use super::packet::PacketTracer;
+use super::packet::{
+    Best, LANES, MIN_LANES, OccluderCache, Occluders, Packet, PacketTracer, all_lanes, bits,
+    test_cached, test_triangle, write_hits,
+};
 use super::{
     ClosestHit, Hit, KdSource, MARGIN, Scalar, SourceNode, TraceStats, Walk, test_one, walk_ray,
 };
@@ -77,6 +86,8 @@ struct WideNode {
     hoist: u32,
     /// Bit `j` set where slot `j` holds a leaf.
     leaves: u32,
+    /// Bit `j` set where slot `j` holds a child.
+    used: u32,
 }
 
 impl WideNode {
@@ -86,6 +97,7 @@ impl WideNode {
         child: [NONE; WIDTH],
         hoist: NONE,
         leaves: 0,
+        used: 0,
     };
 }
 
@@ -289,11 +301,13 @@ fn pull_up(old: &[WideNode]) -> Vec<WideNode> {
         }
         // Renumber the inner children into `out`.
         n.leaves = 0;
+        n.used = 0;
         for j in 0..WIDTH {
             let c = n.child[j];
             if c == NONE {
                 continue;
             }
+            n.used |= 1 << j;
             if c & LEAF != 0 {
                 n.leaves |= 1 << j;
             } else {
@@ -606,6 +620,235 @@ pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, con
     if ANY { Hit::MISS } else { best }
 }
 
+/// Any-hit queries for up to 16 rays as one packet over the boxes,
+/// `cache`'s triangles first ([`OccluderCache`]): lanes the boxes cannot
+/// take (a direction component whose inverse overflows, a non-finite
+/// origin) and packets of fewer than [`MIN_LANES`] rays walk alone.
+#[inline(always)]
+fn occluded_packet<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX2: bool>(
+    src: W,
+    boxes: &WideBoxes,
+    rays: &[Ray],
+    out: &mut [Hit],
+    stats: &mut TraceStats,
+    cache: &mut OccluderCache,
+) {
+    let alone = |r: &Ray| {
+        let d = r.dir.to_array();
+        boxes.tag != src.tag()
+            || (0..3).any(|k| d[k] != 0.0 && !(1.0 / d[k]).is_finite())
+            || !(r.origin.is_finite() && r.tmin <= r.tmax)
+    };
+    if rays.len() < MIN_LANES as usize {
+        for (r, o) in rays.iter().zip(out.iter_mut()) {
+            *o = walk_wide::<_, true, COUNT, AVX2>(src, boxes, r, stats);
+        }
+        return;
+    }
+    let cached = cache.tris(&src);
+    let p = Packet::new(rays);
+    let mut best = Best::NONE;
+    let mut mask = all_lanes(rays);
+    let mut solo = 0u16;
+    for (i, r) in rays.iter().enumerate() {
+        if alone(r) {
+            solo |= 1 << i;
+        }
+    }
+    mask &= !solo;
+    let mut occ = [u32::MAX; LANES];
+    let done = test_cached::<_, COUNT, M>(src, &p, &cached, mask, &mut best, stats, &mut occ);
+    if mask & !done != 0 {
+        walk_packet_wide::<_, COUNT, M, AVX2>(
+            src,
+            boxes,
+            &p,
+            mask & !done,
+            &mut best,
+            stats,
+            &mut occ,
+        );
+    }
+    cache.update(&occ);
+    write_hits(&best, out);
+    while solo != 0 {
+        let i = solo.trailing_zeros() as usize;
+        solo &= solo - 1;
+        out[i] = walk_ray::<_, true, COUNT>(src, &rays[i], stats);
+    }
+}
+
+/// The lanes of `act` (any-hit queries) through the boxes as one packet:
+/// at a node every lane decides every box with the single walk's rule, a
+/// child is visited by the lanes that enter it, a leaf's triangles are
+/// tested in those lanes, and a blocked lane leaves the packet.
+#[inline(always)]
+fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX2: bool>(
+    src: W,
+    boxes: &WideBoxes,
+    p: &Packet,
+    mut act: u16,
+    best: &mut Best,
+    stats: &mut TraceStats,
+    occ: &mut impl Occluders,
+) {
+    if COUNT {
+        stats.rays += u64::from(act.count_ones());
+        stats.packets += 1;
+    }
+    let perm = p.shared_permutation(act);
+    let mut neg = [[false; LANES]; 3];
+    let mut signs = [None; 3];
+    for (k, n) in neg.iter_mut().enumerate() {
+        *n = p.inv[k].map(|x| x < 0.0);
+        let first = n[act.trailing_zeros() as usize];
+        if (0..LANES).all(|i| act & (1 << i) == 0 || n[i] == first) {
+            signs[k] = Some(first);
+        }
+    }
+    let (nodes, tris) = (&boxes.nodes[..], &boxes.tris[..]);
+    let mut stack = [const { MaybeUninit::<(u32, u16)>::uninit() }; STACK];
+    let mut sp = 0usize;
+    let (mut node, mut mask) = (0u32, act);
+    'walk: loop {
+        let wn = &nodes[node as usize];
+        if COUNT {
+            stats.nodes += 1;
+            stats.lane_steps += u64::from(mask.count_ones());
+        }
+        if wn.hoist != NONE {
+            if COUNT {
+                stats.hoisted += u64::from(mask.count_ones());
+            }
+            let h = test_triangle::<_, true, M>(src, p, perm, wn.hoist, mask, best);
+            occ.note(h, wn.hoist);
+            act &= !h;
+            mask &= !h;
+        }
+        // Per slot, the lanes that enter its box. Where the packet's
+        // lanes share their directions' signs (a renderer's AO packet of
+        // one direction cell), each axis's entry and exit planes are one
+        // broadcast; otherwise they are chosen per lane.
+        let mut lanes_in = [0u16; WIDTH];
+        let mut used = if mask != 0 { wn.used } else { 0 };
+        while used != 0 {
+            let j = used.trailing_zeros() as usize;
+            used &= used - 1;
+            let (mut tn, mut tf) = (p.tmin, p.tmax);
+            for k in 0..3 {
+                let (lo, hi) = (wn.lo[k][j], wn.hi[k][j]);
+                match signs[k] {
+                    Some(neg_k) => {
+                        let (np, fp) = if neg_k { (hi, lo) } else { (lo, hi) };
+                        for i in 0..LANES {
+                            let n = (np - p.o[k][i]) * p.inv[k][i];
+                            let f = (fp - p.o[k][i]) * p.inv[k][i];
+                            tn[i] = if n > tn[i] { n } else { tn[i] };
+                            tf[i] = if f < tf[i] { f } else { tf[i] };
+                        }
+                    }
+                    None => {
+                        for i in 0..LANES {
+                            let (np, fp) = if neg[k][i] { (hi, lo) } else { (lo, hi) };
+                            let n = (np - p.o[k][i]) * p.inv[k][i];
+                            let f = (fp - p.o[k][i]) * p.inv[k][i];
+                            tn[i] = if n > tn[i] { n } else { tn[i] };
+                            tf[i] = if f < tf[i] { f } else { tf[i] };
+                        }
+                    }
+                }
+            }
+            let mut hit = [false; LANES];
+            for i in 0..LANES {
+                hit[i] = tn[i] <= tf[i] + tf[i].abs() * MARGIN;
+            }
+            lanes_in[j] = bits::<M>(hit) & mask;
+        }
+        let entered = mask8(lanes_in.map(|m| m != 0));
+        // The packet's order: the entry distances of its first lane, by
+        // the single walk's test (read from lanes just stored, they would
+        // wait on Zen 4's store forwarding).
+        let near = if entered & !wn.leaves & (entered & !wn.leaves).wrapping_sub(1) != 0 {
+            let i = mask.trailing_zeros() as usize;
+            let lane = Slabs {
+                o: [p.o[0][i], p.o[1][i], p.o[2][i]],
+                inv: [p.inv[0][i], p.inv[1][i], p.inv[2][i]],
+                neg: [neg[0][i], neg[1][i], neg[2][i]],
+                tmin: p.tmin[i],
+            };
+            if AVX2 {
+                // SAFETY: `AVX2` is set only where this CPU has AVX2
+                // (`WideTracer::packet_occluded`).
+                unsafe { enter_avx2(wn, &lane, f32::INFINITY).1 }
+            } else {
+                enter(wn, &lane, f32::INFINITY).1
+            }
+        } else {
+            [0.0; WIDTH]
+        };
+        // The entered leaves, in their lanes.
+        let mut lm = entered & wn.leaves;
+        while lm != 0 {
+            let j = lm.trailing_zeros() as usize;
+            lm &= lm - 1;
+            let mut lanes = lanes_in[j] & act;
+            let start = (wn.child[j] & !LEAF) as usize;
+            let n = tris[start] as usize;
+            if COUNT && lanes != 0 {
+                stats.leaves += 1;
+            }
+            for &t in &tris[start + 1..start + 1 + n] {
+                if lanes == 0 {
+                    break;
+                }
+                if COUNT {
+                    stats.tris += u64::from(lanes.count_ones());
+                }
+                let h = test_triangle::<_, true, M>(src, p, perm, t, lanes, best);
+                occ.note(h, t);
+                act &= !h;
+                lanes &= !h;
+            }
+        }
+        if act == 0 {
+            return;
+        }
+        // The entered inner children: the nearest next, the others
+        // pushed with their lanes.
+        let mut im = entered & !wn.leaves;
+        if im != 0 {
+            let mut next = im.trailing_zeros() as usize;
+            im &= im - 1;
+            while im != 0 {
+                let j = im.trailing_zeros() as usize;
+                im &= im - 1;
+                let (keep, push) = if near[j] < near[next] {
+                    (j, next)
+                } else {
+                    (next, j)
+                };
+                stack[sp] = MaybeUninit::new((wn.child[push], lanes_in[push]));
+                sp += 1;
+                next = keep;
+            }
+            if lanes_in[next] & act != 0 {
+                (node, mask) = (wn.child[next], lanes_in[next] & act);
+                continue 'walk;
+            }
+        }
+        while sp > 0 {
+            sp -= 1;
+            // SAFETY: every entry below the old `sp` was written.
+            let (c, m) = unsafe { stack[sp].assume_init() };
+            if m & act != 0 {
+                (node, mask) = (c, m & act);
+                continue 'walk;
+            }
+        }
+        return;
+    }
+}
+
 /// A tracer whose single rays walk the wide boxes; its batches are a
 /// [`PacketTracer`]'s packets, so that a renderer traces its primary rays
 /// in packets and its secondary rays one by one over the boxes.
@@ -648,6 +891,43 @@ impl<'a, S: KdSource> WideTracer<'a, S> {
         }
     }
 
+    /// Up to 16 any-hit queries as one packet over the boxes
+    /// ([`ClosestHit::occluded_n_cached`]) with their work added to
+    /// `stats` (a packet's node visit is one node step).
+    ///
+    /// # Panics
+    ///
+    /// If `rays` holds more than 16 rays or `out` is not as long.
+    pub fn occluded_counted(
+        &self,
+        rays: &[Ray],
+        out: &mut [Hit],
+        stats: &mut TraceStats,
+        cache: &mut OccluderCache,
+    ) {
+        self.packet_occluded::<true>(rays, out, stats, cache)
+    }
+
+    fn packet_occluded<const COUNT: bool>(
+        &self,
+        rays: &[Ray],
+        out: &mut [Hit],
+        stats: &mut TraceStats,
+        cache: &mut OccluderCache,
+    ) {
+        assert!(rays.len() <= LANES && out.len() == rays.len());
+        if rays.is_empty() {
+            return;
+        }
+        let (w, boxes, level) = (self.scalar().walk, self.boxes, self.scalar().level);
+        if level == crate::simd::SimdLevel::Baseline {
+            return occluded_packet::<_, COUNT, false, false>(w, boxes, rays, out, stats, cache);
+        }
+        crate::simd_dispatch!(level, |WIDE| {
+            occluded_packet::<_, COUNT, WIDE, true>(w, boxes, rays, out, stats, cache)
+        })
+    }
+
     #[inline(always)]
     fn walk<const ANY: bool>(&self, ray: &Ray) -> Hit {
         let (w, boxes, level) = (self.scalar().walk, self.boxes, self.scalar().level);
@@ -671,6 +951,19 @@ impl<'a, S: KdSource> ClosestHit for WideTracer<'a, S> {
 
     fn closest_hit_n(&self, rays: &[Ray], out: &mut [Hit]) {
         self.packet.closest_hit_n(rays, out)
+    }
+
+    fn occluded_n(&self, rays: &[Ray], out: &mut [bool]) {
+        self.occluded_n_cached(rays, out, &mut OccluderCache::new())
+    }
+
+    fn occluded_n_cached(&self, rays: &[Ray], out: &mut [bool], cache: &mut OccluderCache) {
+        let mut hits = [Hit::MISS; LANES];
+        let hits = &mut hits[..rays.len()];
+        self.packet_occluded::<false>(rays, hits, &mut TraceStats::default(), cache);
+        for (o, h) in out.iter_mut().zip(hits.iter()) {
+            *o = h.is_hit();
+        }
     }
 
     fn closest_hit_4x4(&self, rays: &[Ray; 16], out: &mut [Hit; 16]) {

@@ -590,7 +590,7 @@ pub(crate) enum SecondaryArg {
     /// One ray at a time leaf to leaf by ropes from the cell of its hit
     /// point (std trees; primary rays in packets).
     Ropes,
-    /// One ray at a time over a hierarchy of eight boxes a node around the
+    /// 16 rays at a time over a hierarchy of eight boxes a node around the
     /// tree's leaves (primary rays in packets).
     Wide,
 }
@@ -665,7 +665,7 @@ pub(crate) struct RenderArgs {
     /// context of the hit point, one per pixel) or `ropes` (one at a time
     /// leaf to leaf from the cell of the hit point, by ropes built after
     /// opening and reported apart; std trees, `--mode packet`) or `wide`
-    /// (one at a time over boxes around the tree's leaves, eight a node,
+    /// (16 at a time over boxes around the tree's leaves, eight a node,
     /// built after opening and reported apart; `--mode packet`).
     #[arg(long, value_enum)]
     pub(crate) secondary: Option<SecondaryArg>,
@@ -713,7 +713,9 @@ pub struct TraceArgs {
     /// at a time, each on its own path, refilled from batches of 2048
     /// (both --occluded only), or single rays over `wide` boxes (the
     /// tree's leaves in a hierarchy of eight boxes a node, built after
-    /// opening, untimed, and reported apart).
+    /// opening, untimed, and reported apart), or packets of 16
+    /// consecutive rays over those boxes (`wide-packet`, --occluded only,
+    /// the triangles that blocked the last packet first).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).
@@ -741,6 +743,7 @@ pub enum TraceMode {
     Stream,
     Lanes,
     Wide,
+    WidePacket,
 }
 
 #[derive(clap::Args)]

@@ -260,8 +260,8 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
                 SecondaryArg::Packet => Secondary::Packet,
                 // A rope tracer's contexts are its cells.
                 SecondaryArg::FromHit | SecondaryArg::Ropes => Secondary::FromHit,
-                // A wide tracer's single rays walk its boxes.
-                SecondaryArg::Wide => Secondary::Single,
+                // A wide tracer's packets walk its boxes.
+                SecondaryArg::Wide => Secondary::Packet,
             },
         };
         for rep in 0..args.reps {

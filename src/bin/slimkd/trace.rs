@@ -80,10 +80,17 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     } else {
         Query::Closest
     };
-    let packets = matches!(args.mode, TraceMode::Packet | TraceMode::Sorted);
-    if matches!(args.mode, TraceMode::Stream | TraceMode::Lanes) && !args.occluded {
+    let packets = matches!(
+        args.mode,
+        TraceMode::Packet | TraceMode::Sorted | TraceMode::WidePacket
+    );
+    if matches!(
+        args.mode,
+        TraceMode::Stream | TraceMode::Lanes | TraceMode::WidePacket
+    ) && !args.occluded
+    {
         return Err(crate::Usage(
-            "--mode stream and --mode lanes answer --occluded queries only".into(),
+            "--mode stream, lanes and wide-packet answer --occluded queries only".into(),
         )
         .into());
     }
@@ -105,7 +112,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     let rope_tracer = ropes.as_ref().map(|r| RopeTracer::new(&file, r));
     let wide_start = Instant::now();
     let wide = match args.mode {
-        TraceMode::Wide => {
+        TraceMode::Wide | TraceMode::WidePacket => {
             Some(WideBoxes::new(file.walk()).map_err(|e| format!("{}: {e}", args.file.display()))?)
         }
         _ => None,
@@ -148,7 +155,9 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                      out: &mut [Hit],
                      s: &mut TraceStats,
                      cache: &mut slimkd::trace::OccluderCache| {
-            if packets {
+            if let (Some(wt), true) = (&wide_tracer, packets) {
+                wt.occluded_counted(r, out, s, cache);
+            } else if packets {
                 packet.trace_counted_cached(r, any, out, s, cache);
             } else if let Some(wt) = &wide_tracer {
                 for (ray, h) in r.iter().zip(out.iter_mut()) {
@@ -213,6 +222,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         TraceMode::Stream => "stream",
         TraceMode::Lanes => "lanes",
         TraceMode::Wide => "wide",
+        TraceMode::WidePacket => "wide-packet",
     };
     let query_name = if args.occluded { "occluded" } else { "closest" };
     let threads = pool.current_num_threads();
