@@ -245,7 +245,7 @@ fn a_file_read_into_memory_survives_truncation() {
 /// with counts that add up: it opens (the open reads no node), every
 /// traverser and the depth histogram stop after `2 · words + 1` steps
 /// (without that bound a ray in every split plane walks all 2^40 paths),
-/// and the full check refuses it: every node must lie where its parent's
+/// wide boxes are refused, and the full check refuses it: every node must lie where its parent's
 /// pre-order says.
 #[test]
 fn shared_subtrees_end_at_the_step_limit_and_are_refused_by_validate() {
@@ -314,6 +314,9 @@ fn shared_subtrees_end_at_the_step_limit_and_are_refused_by_validate() {
     }
     let leaves: u64 = file.leaf_depth_histogram().iter().sum();
     assert!(leaves <= limit, "{leaves} leaves counted");
+    // Wide boxes are refused rather than built over 2^40 paths.
+    use slimkd::trace::KdSource;
+    assert!(slimkd::trace::wide::WideBoxes::new(file.walk()).is_err());
     match file.validate() {
         Err(FormatError::Node { fault, .. }) => {
             assert!(matches!(fault, NodeFault::NotPreOrder { .. }), "{fault}")

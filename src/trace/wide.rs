@@ -17,8 +17,9 @@
 //! node visits a ray against the kd packets' 15.4 steps. The renderer's
 //! AO frame runs 1.05–1.4× faster on four of the shared scenes
 //! (`render --secondary wide`; perf-notes "Secondary rays over wide
-//! boxes"). It costs memory besides the tree (71–89 bytes a triangle
-//! against the tree's 26–39), so it is built on request.
+//! boxes"). It costs memory besides the tree (57–89 bytes a triangle on
+//! dieselpower, ravenbridge and black_forest, whose std trees take
+//! 21–31), so it is built on request.
 //!
 //! **Exact, as the other walks.** A triangle's part of a leaf's cell lies
 //! in that leaf's box (the clip's bounds are rounded outward, and padded
@@ -53,7 +54,8 @@ pub const WIDTH: usize = 8;
 /// rounding off its triangle.
 pub const PAD: f32 = 1.0 / (1 << 18) as f32;
 
-/// A child slot that holds a leaf: `LEAF | kd node id`.
+/// A child slot that holds a leaf: `LEAF | start` of its list in
+/// [`WideBoxes`]'s `tris`.
 const LEAF: u32 = 1 << 31;
 /// An unused slot (its box is empty, so it is never entered).
 const NONE: u32 = u32::MAX;
@@ -120,9 +122,11 @@ fn padded(b: &Aabb) -> Aabb {
 
 impl WideBoxes {
     /// The hierarchy of the tree `walk` views: one pass computes every
-    /// node's tight box (each reference clipped to its leaf's cell), a
-    /// second collapses the tree top-down, opening the child with the
-    /// largest box until a node holds eight.
+    /// node's tight box (each reference clipped to its leaf's cell, the
+    /// leaves in parallel), a second collapses the tree top-down, opening
+    /// the child with the largest box until a node holds eight, and a
+    /// third pulls child nodes into their parent's free slots. Errors
+    /// when the nodes do not form a tree (a file not validated).
     pub fn new<'a, W: Walk<'a>>(walk: W) -> Result<WideBoxes, WideError> {
         let n_ids = walk.tag().1;
         let limit = walk.step_limit() as usize;
