@@ -112,9 +112,12 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
     let rope_tracer = ropes.as_ref().map(|r| RopeTracer::new(&file, r));
     let wide_start = Instant::now();
     let wide = match args.mode {
-        TraceMode::Wide | TraceMode::WidePacket => {
-            Some(WideBoxes::new(file.walk()).map_err(|e| format!("{}: {e}", args.file.display()))?)
-        }
+        // In the command's pool (its `-j`; rayon's global pool panics
+        // where it cannot start its threads).
+        TraceMode::Wide | TraceMode::WidePacket => Some(
+            pool.install(|| WideBoxes::new(file.walk()))
+                .map_err(|e| format!("{}: {e}", args.file.display()))?,
+        ),
         _ => None,
     };
     let wide_json = wide.as_ref().map(|b| WideJson {
