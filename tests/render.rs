@@ -356,54 +356,32 @@ fn cli_ao_frame_reports_each_ray_kind() {
         assert!(ao[key].as_f64().unwrap() >= 0.0, "{key}");
     }
     assert!(out.exists());
-    // By ropes: the same picture, the mode named.
-    let by_ropes = dir.join("ropes.png");
-    let run = slimkd(&[
-        "render",
-        "default",
-        "--view",
-        "1",
-        "--size",
-        "64x48",
-        "--shading",
-        "ao",
-        "--spp",
-        "2",
-        "--secondary",
-        "ropes",
-        "--json",
-        "-o",
-        by_ropes.to_str().unwrap(),
-    ]);
-    assert_eq!(common::json(&run)["ao"]["secondary"], "ropes");
-    assert_eq!(
-        std::fs::read(&by_ropes).unwrap(),
-        std::fs::read(&out).unwrap()
-    );
-    // Over wide boxes: the same picture, the mode named.
-    let by_wide = dir.join("wide.png");
-    let run = slimkd(&[
-        "render",
-        "default",
-        "--view",
-        "1",
-        "--size",
-        "64x48",
-        "--shading",
-        "ao",
-        "--spp",
-        "2",
-        "--secondary",
-        "wide",
-        "--json",
-        "-o",
-        by_wide.to_str().unwrap(),
-    ]);
-    assert_eq!(common::json(&run)["ao"]["secondary"], "wide");
-    assert_eq!(
-        std::fs::read(&by_wide).unwrap(),
-        std::fs::read(&out).unwrap()
-    );
+    // By ropes and over wide boxes: the same picture, the mode named.
+    for mode in ["ropes", "wide"] {
+        let picture = dir.join(format!("{mode}.png"));
+        let run = slimkd(&[
+            "render",
+            "default",
+            "--view",
+            "1",
+            "--size",
+            "64x48",
+            "--shading",
+            "ao",
+            "--spp",
+            "2",
+            "--secondary",
+            mode,
+            "--json",
+            "-o",
+            picture.to_str().unwrap(),
+        ]);
+        assert_eq!(common::json(&run)["ao"]["secondary"], mode);
+        assert_eq!(
+            std::fs::read(&picture).unwrap(),
+            std::fs::read(&out).unwrap()
+        );
+    }
     // --spp without --shading ao is a usage error.
     let run = slimkd(&["render", "default", "--spp", "4"]);
     assert_eq!(run.status.code(), Some(2));

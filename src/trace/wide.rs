@@ -515,6 +515,35 @@ fn nearest(m: u32, near: &[f32; WIDTH]) -> usize {
     jn
 }
 
+/// Of the slots of `m` (not zero), the one of the least entry distance
+/// `near`; the others are pushed onto `stack` as `entry(slot)`. Shared by
+/// the single walk (entries carry the distance) and the packets (entries
+/// carry the lanes).
+#[inline(always)]
+fn take_nearest<E: Copy>(
+    mut m: u32,
+    near: &[f32; WIDTH],
+    entry: impl Fn(usize) -> E,
+    stack: &mut [MaybeUninit<E>],
+    sp: &mut usize,
+) -> usize {
+    let mut next = m.trailing_zeros() as usize;
+    m &= m - 1;
+    while m != 0 {
+        let j = m.trailing_zeros() as usize;
+        m &= m - 1;
+        let (keep, push) = if near[j] < near[next] {
+            (j, next)
+        } else {
+            (next, j)
+        };
+        stack[*sp] = MaybeUninit::new(entry(push));
+        *sp += 1;
+        next = keep;
+    }
+    next
+}
+
 /// One ray through the hierarchy, nearest box first. `ANY`: stop at the
 /// first hit in `(tmin, tmax)`; `COUNT`: add the work to `stats` (a
 /// node visit is a node step).
@@ -605,22 +634,9 @@ pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, con
         }
         // The entered inner children: the nearest next, the others
         // pushed.
-        let mut im = entered & !wn.leaves;
+        let im = entered & !wn.leaves;
         if im != 0 {
-            let mut next = im.trailing_zeros() as usize;
-            im &= im - 1;
-            while im != 0 {
-                let j = im.trailing_zeros() as usize;
-                im &= im - 1;
-                let (keep, push) = if near[j] < near[next] {
-                    (j, next)
-                } else {
-                    (next, j)
-                };
-                stack[sp] = MaybeUninit::new((wn.child[push], near[push]));
-                sp += 1;
-                next = keep;
-            }
+            let next = take_nearest(im, &near, |j| (wn.child[j], near[j]), &mut stack, &mut sp);
             let cut = best.t.min(ray.tmax);
             if near[next] <= cut + cut.abs() * MARGIN {
                 node = wn.child[next];
@@ -838,22 +854,15 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
         }
         // The entered inner children: the nearest next, the others
         // pushed with their lanes.
-        let mut im = entered & !wn.leaves;
+        let im = entered & !wn.leaves;
         if im != 0 {
-            let mut next = im.trailing_zeros() as usize;
-            im &= im - 1;
-            while im != 0 {
-                let j = im.trailing_zeros() as usize;
-                im &= im - 1;
-                let (keep, push) = if near[j] < near[next] {
-                    (j, next)
-                } else {
-                    (next, j)
-                };
-                stack[sp] = MaybeUninit::new((wn.child[push], lanes_in[push]));
-                sp += 1;
-                next = keep;
-            }
+            let next = take_nearest(
+                im,
+                &near,
+                |j| (wn.child[j], lanes_in[j]),
+                &mut stack,
+                &mut sp,
+            );
             if lanes_in[next] & act != 0 {
                 (node, mask) = (wn.child[next], lanes_in[next] & act);
                 continue 'walk;
