@@ -323,6 +323,66 @@ fn ao_frames_match_brute_force_in_every_mode() {
     }
 }
 
+/// `frame_rays` gives the rays an AO frame traces: every pixel's primary
+/// ray once, the first 16 a 4×4 block; as many shadow and AO rays as the
+/// frame traced, blocked as often as the frame counted.
+#[test]
+fn frame_rays_are_the_frames_rays() {
+    use slimkd::render::{AoOptions, Secondary};
+    use slimkd::trace::ClosestHit;
+    let views =
+        render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
+            .unwrap();
+    let path = manifest("scenes/nexuiz_dieselpower.obj");
+    let (scene, _) = scene::load_obj(&path).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+    let tracer = TreeTracer {
+        tree: &tree,
+        scene: &scene,
+    };
+    // Sides that are no multiple of the tile or the block.
+    let cam = Camera::from_view(render::find_view(&views, &path, "1").unwrap(), 50, 38);
+    let bounds = scene.bounds();
+    let frame = render::trace_ao_frame(
+        &tracer,
+        &cam,
+        &bounds,
+        |_| &scene,
+        &AoOptions {
+            spp: 3,
+            secondary: Secondary::Packet,
+        },
+    );
+    let rays = render::frame_rays(&frame.primary, &cam, &bounds, &&scene, 3);
+    let bits = |r: &slimkd::geom::Ray| {
+        let (o, d) = (r.origin.to_array(), r.dir.to_array());
+        [o[0], o[1], o[2], d[0], d[1], d[2]].map(f32::to_bits)
+    };
+    let mut want: Vec<_> = (0..38)
+        .flat_map(|y| (0..50).map(move |x| (x, y)))
+        .map(|(x, y)| bits(&cam.ray(x, y)))
+        .collect();
+    let mut got: Vec<_> = rays.primary.iter().map(bits).collect();
+    want.sort_unstable();
+    got.sort_unstable();
+    assert_eq!(got, want);
+    for (i, r) in rays.primary[..16].iter().enumerate() {
+        assert_eq!(
+            bits(r),
+            bits(&cam.ray(i as u32 % 4, i as u32 / 4)),
+            "block ray {i}"
+        );
+    }
+    let t = frame.times;
+    assert_eq!(rays.shadow.len() as u64, t.shadow_rays);
+    assert_eq!(rays.ao.len() as u64, t.ao_rays);
+    let blocked =
+        |rays: &[slimkd::geom::Ray]| rays.iter().filter(|r| tracer.occluded(r)).count() as u64;
+    assert_eq!(blocked(&rays.shadow), t.shadowed);
+    assert_eq!(blocked(&rays.ao), t.ao_occluded);
+    assert!(t.shadowed > 0 && t.ao_occluded > 0 && t.ao_occluded < t.ao_rays);
+}
+
 #[test]
 fn cli_ao_frame_reports_each_ray_kind() {
     let dir = fresh_temp_dir("render_ao");
@@ -386,4 +446,53 @@ fn cli_ao_frame_reports_each_ray_kind() {
     let run = slimkd(&["render", "default", "--spp", "4"]);
     assert_eq!(run.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&run.stderr).contains("--shading ao"));
+    // --dump-rays writes the frame's rays, as many of each kind as it
+    // traced, in the peer's ray files; into a folder that is not there,
+    // none of them and a clear error.
+    let prefix = dir.join("frame");
+    let dump = |prefix: &Path| {
+        slimkd(&[
+            "render",
+            "default",
+            "--view",
+            "1",
+            "--size",
+            "64x48",
+            "--shading",
+            "ao",
+            "--spp",
+            "2",
+            "--json",
+            "--dump-rays",
+            prefix.to_str().unwrap(),
+        ])
+    };
+    let run = dump(&prefix);
+    let ao = &common::json(&run)["ao"];
+    for (kind, key) in [
+        ("primary", "primary_rays"),
+        ("shadow", "shadow_rays"),
+        ("ao", "ao_rays"),
+    ] {
+        let rays = slimkd::trace::rays::read_rays(&dir.join(format!("frame-{kind}.rays"))).unwrap();
+        assert_eq!(rays.len() as u64, ao[key].as_u64().unwrap(), "{kind}");
+    }
+    let missing = dir.join("no-such-folder").join("frame");
+    let run = dump(&missing);
+    assert_eq!(run.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("no-such-folder"));
+    assert!(!dir.join("no-such-folder").exists());
+    // Nothing is left besides the three files.
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.starts_with("frame"))
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["frame-ao.rays", "frame-primary.rays", "frame-shadow.rays"]
+    );
+    let run = slimkd(&["render", "default", "--dump-rays", prefix.to_str().unwrap()]);
+    assert_eq!(run.status.code(), Some(2));
 }

@@ -345,6 +345,53 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     }
 }
 
+/// The rays of an AO frame, each kind in the order the frame traces it,
+/// for the peer program (`embree_bench --rays`): the same rays, so that
+/// the frame compares kind by kind.
+pub struct FrameRays {
+    /// The primary rays ([`super::primary_rays`]: 16 consecutive rays are
+    /// a 4×4 packet).
+    pub primary: Vec<Ray>,
+    /// The hit pixels' shadow rays, tile by tile ([`TILE_SIDE`]²), Morton
+    /// order within a tile.
+    pub shadow: Vec<Ray>,
+    /// The AO rays, tile by tile, each tile's in the order its packets
+    /// take them (`order_for_packets`: 16 consecutive rays of a tile are
+    /// a packet; a tile's last packet may hold fewer, which a tracer of
+    /// the whole file fills from the next tile).
+    pub ao: Vec<Ray>,
+}
+
+/// The rays [`trace_ao_frame`] traces after its primary rays hit as
+/// `primary` says ([`AoFrame::primary`]), with `spp` AO rays a hit
+/// pixel.
+pub fn frame_rays<N: TriangleNormals>(
+    primary: &HitBuffer,
+    camera: &Camera,
+    bounds: &Aabb,
+    normals: &N,
+    spp: u32,
+) -> FrameRays {
+    let (pixels, ao) = secondary_rays(primary, camera, bounds, normals, spp);
+    let shadow = pixels.iter().filter_map(|px| px.shadow).collect();
+    let mut ordered = Vec::with_capacity(ao.len());
+    let mut order = Vec::new();
+    for chunk in pixels.chunks(CHUNK) {
+        let (first, last) = match (chunk.first(), chunk.last()) {
+            (Some(a), Some(b)) => (a.first, b.first + spp as usize),
+            _ => (0, 0),
+        };
+        let rays = &ao[first..last];
+        order_for_packets(rays, &mut order);
+        ordered.extend(order.iter().map(|&i| rays[i as usize]));
+    }
+    FrameRays {
+        primary: super::primary_rays(camera),
+        shadow,
+        ao: ordered,
+    }
+}
+
 /// What a worker keeps from chunk to chunk: the contexts of a chunk's
 /// pixels (from-hit mode) and one occluder cache per kind of ray, so that
 /// the first packet of a chunk tests the occluders of the worker's last

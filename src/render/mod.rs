@@ -17,7 +17,9 @@
 pub mod ao;
 mod image_out;
 
-pub use ao::{AoFrame, AoOptions, AoTimes, Secondary, shade_ao, trace_ao_frame};
+pub use ao::{
+    AoFrame, AoOptions, AoTimes, FrameRays, Secondary, frame_rays, shade_ao, trace_ao_frame,
+};
 pub use image_out::{Frame, ImageError, write_depth_f32, write_exr, write_image, write_png};
 
 use crate::format::KdFile;
@@ -396,6 +398,31 @@ impl HitBuffer {
     pub fn depth(&self) -> Vec<f32> {
         self.hits.iter().map(|h| h.t).collect()
     }
+}
+
+/// The camera's primary rays in the order [`trace_frame`] traces them:
+/// tile by tile ([`TILE`]² pixels, row after row of tiles), in each
+/// tile its 4×4 blocks row after row, each block's 16 rays row-major (a
+/// block cut by the image's edge pixel by pixel, row-major), so that 16
+/// consecutive rays are one of its packets.
+pub fn primary_rays(camera: &Camera) -> Vec<Ray> {
+    let (w, h) = (camera.width, camera.height);
+    let mut rays = Vec::with_capacity(w as usize * h as usize);
+    for ty in (0..h).step_by(TILE as usize) {
+        for tx in (0..w).step_by(TILE as usize) {
+            let (tw, th) = ((tx + TILE).min(w) - tx, (ty + TILE).min(h) - ty);
+            for by in (0..th).step_by(4) {
+                for bx in (0..tw).step_by(4) {
+                    for y in by..(by + 4).min(th) {
+                        for x in bx..(bx + 4).min(tw) {
+                            rays.push(camera.ray(tx + x, ty + y));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    rays
 }
 
 /// Traces every pixel, tiles in parallel on the current rayon pool. Each

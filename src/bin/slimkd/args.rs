@@ -679,6 +679,13 @@ pub(crate) struct RenderArgs {
     /// Write W·H little-endian f32 hit distances (+inf for a miss).
     #[arg(long)]
     pub(crate) dump_t: Option<PathBuf>,
+    /// With --shading ao: write the frame's rays, each kind in the order
+    /// the frame traces it (16 consecutive rays are one of its packets),
+    /// to PREFIX-primary.rays, PREFIX-shadow.rays and PREFIX-ao.rays, the
+    /// ray files of the peer program's `--make-rays PREFIX`; all three or
+    /// none are written.
+    #[arg(long, value_name = "PREFIX")]
+    pub(crate) dump_rays: Option<PathBuf>,
     #[command(
         flatten,
         next_help_heading = "Build (of a scene; a .kd file is built already)"

@@ -25,7 +25,8 @@ use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::ropes::{RopeTracer, Ropes};
 use slimkd::trace::wide::{WideBoxes, WideTracer};
 use slimkd::trace::{BruteForce, ClosestHit, KdSource, Scalar, TreeTracer};
-use std::path::Path;
+use std::io::Write;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The camera: explicit flags override a view, a view overrides the
@@ -106,8 +107,10 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
     if args.reps == 0 {
         return Err(Usage("--reps must be at least 1".into()).into());
     }
-    if args.shading != ShadingArg::Ao && (args.spp.is_some() || args.secondary.is_some()) {
-        return Err(Usage("--spp and --secondary need --shading ao".into()).into());
+    if args.shading != ShadingArg::Ao
+        && (args.spp.is_some() || args.secondary.is_some() || args.dump_rays.is_some())
+    {
+        return Err(Usage("--spp, --secondary and --dump-rays need --shading ao".into()).into());
     }
     if let Some(spp) = args.spp {
         // The rays are made before the clock starts: 32 bytes a ray, so
@@ -121,6 +124,9 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
     }
     if let Some(out) = &args.dump_t {
         check_output_dir(out)?;
+    }
+    if let Some(prefix) = &args.dump_rays {
+        check_output_dir(&ray_file(prefix, "primary"))?;
     }
     let kd_input = args.scene.as_os_str() != DEFAULT_ARG && is_kd_file(&args.scene);
     if kd_input && !args.build.given.is_empty() {
@@ -301,6 +307,17 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
             rates.push(buf.mrays_per_s());
             last = Some(buf);
         }
+        if let (Some(prefix), Some(ao)) = (&args.dump_rays, &ao_light) {
+            let spp = ao_options.spp;
+            let rays = match &source {
+                Source::Built { loaded, .. } => render::frame_rays(&ao.primary, &camera, &bounds, &&loaded.scene, spp),
+                Source::File { file, .. } => {
+                    let normals = render::FileNormals::new(file, &ao.primary);
+                    render::frame_rays(&ao.primary, &camera, &bounds, &normals, spp)
+                }
+            };
+            write_frame_rays(prefix, &rays)?;
+        }
         let (buf, frame) = match ao_light {
             Some(ao) => {
                 let frame = render::shade_ao(&ao);
@@ -442,4 +459,37 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
         }
         Ok(())
     })
+}
+
+/// Writes `rays` to `PREFIX-primary.rays`, `PREFIX-shadow.rays` and
+/// `PREFIX-ao.rays`: each staged first, then all renamed into place, so
+/// that a failure leaves none of them changed.
+fn write_frame_rays(prefix: &Path, rays: &render::FrameRays) -> CmdResult<()> {
+    let mut staged = Vec::new();
+    for (kind, list) in [
+        ("primary", &rays.primary),
+        ("shadow", &rays.shadow),
+        ("ao", &rays.ao),
+    ] {
+        let path = ray_file(prefix, kind);
+        let io = |e: std::io::Error| format!("{}: {e}", path.display());
+        let mut file = slimkd::fsio::Staged::create(&path).map_err(io)?;
+        file.file()
+            .write_all(&slimkd::trace::rays::ray_bytes(list))
+            .map_err(io)?;
+        file.stage().map_err(io)?;
+        staged.push((path, file));
+    }
+    for (path, file) in staged {
+        file.commit()
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// `PREFIX-KIND.rays`.
+fn ray_file(prefix: &Path, kind: &str) -> PathBuf {
+    let mut name = prefix.as_os_str().to_owned();
+    name.push(format!("-{kind}.rays"));
+    PathBuf::from(name)
 }
