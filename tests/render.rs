@@ -388,23 +388,24 @@ fn cli_ao_frame_reports_each_ray_kind() {
     let dir = fresh_temp_dir("render_ao");
     let out = dir.join("ao.png");
     let out_s = out.to_str().unwrap();
-    let run = slimkd(&[
-        "render",
-        "default",
-        "--view",
-        "1",
-        "--size",
-        "64x48",
-        "--shading",
-        "ao",
-        "--spp",
-        "2",
-        "--secondary",
-        "from-hit",
-        "--json",
-        "-o",
-        out_s,
-    ]);
+    let ao_render = |more: &[&str]| {
+        let mut args = vec![
+            "render",
+            "default",
+            "--view",
+            "1",
+            "--size",
+            "64x48",
+            "--shading",
+            "ao",
+            "--spp",
+            "2",
+            "--json",
+        ];
+        args.extend_from_slice(more);
+        slimkd(&args)
+    };
+    let run = ao_render(&["--secondary", "from-hit", "-o", out_s]);
     let json = common::json(&run);
     let ao = &json["ao"];
     assert_eq!(ao["spp"], 2);
@@ -419,23 +420,7 @@ fn cli_ao_frame_reports_each_ray_kind() {
     // By ropes and over wide boxes: the same picture, the mode named.
     for mode in ["ropes", "wide"] {
         let picture = dir.join(format!("{mode}.png"));
-        let run = slimkd(&[
-            "render",
-            "default",
-            "--view",
-            "1",
-            "--size",
-            "64x48",
-            "--shading",
-            "ao",
-            "--spp",
-            "2",
-            "--secondary",
-            mode,
-            "--json",
-            "-o",
-            picture.to_str().unwrap(),
-        ]);
+        let run = ao_render(&["--secondary", mode, "-o", picture.to_str().unwrap()]);
         assert_eq!(common::json(&run)["ao"]["secondary"], mode);
         assert_eq!(
             std::fs::read(&picture).unwrap(),
@@ -450,23 +435,7 @@ fn cli_ao_frame_reports_each_ray_kind() {
     // traced, in the peer's ray files; into a folder that is not there,
     // none of them and a clear error.
     let prefix = dir.join("frame");
-    let dump = |prefix: &Path| {
-        slimkd(&[
-            "render",
-            "default",
-            "--view",
-            "1",
-            "--size",
-            "64x48",
-            "--shading",
-            "ao",
-            "--spp",
-            "2",
-            "--json",
-            "--dump-rays",
-            prefix.to_str().unwrap(),
-        ])
-    };
+    let dump = |prefix: &Path| ao_render(&["--dump-rays", prefix.to_str().unwrap()]);
     let run = dump(&prefix);
     let ao = &common::json(&run)["ao"];
     for (kind, key) in [

@@ -403,8 +403,9 @@ impl HitBuffer {
 /// The camera's primary rays in the order [`trace_frame`] traces them:
 /// tile by tile ([`TILE`]² pixels, row after row of tiles), in each
 /// tile its 4×4 blocks row after row, each block's 16 rays row-major (a
-/// block cut by the image's edge pixel by pixel, row-major), so that 16
-/// consecutive rays are one of its packets.
+/// block cut by the image's edge, which it traces ray by ray, row-major):
+/// where the sides are multiples of 4, 16 consecutive rays are one of its
+/// packets.
 pub fn primary_rays(camera: &Camera) -> Vec<Ray> {
     let (w, h) = (camera.width, camera.height);
     let mut rays = Vec::with_capacity(w as usize * h as usize);
