@@ -352,7 +352,7 @@ pub struct FrameRays {
     /// The primary rays ([`super::primary_rays`]: 16 consecutive rays are
     /// a 4×4 packet).
     pub primary: Vec<Ray>,
-    /// The hit pixels' shadow rays, tile by tile ([`TILE_SIDE`]²), Morton
+    /// The hit pixels' shadow rays, tile by tile (32×32 pixels), Morton
     /// order within a tile.
     pub shadow: Vec<Ray>,
     /// The AO rays, tile by tile, each tile's in the order its packets
