@@ -4,10 +4,11 @@
 //! children's (and of its hoisted triangle's part of its cell), and the
 //! tree collapsed into nodes of up to eight such boxes, empty cells left
 //! out. A single ray tests a node's eight boxes in the lanes of one AVX2
-//! register and visits the ones it enters nearest first; an any-hit
-//! packet of 16 rays decides every box in every lane, visits a child
-//! with the lanes that enter it, and tests a leaf's triangles in those
-//! lanes with the packet kernel.
+//! register and visits the ones it enters, nearest first for a closest
+//! hit, in slot order for an any-hit query; an any-hit packet of 16 rays
+//! decides every box in every lane, visits a child with the lanes that
+//! enter it (in the order of its first lane's entry distances), and
+//! tests a leaf's triangles in those lanes with the packet kernel.
 //!
 //! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
 //! where it starts and then crosses ~10 cells, 7 of them empty
@@ -20,6 +21,18 @@
 //! boxes"). It costs memory besides the tree (57–89 bytes a triangle on
 //! dieselpower, ravenbridge and black_forest, whose std trees take
 //! 21–31), so it is built on request.
+//!
+//! **A single any-hit walk takes the children in slot order**, not
+//! nearest first, as Embree's occlusion walk does. An AO ray starts on a
+//! surface: the boxes it enters first are those at its origin, of the
+//! surface it leaves, which seldom block it. In slot order ravenbridge's
+//! AO rays take 9.5 node visits and 7.0 triangle tests a ray against
+//! nearest first's 13.0 and 13.9, and run 1.4× as fast (1.01–1.04× on
+//! dieselpower, candela_city and black_forest); the slots sorted by box
+//! area, largest first, visit as many nodes (9.4) and run 4 % slower,
+//! the children no longer in their memory order. Packets keep their
+//! first lane's nearest-first order: in slot order they ran ravenbridge's
+//! AO rays 1.3× as fast but candela_city's and black_forest's 0.85–0.9×.
 //!
 //! **Exact, as the other walks.** A triangle's part of a leaf's cell lies
 //! in that leaf's box (the clip's bounds are rounded outward, and padded
@@ -517,8 +530,8 @@ fn nearest(m: u32, near: &[f32; WIDTH]) -> usize {
 
 /// Of the slots of `m` (not zero), the one of the least entry distance
 /// `near`; the others are pushed onto `stack` as `entry(slot)`. Shared by
-/// the single walk (entries carry the distance) and the packets (entries
-/// carry the lanes).
+/// the single closest-hit walk (entries carry the distance) and the
+/// packets (entries carry the lanes).
 #[inline(always)]
 fn take_nearest<E: Copy>(
     mut m: u32,
@@ -545,8 +558,8 @@ fn take_nearest<E: Copy>(
 }
 
 /// One ray through the hierarchy, nearest box first. `ANY`: stop at the
-/// first hit in `(tmin, tmax)`; `COUNT`: add the work to `stats` (a
-/// node visit is a node step).
+/// first hit in `(tmin, tmax)`, the boxes taken in slot order; `COUNT`:
+/// add the work to `stats` (a node visit is a node step).
 #[inline(always)]
 pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool>(
     src: W,
@@ -632,9 +645,34 @@ pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, con
                 }
             }
         }
+        let im = entered & !wn.leaves;
+        if ANY {
+            // An any-hit walk takes its children in slot order (see the
+            // module docs; its limit is `tmax` until it stops, so every
+            // entered and every pending child is in reach): the first
+            // entered next, the others pushed to come off in slot order.
+            if im != 0 {
+                let next = im.trailing_zeros() as usize;
+                let mut rest = im & !(1 << next);
+                while rest != 0 {
+                    let j = 31 - rest.leading_zeros() as usize;
+                    rest &= !(1 << j);
+                    stack[sp] = MaybeUninit::new((wn.child[j], 0.0));
+                    sp += 1;
+                }
+                node = wn.child[next];
+                continue 'walk;
+            }
+            if sp == 0 {
+                break;
+            }
+            sp -= 1;
+            // SAFETY: every entry below the old `sp` was written.
+            node = unsafe { stack[sp].assume_init() }.0;
+            continue 'walk;
+        }
         // The entered inner children: the nearest next, the others
         // pushed.
-        let im = entered & !wn.leaves;
         if im != 0 {
             let next = take_nearest(im, &near, |j| (wn.child[j], near[j]), &mut stack, &mut sp);
             let cut = best.t.min(ray.tmax);
