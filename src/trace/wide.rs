@@ -13,7 +13,7 @@
 //! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
 //! where it starts and then crosses ~10 cells, 7 of them empty
 //! (ravenbridge's AO rays, perf-notes "Ropes"): ~60 binary steps. The
-//! boxes drop the empty cells and take about three levels a step: 13
+//! boxes drop the empty cells and take about three levels a step: 9.5
 //! node visits an AO ray there, and a renderer's AO packet takes 2.8
 //! node visits a ray against the kd packets' 15.4 steps. The renderer's
 //! AO frame runs 1.05–1.4× faster on four of the shared scenes
