@@ -401,15 +401,27 @@ impl PeakRss {
         let thread = {
             let (peak, stop) = (peak.clone(), stop.clone());
             // Where no thread can be started, the peaks are sampled only
-            // when read.
-            std::thread::Builder::new()
-                .spawn(move || {
-                    while !stop.load(Ordering::Relaxed) {
-                        PeakRss::sample(&peak);
-                        std::thread::sleep(Duration::from_millis(10));
-                    }
+            // when read. The sampler is waited for until it runs (see
+            // `crate::pool`: a thread starting beside allocations can
+            // abort the process).
+            let (up_tx, up_rx) = std::sync::mpsc::channel::<()>();
+            let thread = crate::room_for_threads(1)
+                .then(|| {
+                    std::thread::Builder::new()
+                        .spawn(move || {
+                            let _ = up_tx.send(());
+                            while !stop.load(Ordering::Relaxed) {
+                                PeakRss::sample(&peak);
+                                std::thread::sleep(Duration::from_millis(10));
+                            }
+                        })
+                        .ok()
                 })
-                .ok()
+                .flatten();
+            if thread.is_some() {
+                let _ = up_rx.recv();
+            }
+            thread
         };
         PeakRss { peak, stop, thread }
     }

@@ -260,14 +260,49 @@ fn cmd_trace(args: &args::TraceArgs, ui: OutputFlags) -> CmdResult<()> {
     })
 }
 
+/// Address space a worker thread is to find free when it starts: its
+/// stack (Rust's default, 2 MiB), its signal stack, and what it and its
+/// siblings allocate while they start (a pool's first worker runs while
+/// the next one's stack is mapped). With 3 MiB, `ulimit -v` still found
+/// limits at which a worker's signal stack did not fit.
+const THREAD_ROOM: usize = 8 << 20;
+
+/// Whether `n` threads can start now: their room ([`THREAD_ROOM`] each)
+/// reserved and given back. A caller that starts threads waits until they
+/// run before it allocates more (see [`pool`]).
+pub(crate) fn room_for_threads(n: usize) -> bool {
+    Vec::<u8>::new()
+        .try_reserve_exact(n.saturating_mul(THREAD_ROOM))
+        .is_ok()
+}
+
 /// A thread pool of `threads` workers; `None` or 0: one per core.
 pub(crate) fn pool(threads: Option<usize>) -> CmdResult<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(n) = threads {
         b = b.num_threads(n);
     }
-    b.build().map_err(|e| {
+    // A thread whose stack maps but whose signal stack does not aborts
+    // the process in Rust's runtime, before any error can be reported
+    // (seen under `ulimit -v` at 20 MB): the room for every thread's
+    // stack and signal stack is reserved and given back first, so that
+    // too little memory is a clear error here, and the pool is returned
+    // once every worker runs, so that this thread's next allocations do
+    // not take that room while they start.
+    let n = match threads {
+        Some(k) if k > 0 => k,
+        _ => std::thread::available_parallelism().map_or(1, |k| k.get()),
+    };
+    if !room_for_threads(n) {
+        return Err(format!(
+            "cannot start {n} worker threads: not enough memory for their stacks ({} MiB)",
+            (n * THREAD_ROOM) >> 20
+        )
+        .into());
+    }
+    let pool = b.build().map_err(|e| {
         format!("cannot start the worker threads (not enough memory or too many threads): {e}")
-            .into()
-    })
+    })?;
+    pool.broadcast(|_| ());
+    Ok(pool)
 }

@@ -107,13 +107,20 @@ pub(crate) fn with_bar_lines<T: Send>(
         // interval to every timed build).
         let (done, result) = mpsc::channel::<CmdResult<T>>();
         let (line_tx, line_rx) = mpsc::channel::<String>();
+        if !crate::room_for_threads(1) {
+            return Err(
+                format!("{label}: cannot start a worker thread (not enough memory)").into(),
+            );
+        }
+        // The worker says when its pool runs: until then this thread
+        // allocates nothing (see `crate::pool`).
+        let (up_tx, up_rx) = mpsc::channel::<()>();
         let worker = std::thread::Builder::new().spawn_scoped(s, move || {
             let lines = Lines(line_tx);
             let run = || -> CmdResult<T> {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(pool_threads)
-                    .build()
-                    .map_err(|e| format!("{label}: cannot start the worker threads (not enough memory or too many threads): {e}"))?;
+                let pool = crate::pool(Some(pool_threads));
+                let _ = up_tx.send(());
+                let pool = pool.map_err(|e| format!("{label}: {e}"))?;
                 pool.install(|| work(&lines))
             };
             // The receiver waits until this is sent (or the worker panics).
@@ -124,6 +131,7 @@ pub(crate) fn with_bar_lines<T: Send>(
                 "{label}: cannot start a worker thread (not enough memory or too many threads): {e}"
             )
         })?;
+        let _ = up_rx.recv();
         let mut bar: Option<ProgressBar> = None;
         let print = |bar: &Option<ProgressBar>, line: String| match bar {
             Some(b) if !b.is_hidden() => b.println(line),
