@@ -163,11 +163,11 @@ impl Packet {
         p
     }
 
-    /// Lane `i`'s constants of the scalar test, for its fallback; rebuilt
-    /// from the lane arrays rather than stored (16 copies of 48 bytes
-    /// written per packet for a rare path).
+    /// Lane `i`'s constants of the scalar test, for its fallback and for
+    /// a lane walked alone; rebuilt from the lane arrays rather than
+    /// stored (16 copies of 48 bytes written per packet for a rare path).
     #[inline(always)]
-    fn precomp(&self, i: usize) -> RayPrecomp {
+    pub(super) fn precomp(&self, i: usize) -> RayPrecomp {
         RayPrecomp {
             origin: Vec3::new(self.o[0][i], self.o[1][i], self.o[2][i]),
             kx: usize::from(self.kx[i]),
