@@ -469,6 +469,8 @@ fn main_job_compares_the_three_trees() {
             assert!(row.trim_end().ends_with("yes"), "{text}");
         }
         assert!(text.contains("same hits as std"), "{text}");
+        // The embedded scene's secondary rays go over wide boxes.
+        assert!(text.contains("secondary rays wide"), "{text}");
         assert_eq!(text.contains("RssAnon"), verbose, "{text}");
         assert!(dir.join("slimkd.png").exists());
         assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0, "left behind");

@@ -427,6 +427,17 @@ fn cli_ao_frame_reports_each_ray_kind() {
             std::fs::read(&out).unwrap()
         );
     }
+    // Without --secondary, a scene this small goes over wide boxes, the
+    // same picture again; single rays keep to the tree.
+    let picture = dir.join("default.png");
+    let run = ao_render(&["-o", picture.to_str().unwrap()]);
+    assert_eq!(common::json(&run)["ao"]["secondary"], "wide");
+    assert_eq!(
+        std::fs::read(&picture).unwrap(),
+        std::fs::read(&out).unwrap()
+    );
+    let run = ao_render(&["--mode", "single"]);
+    assert_eq!(common::json(&run)["ao"]["secondary"], "packet");
     // --spp without --shading ao is a usage error.
     let run = slimkd(&["render", "default", "--spp", "4"]);
     assert_eq!(run.status.code(), Some(2));

@@ -659,14 +659,16 @@ pub(crate) struct RenderArgs {
     /// AO rays per hit pixel with `--shading ao` (default 4).
     #[arg(long)]
     pub(crate) spp: Option<u32>,
-    /// How `--shading ao` traces its shadow and AO rays: `packet` (the
-    /// default: 16 at a time, in packets with `--mode packet`), `single`
+    /// How `--shading ao` traces its shadow and AO rays: `packet` (16 at
+    /// a time, in packets with `--mode packet`), `single`
     /// (one at a time from the root), `from-hit` (one at a time from the
     /// context of the hit point, one per pixel) or `ropes` (one at a time
     /// leaf to leaf from the cell of the hit point, by ropes built after
     /// opening and reported apart; std trees, `--mode packet`) or `wide`
     /// (16 at a time over boxes around the tree's leaves, eight a node,
-    /// built after opening and reported apart; `--mode packet`).
+    /// built after opening and reported apart; `--mode packet`). Default:
+    /// `wide` with `--mode packet` for scenes of up to 8 Mi triangles
+    /// (the boxes took up to 106 bytes a triangle), else `packet`.
     #[arg(long, value_enum)]
     pub(crate) secondary: Option<SecondaryArg>,
     /// Traversal mode: 4×4 packets (the default, as the main job), single

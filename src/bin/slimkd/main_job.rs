@@ -10,6 +10,7 @@ use crate::build::{Loaded, build_tree, load, print_scene_line, print_summary};
 use crate::json::{AoJson, SceneJson, print_json};
 use crate::kd_file::open_kd;
 use crate::lab::figures::{self, FiguresJson};
+use crate::render::wide_by_default;
 use crate::{CmdResult, DEFAULT_ARG, DEFAULT_SCENE_NAME, DEFAULT_VIEWS};
 use slimkd::build::BuildConfig;
 use slimkd::format::{self, Preset};
@@ -18,6 +19,8 @@ use slimkd::render::{self, AoFrame, AoOptions, Camera, HitBuffer, Secondary};
 use slimkd::slim::SlimParams;
 use slimkd::stats::TreeStats;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
+use slimkd::trace::wide::{WideBoxes, WideTracer};
+use slimkd::trace::{ClosestHit, KdSource};
 use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -29,7 +32,8 @@ const REPS: usize = 3;
 const SIZE: (u32, u32) = (1024, 1024);
 /// The AO frame of the picture: 8 AO rays a hit (4 leave the picture
 /// grainy), shadow and AO rays in packets (the fastest way to trace them:
-/// `docs/perf-notes.md`, "Rays from a hit context").
+/// `docs/perf-notes.md`, "Rays from a hit context"), over wide boxes
+/// where they fit ([`wide_by_default`]).
 const AO: AoOptions = AoOptions {
     spp: 8,
     secondary: Secondary::Packet,
@@ -96,8 +100,9 @@ struct Row {
     mrays: f64,
     frame: HitBuffer,
     write_s: f64,
-    /// The AO frame, of the tree that renders the picture.
-    ao: Option<AoFrame>,
+    /// The AO frame, of the tree that renders the picture, and how its
+    /// secondary rays were traced (`packet` or `wide`).
+    ao: Option<(AoFrame, &'static str)>,
 }
 
 /// Whether two frames hit the same triangles at the same distances, bit
@@ -147,15 +152,31 @@ fn write_and_trace(
         rates.push(buf.mrays_per_s());
         last = Some(buf);
     }
-    let ao = ao.map(|options| {
-        render::trace_ao_frame(
-            &tracer,
-            camera,
-            &file.bounds(),
-            |buf| render::FileNormals::new(&file, buf),
-            options,
-        )
-    });
+    let ao = match ao {
+        Some(options) => {
+            // Shadow and AO rays over wide boxes where they fit (as
+            // `render --shading ao` by default).
+            let boxes = if wide_by_default(file.triangles().len()) {
+                Some(WideBoxes::new(file.walk()).map_err(|e| format!("{}: {e}", path.display()))?)
+            } else {
+                None
+            };
+            let wide = boxes.as_ref().map(|b| WideTracer::new(&file, b));
+            let tracer: &dyn ClosestHit = match &wide {
+                Some(w) => w,
+                None => &tracer,
+            };
+            let frame = render::trace_ao_frame(
+                tracer,
+                camera,
+                &file.bounds(),
+                |buf| render::FileNormals::new(&file, buf),
+                options,
+            );
+            Some((frame, if wide.is_some() { "wide" } else { "packet" }))
+        }
+        None => None,
+    };
     Ok(Row {
         name,
         ao,
@@ -288,13 +309,13 @@ pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
             );
         }
     }
-    let ao = rows[0]
+    let (ao, secondary) = rows[0]
         .ao
         .as_ref()
         .expect("the std row renders the AO frame");
     let t = &ao.times;
     say!(
-        "ao frame   std, {} AO rays a hit: {:.0} ms = primary {:.0} ({} rays) + shadow {:.0} ({} rays) + AO {:.0} ({} rays, {:.1} Mrays/s)",
+        "ao frame   std, {} AO rays a hit, secondary rays {secondary}: {:.0} ms = primary {:.0} ({} rays) + shadow {:.0} ({} rays) + AO {:.0} ({} rays, {:.1} Mrays/s)",
         AO.spp,
         t.frame_s() * 1e3,
         t.primary_s * 1e3,
@@ -336,7 +357,10 @@ pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
                         }
                     })
                     .collect(),
-                ao: AoJson::of(&AO, &[ao.times]),
+                ao: AoJson {
+                    secondary,
+                    ..AoJson::of(&AO, &[ao.times])
+                },
                 image: IMAGE,
             },
         )?;
