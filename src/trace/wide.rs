@@ -893,13 +893,7 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
         // the single walk's test (read from lanes just stored, they would
         // wait on Zen 4's store forwarding).
         let near = if entered & !wn.leaves & (entered & !wn.leaves).wrapping_sub(1) != 0 {
-            let i = mask.trailing_zeros() as usize;
-            let lane = Slabs {
-                o: [p.o[0][i], p.o[1][i], p.o[2][i]],
-                inv: [p.inv[0][i], p.inv[1][i], p.inv[2][i]],
-                neg: [neg[0][i], neg[1][i], neg[2][i]],
-                tmin: p.tmin[i],
-            };
+            let lane = lane_slabs(p, &neg, mask.trailing_zeros() as usize);
             if AVX2 {
                 // SAFETY: `AVX2` is set only where this CPU has AVX2
                 // (`WideTracer::packet_occluded`).
@@ -975,6 +969,17 @@ fn pop(stack: &[MaybeUninit<(u32, u16)>], sp: &mut usize, act: u16) -> Option<(u
     None
 }
 
+/// Lane `i` of a packet as the single walk's box test reads it.
+#[inline(always)]
+fn lane_slabs(p: &Packet, neg: &[[bool; LANES]; 3], i: usize) -> Slabs {
+    Slabs {
+        o: [p.o[0][i], p.o[1][i], p.o[2][i]],
+        inv: [p.inv[0][i], p.inv[1][i], p.inv[2][i]],
+        neg: [neg[0][i], neg[1][i], neg[2][i]],
+        tmin: p.tmin[i],
+    }
+}
+
 /// The lanes of `mask` each walked alone through the subtree of `node`
 /// by the single any-hit walk; returns the lanes it found blocked, their
 /// hits in `best`. Cheaper than the packet where so few lanes are left:
@@ -1000,12 +1005,7 @@ fn walk_alone<'a, W: Walk<'a>, const COUNT: bool, const AVX2: bool>(
     while mask != 0 {
         let i = mask.trailing_zeros() as usize;
         mask &= mask - 1;
-        let slabs = Slabs {
-            o: [p.o[0][i], p.o[1][i], p.o[2][i]],
-            inv: [p.inv[0][i], p.inv[1][i], p.inv[2][i]],
-            neg: [neg[0][i], neg[1][i], neg[2][i]],
-            tmin: p.tmin[i],
-        };
+        let slabs = lane_slabs(p, neg, i);
         let visits = stats.nodes;
         let (h, t) = descend::<_, true, COUNT, AVX2>(
             src,
