@@ -7,12 +7,21 @@ mod common;
 use common::{fresh_temp_dir, slimkd};
 use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::render::{self, Camera, Shading};
-use slimkd::scene;
+use slimkd::scene::{self, TriangleColumns};
 use slimkd::trace::{BruteForce, TreeTracer};
+use slimkd::tree::TreeIr;
 use std::path::{Path, PathBuf};
 
 fn manifest(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+/// A shipped scene (`scenes/NAME.obj`), its path and its default tree.
+fn shipped(name: &str) -> (PathBuf, TriangleColumns, TreeIr) {
+    let path = manifest(&format!("scenes/{name}.obj"));
+    let (scene, _) = scene::load_obj(&path).unwrap();
+    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+    (path, scene, tree)
 }
 
 #[test]
@@ -21,10 +30,7 @@ fn frames_match_brute_force_on_every_shipped_view() {
         render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
             .unwrap();
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
-        let path = manifest(&format!("scenes/{name}.obj"));
-        let (scene, _) = scene::load_obj(&path).unwrap();
-        let tree =
-            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        let (path, scene, tree) = shipped(name);
         tree.validate(&scene).unwrap();
         let tracer = TreeTracer {
             tree: &tree,
@@ -202,9 +208,7 @@ fn cli_build_json_has_the_figures() {
 /// size that leaves partial tiles, and watching it changes no hit.
 #[test]
 fn frame_progress_ends_at_one() {
-    let path = manifest("scenes/bunny_npm.obj");
-    let (scene, _) = scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+    let (_, scene, tree) = shipped("bunny_npm");
     let tracer = TreeTracer {
         tree: &tree,
         scene: &scene,
@@ -271,10 +275,7 @@ fn ao_frames_match_brute_force_in_every_mode() {
         render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
             .unwrap();
     for name in ["nexuiz_dieselpower", "bunny_npm"] {
-        let path = manifest(&format!("scenes/{name}.obj"));
-        let (scene, _) = scene::load_obj(&path).unwrap();
-        let tree =
-            build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        let (path, scene, tree) = shipped(name);
         let options = WriteOptions {
             reorder: true,
             ..Default::default()
@@ -333,9 +334,7 @@ fn frame_rays_are_the_frames_rays() {
     let views =
         render::parse_views(&std::fs::read_to_string(manifest("scenes/views.txt")).unwrap())
             .unwrap();
-    let path = manifest("scenes/nexuiz_dieselpower.obj");
-    let (scene, _) = scene::load_obj(&path).unwrap();
-    let tree = build::build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+    let (path, scene, tree) = shipped("nexuiz_dieselpower");
     let tracer = TreeTracer {
         tree: &tree,
         scene: &scene,
