@@ -377,11 +377,7 @@ pub fn frame_rays<N: TriangleNormals>(
     let mut ordered = Vec::with_capacity(ao.len());
     let mut order = Vec::new();
     for chunk in pixels.chunks(CHUNK) {
-        let (first, last) = match (chunk.first(), chunk.last()) {
-            (Some(a), Some(b)) => (a.first, b.first + spp as usize),
-            _ => (0, 0),
-        };
-        let rays = &ao[first..last];
+        let rays = &ao[chunk_ao(chunk, spp as usize)];
         order_for_packets(rays, &mut order);
         ordered.extend(order.iter().map(|&i| rays[i as usize]));
     }
@@ -389,6 +385,15 @@ pub fn frame_rays<N: TriangleNormals>(
         primary: super::primary_rays(camera),
         shadow,
         ao: ordered,
+    }
+}
+
+/// Where a chunk's AO rays lie in the frame's `ao`: together, pixel
+/// after pixel, `spp` a pixel.
+fn chunk_ao(chunk: &[PixelRays], spp: usize) -> std::ops::Range<usize> {
+    match (chunk.first(), chunk.last()) {
+        (Some(a), Some(b)) => a.first..b.first + spp,
+        _ => 0..0,
     }
 }
 
@@ -473,13 +478,8 @@ fn trace_chunk(
             }
         }
         Secondary::Packet => {
-            // The chunk's AO rays lie together in `ao`, pixel after pixel.
-            let (first, last) = match (chunk.first(), chunk.last()) {
-                (Some(a), Some(b)) => (a.first, b.first + spp),
-                _ => (0, 0),
-            };
             let mut open = vec![0u32; chunk.len()];
-            let rays = &ao[first..last];
+            let rays = &ao[chunk_ao(chunk, spp)];
             // Packets of one direction cell where the tile's origins lie
             // close together against the rays' length, else of one octant,
             // neighbouring pixels together (`order_for_packets`; the sort
