@@ -453,9 +453,13 @@ fn trace_chunk(
                 .collect();
             let cache = &mut scratch.shadow;
             for group in rays.chunks(LANES) {
-                let batch: Vec<Ray> = group.iter().map(|&(_, r)| r).collect();
+                let mut batch = [Ray::new(Vec3::ZERO, Vec3::X); LANES];
+                for (b, &(_, r)) in batch.iter_mut().zip(group) {
+                    *b = r;
+                }
                 let mut occ = [false; LANES];
-                tracer.occluded_n_cached(&batch, &mut occ[..batch.len()], cache);
+                let n = group.len();
+                tracer.occluded_n_cached(&batch[..n], &mut occ[..n], cache);
                 for (&(i, _), o) in group.iter().zip(occ) {
                     out.results[i].0 = o;
                 }

@@ -67,7 +67,7 @@ pub(super) type Lanes = [f32; LANES];
 /// never active.
 pub(super) struct Packet {
     pub(super) o: [Lanes; 3],
-    dir: [Lanes; 3],
+    pub(super) dir: [Lanes; 3],
     pub(super) inv: [Lanes; 3],
     pub(super) tmin: Lanes,
     pub(super) tmax: Lanes,

@@ -282,17 +282,20 @@ pub fn order_by_octant(rays: &[Ray], order: &mut Vec<u32>) {
 /// `order` := the indices of `rays` ascending in `key(dir)` (below
 /// `keys`), in their own order where keys are equal.
 fn counting_order(rays: &[Ray], keys: usize, key: impl Fn(Vec3) -> usize, order: &mut Vec<u32>) {
+    debug_assert!(keys <= 1 << 16);
+    // Each ray's key once (a direction cell costs a division).
+    let of: Vec<u16> = rays.iter().map(|r| key(r.dir) as u16).collect();
     let mut start = vec![0u32; keys + 1];
-    for r in rays {
-        start[key(r.dir) + 1] += 1;
+    for &k in &of {
+        start[usize::from(k) + 1] += 1;
     }
     for k in 1..=keys {
         start[k] += start[k - 1];
     }
     order.clear();
     order.resize(rays.len(), 0);
-    for (i, r) in rays.iter().enumerate() {
-        let k = key(r.dir);
+    for (i, &k) in of.iter().enumerate() {
+        let k = usize::from(k);
         order[start[k] as usize] = i as u32;
         start[k] += 1;
     }
@@ -308,16 +311,18 @@ pub const DIRECTION_BINS: usize = 8;
 #[inline]
 pub fn direction_cell(dir: Vec3) -> usize {
     let a = dir.abs();
-    let s = a.x + a.y + a.z;
-    let bins = DIRECTION_BINS as f32;
+    // One division a ray (the sort's keys are its cost).
+    let scale = DIRECTION_BINS as f32 / (a.x + a.y + a.z);
     // `as` saturates: NaN (a zero direction) is 0, and u = 1 is clamped.
-    let u = ((a.x / s * bins) as usize).min(DIRECTION_BINS - 1);
-    let v = ((a.y / s * bins) as usize).min(DIRECTION_BINS - 1);
-    let mut cell = 0;
-    for bit in 0..DIRECTION_BINS.trailing_zeros() {
-        cell |= (u >> bit & 1) << (2 * bit) | (v >> bit & 1) << (2 * bit + 1);
-    }
-    cell
+    let u = ((a.x * scale) as usize).min(DIRECTION_BINS - 1);
+    let v = ((a.y * scale) as usize).min(DIRECTION_BINS - 1);
+    spread_bits(u) | spread_bits(v) << 1
+}
+
+/// The bits of `x` (below [`DIRECTION_BINS`]) moved to the even bits.
+#[inline(always)]
+fn spread_bits(x: usize) -> usize {
+    (x & 1) | (x & 2) << 1 | (x & 4) << 2
 }
 
 /// The key of [`order_by_direction`]: the octant, then the direction cell.

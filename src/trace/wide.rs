@@ -737,12 +737,6 @@ fn occluded_packet<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX2
     stats: &mut TraceStats,
     cache: &mut OccluderCache,
 ) {
-    let alone = |r: &Ray| {
-        let d = r.dir.to_array();
-        boxes.tag != src.tag()
-            || (0..3).any(|k| d[k] != 0.0 && !(1.0 / d[k]).is_finite())
-            || !(r.origin.is_finite() && r.tmin <= r.tmax)
-    };
     if rays.len() < MIN_LANES as usize {
         for (r, o) in rays.iter().zip(out.iter_mut()) {
             *o = walk_wide::<_, true, COUNT, AVX2>(src, boxes, r, stats);
@@ -753,12 +747,22 @@ fn occluded_packet<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX2
     let p = Packet::new(rays);
     let mut best = Best::NONE;
     let mut mask = all_lanes(rays);
-    let mut solo = 0u16;
-    for (i, r) in rays.iter().enumerate() {
-        if alone(r) {
-            solo |= 1 << i;
+    // The lanes the boxes cannot take, from the packet's inverses (the
+    // same `1 / d` as the single walk's; divided here per ray they took
+    // 2 % of an AO packet's time).
+    let mut solo = if boxes.tag != src.tag() {
+        mask
+    } else {
+        let mut solo = 0u16;
+        for i in 0..rays.len() {
+            let overflow = (0..3).any(|k| p.dir[k][i] != 0.0 && !p.inv[k][i].is_finite());
+            let origin = (0..3).all(|k| p.o[k][i].is_finite());
+            if overflow || !(origin && p.tmin[i] <= p.tmax[i]) {
+                solo |= 1 << i;
+            }
         }
-    }
+        solo
+    };
     mask &= !solo;
     let mut occ = [u32::MAX; LANES];
     let done = test_cached::<_, COUNT, M>(src, &p, &cached, mask, &mut best, stats, &mut occ);
