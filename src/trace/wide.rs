@@ -152,7 +152,7 @@ impl WideBoxes {
     pub fn new<'a, W: Walk<'a>>(walk: W) -> Result<WideBoxes, WideError> {
         let n_ids = walk.tag().1;
         let limit = walk.step_limit() as usize;
-        let tight = tight_boxes(walk, n_ids, limit)?;
+        let tight = tight_boxes(walk, n_ids, limit, leaf_box)?;
         let is_node = |c: u32| (c as usize) < n_ids;
         let mut nodes = vec![WideNode::EMPTY];
         let mut leaves = 0usize;
@@ -354,6 +354,7 @@ fn tight_boxes<'a, W: Walk<'a>>(
     walk: W,
     n_ids: usize,
     limit: usize,
+    leaf: impl Fn(W, u32, &Aabb) -> Aabb + Sync,
 ) -> Result<Vec<Aabb>, WideError> {
     use rayon::prelude::*;
     let mut tight = vec![Aabb::EMPTY; n_ids];
@@ -394,17 +395,7 @@ fn tight_boxes<'a, W: Walk<'a>>(
     }
     let clipped: Vec<Aabb> = leaves
         .par_iter()
-        .map(|&(n, cell)| {
-            let mut b = Aabb::EMPTY;
-            if let SourceNode::Leaf(tris) = walk.node(n) {
-                for i in 0..tris.len() {
-                    if let Some(c) = clip_triangle(&walk.triangle(tris.get(i)), &cell) {
-                        b = b.union(&c);
-                    }
-                }
-            }
-            b
-        })
+        .map(|&(n, cell)| leaf(walk, n, &cell))
         .collect();
     for (&(n, _), b) in leaves.iter().zip(clipped) {
         tight[n as usize] = b;
@@ -427,6 +418,37 @@ fn tight_boxes<'a, W: Walk<'a>>(
         tight[n as usize] = b;
     }
     Ok(tight)
+}
+
+/// The tight box of leaf `n` of cell `cell`: the union of its references
+/// clipped to the cell. The references inside the cell come first (their
+/// own bounds), and a straddler is clipped only where its bounds in the
+/// cell could grow the box (its clip lies in them): the union is the
+/// same, and black_forest's boxes take 683 ms on one thread instead of
+/// 805 (ravenbridge 240 instead of 263; the clipper is still 39 % of
+/// black_forest's).
+fn leaf_box<'a, W: Walk<'a>>(walk: W, n: u32, cell: &Aabb) -> Aabb {
+    let mut b = Aabb::EMPTY;
+    let SourceNode::Leaf(tris) = walk.node(n) else {
+        return b;
+    };
+    for i in 0..tris.len() {
+        let tb = Aabb::of_triangle(&walk.triangle(tris.get(i)));
+        if cell.contains(&tb) {
+            b = b.union(&tb);
+        }
+    }
+    for i in 0..tris.len() {
+        let tri = walk.triangle(tris.get(i));
+        let tb = Aabb::of_triangle(&tri);
+        if cell.contains(&tb) || b.contains(&tb.intersection(cell)) {
+            continue;
+        }
+        if let Some(c) = clip_triangle(&tri, cell) {
+            b = b.union(&c);
+        }
+    }
+    b
 }
 
 /// Packs eight flags into a byte, flag `i` into bit `i`.
@@ -1152,5 +1174,52 @@ impl<'a, S: KdSource> ClosestHit for WideTracer<'a, S> {
 
     fn closest_hit_4x4(&self, rays: &[Ray; 16], out: &mut [Hit; 16]) {
         self.packet.closest_hit_4x4(rays, out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::{Algorithm, BuildConfig, build};
+    use crate::trace::{KdSource, TreeTracer};
+
+    /// Every reference clipped: the union `leaf_box` skips clips of.
+    fn every_clip<'a, W: Walk<'a>>(walk: W, n: u32, cell: &Aabb) -> Aabb {
+        let mut b = Aabb::EMPTY;
+        if let SourceNode::Leaf(tris) = walk.node(n) {
+            for i in 0..tris.len() {
+                if let Some(c) = clip_triangle(&walk.triangle(tris.get(i)), cell) {
+                    b = b.union(&c);
+                }
+            }
+        }
+        b
+    }
+
+    #[test]
+    fn leaf_boxes_skip_only_clips_that_cannot_grow_them() {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
+        let scene = crate::scene::load_obj(&path).unwrap().0;
+        let tree = build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+        let source = TreeTracer {
+            tree: &tree,
+            scene: &scene,
+        };
+        let walk = source.walk();
+        let (n_ids, limit) = (walk.tag().1, walk.step_limit() as usize);
+        let fast = tight_boxes(walk, n_ids, limit, leaf_box).unwrap();
+        let slow = tight_boxes(walk, n_ids, limit, every_clip).unwrap();
+        assert_eq!(fast.len(), slow.len());
+        let mut clipped = 0;
+        for (n, (a, b)) in fast.iter().zip(&slow).enumerate() {
+            assert_eq!(
+                (a.min.to_array(), a.max.to_array()),
+                (b.min.to_array(), b.max.to_array()),
+                "node {n}"
+            );
+            clipped += usize::from(!a.is_empty());
+        }
+        assert!(clipped > 1000, "{clipped} nodes with boxes");
     }
 }
