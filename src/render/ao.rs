@@ -113,7 +113,7 @@ struct PixelRays {
     /// file: read through the pixels, dieselpower's shadow rays took 21.7
     /// ms of its frame, 19.2 so (16 from a ray file).
     has_shadow: bool,
-    shadow_at: u32,
+    shadow_at: usize,
     /// `spp` AO rays, from `ao[first..first + spp]`.
     first: usize,
     /// `n · l` toward the light (0 when facing away).
@@ -145,9 +145,7 @@ impl SecondaryRays {
     /// Where the shadow rays of a run of pixels lie in `shadow`.
     fn shadow_of(chunk: &[PixelRays]) -> std::ops::Range<usize> {
         match (chunk.first(), chunk.last()) {
-            (Some(a), Some(b)) => {
-                a.shadow_at as usize..b.shadow_at as usize + usize::from(b.has_shadow)
-            }
+            (Some(a), Some(b)) => a.shadow_at..b.shadow_at + usize::from(b.has_shadow),
             _ => 0..0,
         }
     }
@@ -251,7 +249,7 @@ fn secondary_rays(
     });
     for (mut px, sh, rays) in per_pixel {
         px.first = ao.len();
-        px.shadow_at = shadow.len() as u32;
+        px.shadow_at = shadow.len();
         shadow.extend(sh);
         ao.extend(rays);
         pixels.push(px);
@@ -452,7 +450,7 @@ fn trace_chunk(
 ) -> ChunkOut {
     let ao = &frame.ao[..];
     let shadow = &frame.shadow[SecondaryRays::shadow_of(chunk)];
-    let shadow_ray = |px: &PixelRays| px.has_shadow.then(|| frame.shadow[px.shadow_at as usize]);
+    let shadow_ray = |px: &PixelRays| px.has_shadow.then(|| frame.shadow[px.shadow_at]);
     let contexts = &mut scratch.contexts[..];
     let mut out = ChunkOut {
         results: vec![(false, 0); chunk.len()],
