@@ -601,6 +601,37 @@ fn octant_order_is_stable_and_grouped() {
     assert_eq!(order, [1, 4, 0, 3, 5, 2]);
 }
 
+/// The counting sorts against a stable sort by the same key, for every
+/// batch length up to 70 (odd and even: the sorts count and place the
+/// two halves of a batch apart).
+#[test]
+fn packet_orders_equal_a_stable_sort_by_their_keys() {
+    let mut seed = 11u64;
+    let mut unit = move || {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (seed >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+    };
+    let mut order = Vec::new();
+    for n in 0..70 {
+        let rays: Vec<Ray> = (0..n)
+            // Few directions, so that keys repeat from ray to ray.
+            .map(|_| Ray::new(Vec3::ZERO, Vec3::new(unit(), unit(), unit()).signum()))
+            .collect();
+        let stable = |key: &dyn Fn(Vec3) -> usize| {
+            let mut idx: Vec<u32> = (0..n as u32).collect();
+            idx.sort_by_key(|&i| key(rays[i as usize].dir));
+            idx
+        };
+        rays::order_by_octant(&rays, &mut order);
+        assert_eq!(order, stable(&rays::octant), "{n} rays by octant");
+        rays::order_by_direction(&rays, &mut order);
+        let by_cell = |d: Vec3| rays::octant(d) * 64 + rays::direction_cell(d);
+        assert_eq!(order, stable(&by_cell), "{n} rays by direction cell");
+    }
+}
+
 #[test]
 fn direction_cells_number_the_octahedron_in_morton_order() {
     let cell = |x: f32, y: f32, z: f32| rays::direction_cell(Vec3::new(x, y, z));
