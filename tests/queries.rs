@@ -606,18 +606,15 @@ fn octant_order_is_stable_and_grouped() {
 /// two halves of a batch apart).
 #[test]
 fn packet_orders_equal_a_stable_sort_by_their_keys() {
-    let mut seed = 11u64;
-    let mut unit = move || {
-        seed = seed
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        (seed >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-    };
+    let mut rng = kd::Rng(11);
     let mut order = Vec::new();
     for n in 0..70 {
         let rays: Vec<Ray> = (0..n)
-            // Few directions, so that keys repeat from ray to ray.
-            .map(|_| Ray::new(Vec3::ZERO, Vec3::new(unit(), unit(), unit()).signum()))
+            .map(|_| {
+                // Eight octants: keys repeat from ray to ray.
+                let mut c = || if rng.chance(2) { -1.0 } else { 1.0 } * (1.0 + rng.unit());
+                Ray::new(Vec3::ZERO, Vec3::new(c(), c(), c()))
+            })
             .collect();
         let stable = |key: &dyn Fn(Vec3) -> usize| {
             let mut idx: Vec<u32> = (0..n as u32).collect();
