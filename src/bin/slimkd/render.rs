@@ -464,9 +464,6 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
     })
 }
 
-/// Writes `rays` to `PREFIX-primary.rays`, `PREFIX-shadow.rays` and
-/// `PREFIX-ao.rays`: each staged first, then all renamed into place, so
-/// that a failure leaves none of them changed.
 /// Triangles up to which `render --shading ao` and the main job trace
 /// their shadow and AO rays over wide boxes unless told otherwise
 /// (`--secondary`): on the six shared scenes the AO frame ran 1.00–1.40×
@@ -482,6 +479,9 @@ pub(crate) fn wide_by_default(tris: usize) -> bool {
     tris <= WIDE_MAX_TRIANGLES
 }
 
+/// Writes `rays` to `PREFIX-primary.rays`, `PREFIX-shadow.rays` and
+/// `PREFIX-ao.rays`: each staged first, then all renamed into place, so
+/// that a failure leaves none of them changed.
 fn write_frame_rays(prefix: &Path, rays: &render::FrameRays) -> CmdResult<()> {
     let mut staged = Vec::new();
     for (kind, list) in [
