@@ -48,7 +48,7 @@
 //! that its inverse overflows go to the walk from the root.
 
 use super::packet::{
-    Best, LANES, MIN_LANES, OccluderCache, Occluders, Packet, PacketTracer, all_lanes, bits,
+    Best, LANES, Lanes, MIN_LANES, OccluderCache, Occluders, Packet, PacketTracer, all_lanes, bits,
     test_cached, test_triangle, write_hits,
 };
 use super::{
@@ -602,13 +602,7 @@ pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, con
     let d = ray.dir.to_array();
     let o = ray.origin.to_array();
     let inv_a = inv.to_array();
-    // A direction component whose inverse overflows (or a NaN) is left to
-    // the walk from the root; an exact zero gives ±∞, which the slab
-    // arithmetic below handles.
-    if boxes.tag != src.tag()
-        || (0..3).any(|k| d[k] != 0.0 && !inv_a[k].is_finite())
-        || !(o.iter().all(|x| x.is_finite()) && ray.tmin <= ray.tmax)
-    {
+    if boxes.tag != src.tag() || !boxes_take(o, d, inv_a, ray.tmin, ray.tmax) {
         return walk_ray::<_, ANY, COUNT>(src, ray, stats);
     }
     if COUNT {
@@ -622,6 +616,18 @@ pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, con
     };
     let rp = RayPrecomp::new(ray);
     descend::<_, ANY, COUNT, AVX2>(src, boxes, ray, &rp, &slabs, 0, stats).0
+}
+
+/// Whether the boxes take a ray of origin `o`, direction `d` (whose
+/// inverse is `inv`) and range `tmin..=tmax`; else it walks from the
+/// root. A direction component whose inverse overflows (or a NaN) is
+/// left to that walk; an exact zero gives ±∞, which the slab arithmetic
+/// handles.
+#[inline(always)]
+fn boxes_take(o: [f32; 3], d: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> bool {
+    (0..3).all(|k| d[k] == 0.0 || inv[k].is_finite())
+        && o.iter().all(|x| x.is_finite())
+        && tmin <= tmax
 }
 
 /// [`walk_wide`]'s walk of a ray the boxes can take (its direction's
@@ -777,9 +783,8 @@ fn occluded_packet<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX2
     } else {
         let mut solo = 0u16;
         for i in 0..rays.len() {
-            let overflow = (0..3).any(|k| p.dir[k][i] != 0.0 && !p.inv[k][i].is_finite());
-            let origin = (0..3).all(|k| p.o[k][i].is_finite());
-            if overflow || !(origin && p.tmin[i] <= p.tmax[i]) {
+            let lane = |a: &[Lanes; 3]| [a[0][i], a[1][i], a[2][i]];
+            if !boxes_take(lane(&p.o), lane(&p.dir), lane(&p.inv), p.tmin[i], p.tmax[i]) {
                 solo |= 1 << i;
             }
         }
