@@ -90,8 +90,9 @@ const ALONE_LANES: u32 = 2;
 /// [`ALONE_LANES`] for the AVX2 and baseline copies, whose packet
 /// operations take two 8-lane halves where the single walk's box test is
 /// the same AVX2 code as in the AVX-512 copy. At 5 rather than 2, AO
-/// packets run 1.02–1.08× as fast on five of the six shared scenes
-/// (candela_city within 1 %); 4 to 8 lanes form a plateau.
+/// packets run 1.00–1.08× as fast over two rounds on five of the six
+/// shared scenes, and candela_city's at 0.99–1.00×; 4 to 8 lanes form a
+/// plateau.
 const ALONE_LANES_HALVES: u32 = 5;
 
 /// Why a tree has no wide boxes.
@@ -1043,7 +1044,7 @@ fn slot_lanes(
 /// intrinsics, the same operations in the same order (`maxps`/`minps`
 /// return their second operand where either is NaN or both are zero, as
 /// the selects do): bit `i0 + i` for lane `i0 + i`. A packet's half
-/// without lanes is skipped (ravenbridge's AO packets 1.05–1.08× as
+/// without lanes is skipped (ravenbridge's AO packets 1.05–1.09× as
 /// fast). Written as a lane loop over 8 lanes, LLVM assembled the
 /// vectors lane by lane: dieselpower's AO packets ran at 0.56× the loop
 /// over all 16.
