@@ -430,11 +430,11 @@ fn gather_into(batch: &mut [Ray; LANES], rays: &[Ray], group: &[u32]) {
 
 /// `trace(batch, group)` for each 16 consecutive entries `group` of
 /// `order`, `batch` the rays they name. Each packet is gathered while the
-/// one before is traced, into the other of two buffers: a packet read
-/// right after its gather waits on the gather's stores (a lane load
-/// across several smaller stores is not forwarded): so the AVX2 copy
-/// ran the renderer's AO rays of dieselpower and bunny_scan 3–8 % slower
-/// (the AVX-512 copy within the noise).
+/// one before is traced, into the other of two buffers, so that its
+/// loads do not follow right on its gather's stores (a load across
+/// several smaller stores is not forwarded). Gathered right before its
+/// trace, the AVX2 copy ran the renderer's AO rays of dieselpower and
+/// bunny_scan 3–8 % slower (the AVX-512 copy within the noise).
 fn in_packets(rays: &[Ray], order: &[u32], mut trace: impl FnMut(&[Ray], &[u32])) {
     let mut bufs = [[Ray::new(Vec3::ZERO, Vec3::X); LANES]; 2];
     let group = |k: usize| &order[k * LANES..order.len().min((k + 1) * LANES)];
