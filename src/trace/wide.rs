@@ -1051,8 +1051,7 @@ fn slot_lanes(
 ///
 /// # Safety
 /// The CPU has AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
 #[inline]
 unsafe fn half_lanes_avx2(
     p: &Packet,
@@ -1061,45 +1060,41 @@ unsafe fn half_lanes_avx2(
     j: usize,
     planes: &SharedPlanes,
 ) -> u16 {
-    use std::arch::x86_64::*;
-    let half = |a: &Lanes| {
-        let a = &a[i0..i0 + WIDTH];
-        // SAFETY: `a` is 8 `f32`, one unaligned vector load.
-        unsafe { _mm256_loadu_ps(a.as_ptr()) }
-    };
-    let (mut tn, mut tf) = (half(&p.tmin), half(&p.tmax));
-    for (k, shared) in planes.iter().enumerate() {
-        let (o, inv) = (half(&p.o[k]), half(&p.inv[k]));
-        let (np, fp) = match shared {
-            Some((np, fp)) => (_mm256_set1_ps(np[j]), _mm256_set1_ps(fp[j])),
-            None => {
-                let (lo, hi) = (_mm256_set1_ps(wn.lo[k][j]), _mm256_set1_ps(wn.hi[k][j]));
-                let neg = _mm256_cmp_ps::<_CMP_LT_OQ>(inv, _mm256_setzero_ps());
-                (_mm256_blendv_ps(lo, hi, neg), _mm256_blendv_ps(hi, lo, neg))
-            }
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::*;
+        let half = |a: &Lanes| {
+            let a = &a[i0..i0 + WIDTH];
+            // SAFETY: `a` is 8 `f32`, one unaligned vector load.
+            unsafe { _mm256_loadu_ps(a.as_ptr()) }
         };
-        let n = _mm256_mul_ps(_mm256_sub_ps(np, o), inv);
-        let f = _mm256_mul_ps(_mm256_sub_ps(fp, o), inv);
-        tn = _mm256_max_ps(n, tn);
-        tf = _mm256_min_ps(f, tf);
+        let (mut tn, mut tf) = (half(&p.tmin), half(&p.tmax));
+        for (k, shared) in planes.iter().enumerate() {
+            let (o, inv) = (half(&p.o[k]), half(&p.inv[k]));
+            let (np, fp) = match shared {
+                Some((np, fp)) => (_mm256_set1_ps(np[j]), _mm256_set1_ps(fp[j])),
+                None => {
+                    let (lo, hi) = (_mm256_set1_ps(wn.lo[k][j]), _mm256_set1_ps(wn.hi[k][j]));
+                    let neg = _mm256_cmp_ps::<_CMP_LT_OQ>(inv, _mm256_setzero_ps());
+                    (_mm256_blendv_ps(lo, hi, neg), _mm256_blendv_ps(hi, lo, neg))
+                }
+            };
+            let n = _mm256_mul_ps(_mm256_sub_ps(np, o), inv);
+            let f = _mm256_mul_ps(_mm256_sub_ps(fp, o), inv);
+            tn = _mm256_max_ps(n, tn);
+            tf = _mm256_min_ps(f, tf);
+        }
+        let abs = _mm256_andnot_ps(_mm256_set1_ps(-0.0), tf);
+        let reach = _mm256_add_ps(tf, _mm256_mul_ps(abs, _mm256_set1_ps(MARGIN)));
+        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(tn, reach);
+        (_mm256_movemask_ps(hit) as u16) << i0
     }
-    let abs = _mm256_andnot_ps(_mm256_set1_ps(-0.0), tf);
-    let reach = _mm256_add_ps(tf, _mm256_mul_ps(abs, _mm256_set1_ps(MARGIN)));
-    let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(tn, reach);
-    (_mm256_movemask_ps(hit) as u16) << i0
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-unsafe fn half_lanes_avx2(
-    p: &Packet,
-    i0: usize,
-    wn: &WideNode,
-    j: usize,
-    planes: &SharedPlanes,
-) -> u16 {
-    let neg = [0, 1, 2].map(|k| p.inv[k].map(|x| x < 0.0));
-    let all = bits::<false>(slot_lanes(p, wn, j, planes, &neg));
-    all & (0xff << i0)
+    // Elsewhere no copy sets `AVX2`; the 16-lane test, cut to the half.
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let neg = [0, 1, 2].map(|k| p.inv[k].map(|x| x < 0.0));
+        bits::<false>(slot_lanes(p, wn, j, planes, &neg)) & (0xff << i0)
+    }
 }
 
 /// The next pending node of a packet that some of the lanes of `act`
