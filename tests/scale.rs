@@ -3,7 +3,9 @@
 //! cube, so the `f32` arithmetic over- and underflows far inside the `f32`
 //! range. Held against an `f64` reference written out here (the same
 //! sheared-edge test in `f64` throughout, on the same `f32` inputs), and
-//! every traverser against brute force, at scales 10^-30 … 10^30.
+//! every traverser against brute force, at scales 10^-30 … 10^30 (the
+//! walks over wide boxes too, whose leaves test their triangles in lanes
+//! and hand the lanes that need `f64` to the scalar test).
 
 mod common;
 
@@ -12,7 +14,8 @@ use glam::{DVec3, Vec3};
 use slimkd::build::{self, Algorithm, BuildConfig};
 use slimkd::geom::{Ray, intersect_ray_triangle};
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
-use slimkd::trace::{self, ClosestHit, Hit, TreeTracer};
+use slimkd::trace::wide::{WideBoxes, WideTracer};
+use slimkd::trace::{self, ClosestHit, Hit, KdSource, TreeTracer};
 
 /// The reference: barycentrics and distance in `f64` (Möller–Trumbore, a
 /// different algorithm from the watertight test), or `None` for a miss or
@@ -113,6 +116,7 @@ fn scenes_at_extreme_scales_trace_like_the_reference() {
             tree: &tree,
             scene: &scene,
         };
+        let boxes = WideBoxes::new(src.walk()).unwrap();
         let mut hits = 0;
         for &s in &scales {
             // From outside each box towards its front face, and from inside
@@ -131,6 +135,7 @@ fn scenes_at_extreme_scales_trace_like_the_reference() {
                 for ray in &rays {
                     let w = trace::brute_force(&scene, ray);
                     assert_eq!(trace::traverse(&src, ray), w, "{name}: {ray:?}");
+                    check_wide(&src, &boxes, ray, w, name);
                     // Skipped where some triangle's edge is too close.
                     let refs: Option<Vec<Option<f64>>> =
                         tris.iter().map(|t| reference(ray, t)).collect();
@@ -160,6 +165,21 @@ fn scenes_at_extreme_scales_trace_like_the_reference() {
     }
 }
 
+/// The single walks over `boxes` on every instruction set: `ray`'s
+/// closest hit is brute force's `want`, and it is occluded exactly where
+/// that hit lies before its `tmax`.
+fn check_wide(src: &impl KdSource, boxes: &WideBoxes, ray: &Ray, want: Hit, name: &str) {
+    for level in SimdLevel::available() {
+        let tracer = WideTracer::with_level(src, boxes, level);
+        assert_eq!(tracer.closest_hit(ray), want, "{name} {level:?}: {ray:?}");
+        assert_eq!(
+            tracer.occluded(ray),
+            want.t < ray.tmax,
+            "{name} {level:?} occluded: {ray:?}"
+        );
+    }
+}
+
 /// A box with corners at ±`f32::MAX`, seen from inside: its faces are hit
 /// at distances near `f32::MAX` (extents and clip distances overflow to
 /// infinity on the way), by every traverser as by brute force and the
@@ -177,10 +197,12 @@ fn a_box_spanning_the_f32_range_is_hit_from_inside() {
     let s = f64::from(m);
     let eye = DVec3::new(0.0, 0.0, 0.1 * s);
     let rays = fan(eye, DVec3::new(0.0, 0.0, 0.5 * s), 0.1 * s, 8);
+    let boxes = WideBoxes::new(src.walk()).unwrap();
     let mut hits = 0;
     for ray in &rays {
         let w = trace::brute_force(&scene, ray);
         assert_eq!(trace::traverse(&src, ray), w, "{ray:?}");
+        check_wide(&src, &boxes, ray, w, "±f32::MAX box");
         let refs: Option<Vec<Option<f64>>> = tris.iter().map(|t| reference(ray, t)).collect();
         let Some(refs) = refs else { continue };
         let t_ref = refs.into_iter().flatten().fold(f64::INFINITY, f64::min);

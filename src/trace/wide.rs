@@ -88,12 +88,13 @@ const STACK: usize = WIDTH * (MAX_DEPTH as usize + 2);
 const ALONE_LANES: u32 = 2;
 
 /// [`ALONE_LANES`] for the AVX2 and baseline copies, whose packet
-/// operations take two 8-lane halves where the single walk's box test is
-/// the same AVX2 code as in the AVX-512 copy. At 5 rather than 2, AO
-/// packets run 1.00–1.08× as fast over two rounds on five of the six
-/// shared scenes, and candela_city's at 0.99–1.00×; 4 to 8 lanes form a
-/// plateau.
-const ALONE_LANES_HALVES: u32 = 5;
+/// operations take two 8-lane halves where the single walk's box and
+/// leaf tests are the same AVX2 code as in the AVX-512 copy. At 7 rather
+/// than 5, AO packets run 1.05–1.09× as fast on ravenbridge and 1.05–1.07×
+/// on bunny_scan, where packets keep fewest lanes, and 0.97–1.01× on the
+/// other four shared scenes (two rounds each); 5 rather than 2 gained
+/// 1.00–1.08× before the leaves were tested in lanes.
+const ALONE_LANES_HALVES: u32 = 7;
 
 /// Why a tree has no wide boxes.
 #[derive(Debug, Error, PartialEq, Eq)]
@@ -136,9 +137,18 @@ impl WideNode {
 /// The wide box hierarchy of one tree ([`WideBoxes::new`]).
 pub struct WideBoxes {
     nodes: Vec<WideNode>,
-    /// Per leaf slot (`LEAF | start`): its triangle count at `start`,
-    /// then their ids (source numbering).
+    /// Per leaf slot (`LEAF | start`): its triangle count at `start`
+    /// and its first lane in `ids` at `start + 1`.
     tris: Vec<u32>,
+    /// Every leaf's triangles (source numbering), leaf after leaf, and
+    /// `WIDTH` zeros, so that eight lanes from any leaf's first can be
+    /// loaded.
+    ids: Vec<u32>,
+    /// Per triangle (source numbering) its nine vertex components, for
+    /// the gathers of the single walk's leaf test in lanes; empty where
+    /// nine times an id overflows an `i32` (the leaves are then tested one
+    /// triangle at a time).
+    verts: Vec<f32>,
     leaves: usize,
     /// The tree's identity ([`Walk::tag`]).
     tag: (usize, usize),
@@ -165,6 +175,7 @@ impl WideBoxes {
         let mut nodes = vec![WideNode::EMPTY];
         let mut leaves = 0usize;
         let mut tris: Vec<u32> = Vec::new();
+        let mut all_ids: Vec<u32> = Vec::new();
         // (kd node, wide node it fills)
         let mut todo = vec![(0u32, 0u32)];
         if !is_node(0) {
@@ -223,11 +234,14 @@ impl WideBoxes {
                     SourceNode::Leaf(ids) => {
                         leaves += 1;
                         let start = tris.len();
-                        if start + 1 + ids.len() >= LEAF as usize {
+                        if start + 2 >= LEAF as usize
+                            || all_ids.len() + ids.len() >= u32::MAX as usize
+                        {
                             return Err(WideError::NotATree(limit));
                         }
                         tris.push(ids.len() as u32);
-                        tris.extend((0..ids.len()).map(|i| ids.get(i)));
+                        tris.push(all_ids.len() as u32);
+                        all_ids.extend((0..ids.len()).map(|i| ids.get(i)));
                         LEAF | start as u32
                     }
                     SourceNode::Inner(_) => {
@@ -249,9 +263,25 @@ impl WideBoxes {
             }
         }
         let nodes = pull_up(&nodes);
+        let n_tris = all_ids.iter().map(|&t| t as usize + 1).max().unwrap_or(0);
+        let mut verts = Vec::new();
+        if n_tris * 9 <= i32::MAX as usize {
+            verts = vec![0f32; n_tris * 9];
+            for &t in &all_ids {
+                let tri = walk.triangle(t);
+                for (i, p) in tri.iter().enumerate() {
+                    for k in 0..3 {
+                        verts[t as usize * 9 + 3 * i + k] = p[k];
+                    }
+                }
+            }
+        }
+        all_ids.extend([0; WIDTH]);
         Ok(WideBoxes {
             nodes,
             tris,
+            ids: all_ids,
+            verts,
             leaves,
             tag: walk.tag(),
         })
@@ -259,7 +289,10 @@ impl WideBoxes {
 
     /// Bytes held in memory (not part of the tree's bytes).
     pub fn bytes(&self) -> usize {
-        self.nodes.len() * std::mem::size_of::<WideNode>() + self.tris.len() * 4
+        self.nodes.len() * std::mem::size_of::<WideNode>()
+            + self.tris.len() * 4
+            + self.ids.len() * 4
+            + self.verts.len() * 4
     }
 
     /// Nodes of the hierarchy.
@@ -459,6 +492,118 @@ fn leaf_box<'a, W: Walk<'a>>(walk: W, n: u32, cell: &Aabb) -> Aabb {
     b
 }
 
+/// The runs of eight lanes a leaf of `n` triangles from lane `first`
+/// takes: each run's first lane and the mask of the leaf's lanes in it.
+#[inline(always)]
+fn leaf_runs(first: usize, n: usize) -> impl Iterator<Item = (usize, u32)> {
+    (first..first + n).step_by(WIDTH).map(move |l| {
+        let k = (first + n - l).min(WIDTH);
+        (l, (1u32 << k) - 1)
+    })
+}
+
+/// The watertight test of one ray against the eight triangles of
+/// `boxes`'s lanes from `l0`, lane by lane, in the operations and order
+/// of [`intersect_triangle`]: the lanes hit in `(tmin, tmax]` with their
+/// `t` (bit for bit the scalar test's), and the lanes whose `f32`
+/// arithmetic cannot decide (the scalar test redoes those in `f64`;
+/// [`test_one`] does it for them). The vertices come by gathers from
+/// `verts`, 36 bytes a triangle, where vertices copied into each lane
+/// took 40 bytes a reference (272 bytes a triangle in all on
+/// ravenbridge, whose leaves hold 5 references a triangle, against 129)
+/// for AO packets at most 8 % faster (AVX2 copy) and within 4 % either
+/// way (AVX-512).
+///
+/// # Safety
+/// The CPU has AVX2, and `boxes.verts` is not empty.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn block_hits_avx2(
+    rp: &RayPrecomp,
+    boxes: &WideBoxes,
+    l0: usize,
+    tmin: f32,
+    tmax: f32,
+) -> (u32, u32, [f32; WIDTH]) {
+    use std::arch::x86_64::*;
+    let ids = &boxes.ids[l0..l0 + WIDTH];
+    // SAFETY: eight `u32`, one unaligned load.
+    let t9 = unsafe { _mm256_loadu_si256(ids.as_ptr().cast()) };
+    let t9 = _mm256_mullo_epi32(t9, _mm256_set1_epi32(9));
+    let o = rp.origin.to_array();
+    let verts = boxes.verts.as_ptr();
+    // SAFETY: every id in `ids` is a triangle that `verts` (not empty)
+    // holds, nine `f32` from `9 * id`, and `9 * id + 8` fits an `i32`
+    // (`WideBoxes::new`).
+    let ld = |c: usize| unsafe { _mm256_i32gather_ps::<4>(verts.add(c), t9) };
+    // Vertex `i` relative to the origin, permuted: `[x, y, z]` of the
+    // test are components `kx, ky, kz`.
+    let rel = |i: usize, k: usize| _mm256_sub_ps(ld(3 * i + k), _mm256_set1_ps(o[k]));
+    let vert = |i: usize| [rel(i, rp.kx), rel(i, rp.ky), rel(i, rp.kz)];
+    let (a, bb, c) = (vert(0), vert(1), vert(2));
+    let (sx, sy, sz) = (
+        _mm256_set1_ps(rp.sx),
+        _mm256_set1_ps(rp.sy),
+        _mm256_set1_ps(rp.sz),
+    );
+    let (sub, mul, add) = (_mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps);
+    let ax = sub(a[0], mul(sx, a[2]));
+    let ay = sub(a[1], mul(sy, a[2]));
+    let bx = sub(bb[0], mul(sx, bb[2]));
+    let by = sub(bb[1], mul(sy, bb[2]));
+    let cx = sub(c[0], mul(sx, c[2]));
+    let cy = sub(c[1], mul(sy, c[2]));
+    let u = sub(mul(cx, by), mul(cy, bx));
+    let v = sub(mul(ax, cy), mul(ay, cx));
+    let w = sub(mul(bx, ay), mul(by, ax));
+    let sign = _mm256_set1_ps(-0.0);
+    let abs = |x: __m256| _mm256_andnot_ps(sign, x);
+    let tiny = _mm256_set1_ps(f32::MIN_POSITIVE);
+    // `edges_need_f64`: `maxps`/`minps` return their second operand where
+    // either is NaN, as `min_of` does.
+    let m = _mm256_min_ps(_mm256_min_ps(abs(u), abs(v)), abs(w));
+    let edges = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NGE_UQ>(m, tiny)) as u32;
+    let zero = _mm256_setzero_ps();
+    let lt = |x: __m256| _mm256_cmp_ps::<_CMP_LT_OQ>(x, zero);
+    let gt = |x: __m256| _mm256_cmp_ps::<_CMP_GT_OQ>(x, zero);
+    let neg = _mm256_or_ps(_mm256_or_ps(lt(u), lt(v)), lt(w));
+    let pos = _mm256_or_ps(_mm256_or_ps(gt(u), gt(v)), gt(w));
+    let mixed = _mm256_movemask_ps(_mm256_and_ps(neg, pos)) as u32;
+    let det = add(add(u, v), w);
+    let az = mul(sz, a[2]);
+    let bz = mul(sz, bb[2]);
+    let cz = mul(sz, c[2]);
+    let t_scaled = add(add(mul(u, az), mul(v, bz)), mul(w, cz));
+    let t = _mm256_div_ps(t_scaled, det);
+    // `t_needs_f64`.
+    let under = _mm256_cmp_ps::<_CMP_NGE_UQ>(abs(t_scaled), tiny);
+    let over = _mm256_cmp_ps::<_CMP_NLE_UQ>(abs(add(det, t)), _mm256_set1_ps(f32::MAX));
+    let t_bad = _mm256_movemask_ps(_mm256_or_ps(under, over)) as u32;
+    let within = _mm256_and_ps(
+        _mm256_cmp_ps::<_CMP_GT_OQ>(t, _mm256_set1_ps(tmin)),
+        _mm256_cmp_ps::<_CMP_LE_OQ>(t, _mm256_set1_ps(tmax)),
+    );
+    let within = _mm256_movemask_ps(within) as u32;
+    let redo = edges | (!mixed & t_bad);
+    let hit = !edges & !mixed & !t_bad & within;
+    let mut ts = [0f32; WIDTH];
+    // SAFETY: `ts` is 8 `f32`, one unaligned vector store.
+    unsafe { _mm256_storeu_ps(ts.as_mut_ptr(), t) };
+    (hit, redo, ts)
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+unsafe fn block_hits_avx2(
+    _: &RayPrecomp,
+    _: &WideBoxes,
+    _: usize,
+    _: f32,
+    _: f32,
+) -> (u32, u32, [f32; WIDTH]) {
+    unreachable!("AVX2 is set only on x86-64")
+}
+
 /// Packs eight flags into a byte, flag `i` into bit `i`.
 #[inline(always)]
 fn mask8(b: [bool; WIDTH]) -> u32 {
@@ -654,7 +799,7 @@ fn descend<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool
     stats: &mut TraceStats,
 ) -> (Hit, u32) {
     let mut best = Hit::MISS;
-    let (nodes, tris) = (&boxes.nodes[..], &boxes.tris[..]);
+    let (nodes, tris, ids) = (&boxes.nodes[..], &boxes.tris[..], &boxes.ids[..]);
     let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK];
     let mut sp = 0usize;
     let mut node = root;
@@ -697,14 +842,49 @@ fn descend<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool
             }
             let start = (wn.child[j] & !LEAF) as usize;
             let n = tris[start] as usize;
-            let ids = &tris[start + 1..start + 1 + n];
             if COUNT {
                 stats.leaves += 1;
                 stats.tris += n as u64;
             }
-            for &t in ids {
-                if test_one::<_, ANY>(src, rp, ray, t, &mut best) {
-                    return (best, t);
+            let first = tris[start + 1] as usize;
+            if AVX2 && !boxes.verts.is_empty() {
+                for (l0, lanes) in leaf_runs(first, n) {
+                    let run = &ids[l0..l0 + WIDTH];
+                    let limit = best.t.min(ray.tmax);
+                    // SAFETY: `AVX2` is set only where this CPU has AVX2
+                    // (`WideTracer::walk`); `verts` is not empty.
+                    let (hit, redo, t) = unsafe { block_hits_avx2(rp, boxes, l0, ray.tmin, limit) };
+                    let (hit, redo) = (hit & lanes, redo & lanes);
+                    let mut m = hit;
+                    while m != 0 {
+                        let l = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        if ANY {
+                            if t[l] < ray.tmax {
+                                best = Hit {
+                                    t: t[l],
+                                    tri: src.input_id(run[l]),
+                                };
+                                return (best, run[l]);
+                            }
+                        } else {
+                            best.offer(t[l], src.input_id(run[l]));
+                        }
+                    }
+                    let mut m = redo;
+                    while m != 0 {
+                        let l = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        if test_one::<_, ANY>(src, rp, ray, run[l], &mut best) {
+                            return (best, run[l]);
+                        }
+                    }
+                }
+            } else {
+                for &t in &ids[first..first + n] {
+                    if test_one::<_, ANY>(src, rp, ray, t, &mut best) {
+                        return (best, t);
+                    }
                 }
             }
         }
@@ -857,7 +1037,7 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
             signs[k] = Some(m != 0);
         }
     }
-    let (nodes, tris) = (&boxes.nodes[..], &boxes.tris[..]);
+    let (nodes, tris, ids) = (&boxes.nodes[..], &boxes.tris[..], &boxes.ids[..]);
     let mut stack = [const { MaybeUninit::<(u32, u16)>::uninit() }; STACK];
     let mut sp = 0usize;
     let (mut node, mut mask) = (0u32, act);
@@ -954,7 +1134,8 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
             if COUNT && lanes != 0 {
                 stats.leaves += 1;
             }
-            for &t in &tris[start + 1..start + 1 + n] {
+            let first = tris[start + 1] as usize;
+            for &t in &ids[first..first + n] {
                 if lanes == 0 {
                     break;
                 }
