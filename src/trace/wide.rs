@@ -5,11 +5,13 @@
 //! tree collapsed into nodes of up to eight such boxes, empty cells left
 //! out. A single ray tests a node's eight boxes in the lanes of one AVX2
 //! register and visits the ones it enters, nearest first for a closest
-//! hit, in slot order for an any-hit query; an any-hit packet of 16 rays
-//! decides every box in every lane, visits a child with the lanes that
-//! enter it (in the order of its first lane's entry distances), tests a
-//! leaf's triangles in those lanes with the packet kernel, and hands a
-//! child that two lanes or fewer enter to the single walk, lane by lane.
+//! hit, in slot order for an any-hit query, and tests a leaf's triangles
+//! eight at a time in the lanes of another (their vertices gathered from
+//! a copy in triangle order); an any-hit packet of 16 rays decides every
+//! box in every lane, visits a child with the lanes that enter it (in
+//! the order of its first lane's entry distances), tests a leaf's
+//! triangles in those lanes with the packet kernel, and hands a child
+//! that few lanes enter to the single walk, lane by lane.
 //!
 //! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
 //! where it starts and then crosses ~10 cells, 7 of them empty
@@ -19,9 +21,9 @@
 //! node visits a ray against the kd packets' 15.4 steps. The renderer's
 //! AO frame runs 1.05–1.4× faster on four of the shared scenes
 //! (`render --secondary wide`; perf-notes "Secondary rays over wide
-//! boxes"). It costs memory besides the tree (57–89 bytes a triangle on
-//! dieselpower, ravenbridge and black_forest, whose std trees take
-//! 21–31), so it is built on request.
+//! boxes"). It costs memory besides the tree (110 and 129 bytes a
+//! triangle on dieselpower and ravenbridge, whose std trees take 21 and
+//! 31; 36 of them the vertex copy), so it is built on request.
 //!
 //! **A single any-hit walk takes the children in slot order**, not
 //! nearest first, as Embree's occlusion walk does. An AO ray starts on a
@@ -90,8 +92,8 @@ const ALONE_LANES: u32 = 2;
 /// [`ALONE_LANES`] for the AVX2 and baseline copies, whose packet
 /// operations take two 8-lane halves where the single walk's box and
 /// leaf tests are the same AVX2 code as in the AVX-512 copy. At 7 rather
-/// than 5, AO packets run 1.05–1.09× as fast on ravenbridge and 1.05–1.07×
-/// on bunny_scan, where packets keep fewest lanes, and 0.97–1.01× on the
+/// than 5, AO packets run 1.02–1.09× as fast on ravenbridge and 1.04–1.07×
+/// on bunny_scan, where packets keep fewest lanes, and 0.96–1.01× on the
 /// other four shared scenes (two rounds each); 5 rather than 2 gained
 /// 1.00–1.08× before the leaves were tested in lanes.
 const ALONE_LANES_HALVES: u32 = 7;
