@@ -829,7 +829,21 @@ pub(super) fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
     mask: u16,
     best: &mut Best,
 ) -> u16 {
-    let tri = src.triangle(t_src);
+    test_triangle_of::<_, ANY, M>(src, p, perm, t_src, &src.triangle(t_src), mask, best)
+}
+
+/// [`test_triangle`] of triangle `t_src` whose vertices `tri` the caller
+/// has at hand.
+#[inline(always)]
+pub(super) fn test_triangle_of<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
+    src: W,
+    p: &Packet,
+    perm: Option<[usize; 3]>,
+    t_src: u32,
+    tri: &[Vec3; 3],
+    mask: u16,
+    best: &mut Best,
+) -> u16 {
     let id = src.input_id(t_src).0;
     // The lanes' best hits are read here, before the kernel, and written
     // back whole below: with the select's old value a load of the same
@@ -838,8 +852,8 @@ pub(super) fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
     // not forwarded to the next triangle's loads.
     let (old_t, old_id) = (best.t, best.id);
     let lanes = match perm {
-        Some(k) => kernel_shared_perm::<M>(p, &tri, k, best),
-        None => kernel_any_perm::<M>(p, &tri, best),
+        Some(k) => kernel_shared_perm::<M>(p, tri, k, best),
+        None => kernel_any_perm::<M>(p, tri, best),
     };
     // Keep each lane's hit if it is closer (or, for any-hit queries,
     // before tmax), all lanes at once.
@@ -862,7 +876,7 @@ pub(super) fn test_triangle<'a, W: Walk<'a>, const ANY: bool, const M: bool>(
         let i = fallback.trailing_zeros() as usize;
         fallback &= fallback - 1;
         let limit = best.t[i].min(p.tmax[i]);
-        if let Some(t) = intersect_triangle(&p.precomp(i), &tri, p.tmin[i], limit) {
+        if let Some(t) = intersect_triangle(&p.precomp(i), tri, p.tmin[i], limit) {
             if ANY {
                 if t < p.tmax[i] {
                     best.t[i] = t;
