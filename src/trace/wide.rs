@@ -268,15 +268,16 @@ impl WideBoxes {
         let n_tris = all_ids.iter().map(|&t| t as usize + 1).max().unwrap_or(0);
         let mut verts = Vec::new();
         if n_tris * 9 <= i32::MAX as usize {
+            use rayon::prelude::*;
+            // Every triangle up to the last listed once, in order and in
+            // parallel, rather than once a reference.
             verts = vec![0f32; n_tris * 9];
-            for &t in &all_ids {
-                let tri = walk.triangle(t);
+            verts.par_chunks_mut(9).enumerate().for_each(|(t, v)| {
+                let tri = walk.triangle(t as u32);
                 for (i, p) in tri.iter().enumerate() {
-                    for k in 0..3 {
-                        verts[t as usize * 9 + 3 * i + k] = p[k];
-                    }
+                    v[3 * i..3 * i + 3].copy_from_slice(&p.to_array());
                 }
-            }
+            });
         }
         all_ids.extend([0; WIDTH]);
         Ok(WideBoxes {
