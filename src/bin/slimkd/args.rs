@@ -668,7 +668,7 @@ pub(crate) struct RenderArgs {
     /// (16 at a time over boxes around the tree's leaves, eight a node,
     /// built after opening and reported apart; `--mode packet`). Default:
     /// `wide` with `--mode packet` for scenes of up to 8 Mi triangles
-    /// (the boxes took up to 106 bytes a triangle), else `packet`.
+    /// (the boxes took up to 146 bytes a triangle), else `packet`.
     #[arg(long, value_enum)]
     pub(crate) secondary: Option<SecondaryArg>,
     /// Traversal mode: 4×4 packets (the default, as the main job), single

@@ -468,8 +468,9 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
 /// their shadow and AO rays over wide boxes unless told otherwise
 /// (`--secondary`): on the six shared scenes the AO frame ran 1.00–1.40×
 /// as fast as with the kd-tree's packets (views 1 and 2), for boxes of
-/// 29–106 bytes a triangle (8 Mi triangles: under 0.9 GiB besides the
-/// tree), built once per opened tree in 0.02–0.7 s and reported apart.
+/// 66–146 bytes a triangle with their vertex copy (8 Mi triangles: under
+/// 1.2 GiB besides the tree), built once per opened tree in 0.03–0.9 s
+/// and reported apart.
 /// Larger scenes keep to the tree's bytes.
 pub(crate) const WIDE_MAX_TRIANGLES: usize = 8 << 20;
 
