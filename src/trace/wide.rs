@@ -146,11 +146,11 @@ pub struct WideBoxes {
     /// `WIDTH` zeros, so that eight lanes from any leaf's first can be
     /// loaded.
     ids: Vec<u32>,
-    /// Per triangle (source numbering) its nine vertex components, for
-    /// the gathers of the single walk's leaf test in lanes; empty where
-    /// nine times an id overflows an `i32` (the leaves are then tested one
-    /// triangle at a time).
-    verts: Vec<f32>,
+    /// Per triangle (source numbering) its vertices, nine `f32` in a row
+    /// for the gathers of the single walk's leaf test in lanes; empty
+    /// where nine times an id overflows an `i32` (the leaves then read
+    /// their triangles from the source).
+    verts: Vec<[Vec3; 3]>,
     leaves: usize,
     /// The tree's identity ([`Walk::tag`]).
     tag: (usize, usize),
@@ -271,13 +271,10 @@ impl WideBoxes {
             use rayon::prelude::*;
             // Every triangle up to the last listed once, in order and in
             // parallel, rather than once a reference.
-            verts = vec![0f32; n_tris * 9];
-            verts.par_chunks_mut(9).enumerate().for_each(|(t, v)| {
-                let tri = walk.triangle(t as u32);
-                for (i, p) in tri.iter().enumerate() {
-                    v[3 * i..3 * i + 3].copy_from_slice(&p.to_array());
-                }
-            });
+            verts = (0..n_tris as u32)
+                .into_par_iter()
+                .map(|t| walk.triangle(t))
+                .collect();
         }
         all_ids.extend([0; WIDTH]);
         Ok(WideBoxes {
@@ -295,7 +292,7 @@ impl WideBoxes {
         self.nodes.len() * std::mem::size_of::<WideNode>()
             + self.tris.len() * 4
             + self.ids.len() * 4
-            + self.verts.len() * 4
+            + self.verts.len() * std::mem::size_of::<[Vec3; 3]>()
     }
 
     /// Nodes of the hierarchy.
@@ -535,10 +532,12 @@ unsafe fn block_hits_avx2(
     let t9 = unsafe { _mm256_loadu_si256(ids.as_ptr().cast()) };
     let t9 = _mm256_mullo_epi32(t9, _mm256_set1_epi32(9));
     let o = rp.origin.to_array();
-    let verts = boxes.verts.as_ptr();
-    // SAFETY: every id in `ids` is a triangle that `verts` (not empty)
-    // holds, nine `f32` from `9 * id`, and `9 * id + 8` fits an `i32`
-    // (`WideBoxes::new`).
+    const _: () = assert!(std::mem::size_of::<[Vec3; 3]>() == 9 * 4);
+    let verts = boxes.verts.as_ptr().cast::<f32>();
+    // SAFETY: `Vec3` is three `f32` (`repr(C)`, no padding: asserted
+    // above), so triangle `id` is the nine `f32` from `9 * id`; every id
+    // in `ids` is a triangle that `verts` (not empty) holds, and
+    // `9 * id + 8` fits an `i32` (`WideBoxes::new`).
     let ld = |c: usize| unsafe { _mm256_i32gather_ps::<4>(verts.add(c), t9) };
     // Vertex `i` relative to the origin, permuted: `[x, y, z]` of the
     // test are components `kx, ky, kz`.
@@ -1150,16 +1149,9 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
                 // then three vertices: black_forest's AO packets run
                 // 1.02–1.03× as fast (ravenbridge 0.96–1.07×, others
                 // within noise; AVX-512, four rounds).
-                let h = if boxes.verts.is_empty() {
-                    test_triangle::<_, true, M>(src, p, perm, t, lanes, best)
-                } else {
-                    let v = &boxes.verts[9 * t as usize..9 * t as usize + 9];
-                    let tri = [
-                        Vec3::new(v[0], v[1], v[2]),
-                        Vec3::new(v[3], v[4], v[5]),
-                        Vec3::new(v[6], v[7], v[8]),
-                    ];
-                    test_triangle_of::<_, true, M>(src, p, perm, t, &tri, lanes, best)
+                let h = match boxes.verts.get(t as usize) {
+                    Some(tri) => test_triangle_of::<_, true, M>(src, p, perm, t, tri, lanes, best),
+                    None => test_triangle::<_, true, M>(src, p, perm, t, lanes, best),
                 };
                 occ.note(h, t);
                 act &= !h;
