@@ -108,8 +108,8 @@ pub enum WideError {
     NotATree(usize),
 }
 
-/// One node: the boxes of up to eight children, plane by plane, their
-/// references, and the hoisted triangle of the kd node it stands for.
+/// One node: the boxes of up to eight children, plane by plane, and
+/// their references.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 struct WideNode {
@@ -118,9 +118,6 @@ struct WideNode {
     /// A child node's index, `LEAF | start` of a leaf's list in
     /// [`WideBoxes`]'s `tris`, or `NONE`.
     child: [u32; WIDTH],
-    /// The kd node's hoisted triangle (source numbering) where no slot
-    /// was free for it, tested at every visit; else `NONE`.
-    hoist: u32,
     /// Bit `j` set where slot `j` holds a leaf.
     leaves: u32,
     /// Bit `j` set where slot `j` holds a child.
@@ -132,7 +129,6 @@ impl WideNode {
         lo: [[f32::INFINITY; WIDTH]; 3],
         hi: [[f32::NEG_INFINITY; WIDTH]; 3],
         child: [NONE; WIDTH],
-        hoist: NONE,
         leaves: 0,
         used: 0,
     };
@@ -227,45 +223,42 @@ impl WideBoxes {
                     .into_iter()
                     .filter(|&c| is_node(c) && !tight[c as usize].is_empty())
                     .collect();
-                // A slot stays free for the hoisted triangle.
+                // A slot stays free for the hoisted triangle (a node's
+                // first front holds at most two).
                 if front.len() - 1 + kids.len() + usize::from(hoist.is_some()) > WIDTH {
                     break;
                 }
                 front.swap_remove(k);
                 front.extend(kids);
             }
-            // The hoisted triangle as a leaf of its own in a free slot,
+            // The hoisted triangle as a leaf of its own in the free slot,
             // boxed by its part of the kd node's cell: a ray tests it only
             // where it enters that part, not at every visit of the node
-            // (none where the part is empty). The node then holds no
-            // hoisted triangle, so `pull_up` can take it into its parent.
-            // `small`'s AO packets test 13 % fewer triangles a ray on
-            // bunny_scan, 12 % on black_forest, and its AO frame runs
-            // 1.02–1.08× as fast there.
-            if let Some(t) = hoist {
-                let part = hoist_boxes[&kd];
-                if front.len() < WIDTH {
-                    if !part.is_empty() {
-                        let b = padded(&part);
-                        let slot = front.len();
-                        let start = tris.len();
-                        if start + 2 >= LEAF as usize || all_ids.len() + 1 >= u32::MAX as usize {
-                            return Err(WideError::NotATree(limit));
-                        }
-                        tris.push(1);
-                        tris.push(all_ids.len() as u32);
-                        all_ids.push(t);
-                        let node = &mut nodes[w as usize];
-                        for k in 0..3 {
-                            node.lo[k][slot] = b.min[k];
-                            node.hi[k][slot] = b.max[k];
-                        }
-                        node.child[slot] = LEAF | start as u32;
-                        node.leaves |= 1 << slot;
-                    }
-                } else {
-                    nodes[w as usize].hoist = t;
+            // (none where the part is empty), and `pull_up` can take the
+            // node into its parent like any other. `small`'s AO packets
+            // test 13 % fewer triangles a ray on bunny_scan than with the
+            // triangle tested at every visit, 12 % on black_forest, and
+            // its AO frame runs 1.02–1.08× as fast there.
+            if let Some(t) = hoist
+                && let part = hoist_boxes[&kd]
+                && !part.is_empty()
+            {
+                let b = padded(&part);
+                let slot = front.len();
+                let start = tris.len();
+                if start + 2 >= LEAF as usize || all_ids.len() + 1 >= u32::MAX as usize {
+                    return Err(WideError::NotATree(limit));
                 }
+                tris.push(1);
+                tris.push(all_ids.len() as u32);
+                all_ids.push(t);
+                let node = &mut nodes[w as usize];
+                for k in 0..3 {
+                    node.lo[k][slot] = b.min[k];
+                    node.hi[k][slot] = b.max[k];
+                }
+                node.child[slot] = LEAF | start as u32;
+                node.leaves |= 1 << slot;
             }
             for (slot, &c) in front.iter().enumerate() {
                 let b = padded(&tight[c as usize]);
@@ -368,7 +361,7 @@ fn pull_up(old: &[WideNode]) -> Vec<WideNode> {
                 }
                 let cn = &old[c as usize];
                 let k = slots(cn);
-                if cn.hoist == NONE && used - 1 + k <= WIDTH && pick.is_none_or(|(_, b)| k > b) {
+                if used - 1 + k <= WIDTH && pick.is_none_or(|(_, b)| k > b) {
                     pick = Some((j, k));
                 }
             }
@@ -830,8 +823,7 @@ fn boxes_take(o: [f32; 3], d: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> 
 
 /// [`walk_wide`]'s walk of a ray the boxes can take (its direction's
 /// inverse finite where the direction is not zero, its origin finite),
-/// as `rp` and `slabs`, through the subtree of `root`, whose ancestors'
-/// hoisted triangles it has been tested against. Also returns the
+/// as `rp` and `slabs`, through the subtree of `root`. Also returns the
 /// triangle (source numbering) that ended an any-hit walk, or `NONE`.
 #[inline(always)]
 fn descend<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool>(
@@ -852,14 +844,6 @@ fn descend<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool
         let wn = &nodes[node as usize];
         if COUNT {
             stats.nodes += 1;
-        }
-        if wn.hoist != NONE {
-            if COUNT {
-                stats.hoisted += 1;
-            }
-            if test_one::<_, ANY>(src, rp, ray, wn.hoist, &mut best) {
-                return (best, wn.hoist);
-            }
         }
         let limit = best.t.min(ray.tmax);
         let (entered, near) = if AVX2 {
@@ -1103,15 +1087,6 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
         if COUNT {
             stats.nodes += 1;
             stats.lane_steps += u64::from(mask.count_ones());
-        }
-        if wn.hoist != NONE {
-            if COUNT {
-                stats.hoisted += u64::from(mask.count_ones());
-            }
-            let h = test_triangle::<_, true, M>(src, p, perm, wn.hoist, mask, best);
-            occ.note(h, wn.hoist);
-            act &= !h;
-            mask &= !h;
         }
         // Per slot, the lanes that enter its box. Where the packet's
         // lanes share their directions' signs (a renderer's AO packet of
