@@ -3,9 +3,10 @@
 //! its triangles clipped to its cell, per inner node the union of its
 //! children's (and of its hoisted triangle's part of its cell), and the
 //! tree collapsed into nodes of up to eight such boxes, empty cells left
-//! out. A slim tree's hoisted triangle takes a slot of its node's own,
-//! boxed by its part of the cell, as a leaf of one triangle. A single ray tests a node's eight boxes in the lanes of one AVX2
-//! register and visits the ones it enters, nearest first for a closest
+//! out; a slim tree's hoisted triangle takes a slot of its node as a
+//! leaf of one triangle, boxed by its part of the node's cell. A single
+//! ray tests a node's eight boxes in the lanes of one AVX2 register and
+//! visits the ones it enters, nearest first for a closest
 //! hit, in slot order for an any-hit query, and tests a leaf's triangles
 //! eight at a time in the lanes of another (their vertices gathered from
 //! a copy in triangle order); an any-hit packet of 16 rays decides every
@@ -47,8 +48,9 @@
 //! as in brute force), so rounding of the slab distances never drops one.
 //! A hoisted triangle's slot holds its part of its kd node's cell (a
 //! part outside lies in the cells of other leaves that list it). A
-//! triangle may be tested again in another leaf, which changes nothing. Rays whose direction has a component so small
-//! that its inverse overflows go to the walk from the root.
+//! triangle may be tested again in another leaf, which changes nothing.
+//! Rays whose direction has a component so small that its inverse
+//! overflows go to the walk from the root.
 
 use super::packet::{
     Best, LANES, Lanes, MIN_LANES, OccluderCache, Occluders, Packet, PacketTracer, all_lanes, bits,
