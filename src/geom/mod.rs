@@ -112,8 +112,10 @@ impl Aabb {
     }
 }
 
-/// A ray `origin + t·dir`, valid for `t` in `(tmin, tmax]`.
+/// A ray `origin + t·dir`, valid for `t` in `(tmin, tmax]`. Laid out as
+/// eight `f32` in field order, which the ray orders' vector code loads.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
 pub struct Ray {
     /// Where the ray starts.
     pub origin: Vec3,
