@@ -518,7 +518,22 @@ fn trace_chunk(
             // is timed).
             let mut occ = vec![false; rays.len()];
             order_for_packets(rays, &mut scratch.order);
-            occluded_in_order(tracer, rays, &scratch.order, &mut occ, &mut scratch.ao);
+            // The next chunk's AO rays (a worker mostly takes the chunks
+            // of one range in turn) are read on the way, so that they are
+            // ordered in the caches: on one thread dieselpower's AO rays
+            // take 228 ms instead of 247. (Its next shadow rays read
+            // likewise took 0.8 ms off the shadow rays on two threads and
+            // added 4 to the AO rays.)
+            let end = chunk_ao(chunk, spp).end;
+            let ahead = &ao[end..ao.len().min(end + CHUNK * spp)];
+            occluded_in_order(
+                tracer,
+                rays,
+                &scratch.order,
+                &mut occ,
+                &mut scratch.ao,
+                ahead,
+            );
             for (i, o) in occ.into_iter().enumerate() {
                 open[i / spp.max(1)] += u32::from(!o);
             }

@@ -627,7 +627,13 @@ fn gather_into(batch: &mut [Ray; LANES], rays: &[Ray], group: &[u32]) {
 /// several smaller stores is not forwarded). Gathered right before its
 /// trace, the AVX2 copy ran the renderer's AO rays of dieselpower and
 /// bunny_scan 3–8 % slower (the AVX-512 copy within the noise).
-fn in_packets(rays: &[Ray], order: &[u32], mut trace: impl FnMut(&[Ray], &[u32])) {
+///
+/// With each packet a share of `ahead` (the rays to be traced next) is
+/// read into the caches, so that those rays come from memory while these
+/// are traced rather than when they are ordered: the renderer's first
+/// pass over a tile's AO rays, fresh from memory, took 22 ms of
+/// dieselpower's 240 ms of AO rays on one thread, 6 ms in the caches.
+fn in_packets(rays: &[Ray], order: &[u32], ahead: &[Ray], mut trace: impl FnMut(&[Ray], &[u32])) {
     let mut bufs = [[Ray::new(Vec3::ZERO, Vec3::X); LANES]; 2];
     let group = |k: usize| &order[k * LANES..order.len().min((k + 1) * LANES)];
     let n = order.len().div_ceil(LANES);
@@ -638,9 +644,30 @@ fn in_packets(rays: &[Ray], order: &[u32], mut trace: impl FnMut(&[Ray], &[u32])
         if k + 1 < n {
             gather_into(&mut bufs[(k + 1) & 1], rays, group(k + 1));
         }
+        // Its share of `ahead`, two rays to a cache line.
+        let share = ahead.len().div_ceil(n).next_multiple_of(2);
+        if let Some(next) = ahead.get(k * share..ahead.len().min((k + 1) * share)) {
+            for r in next.iter().step_by(2) {
+                prefetch(r);
+            }
+        }
         let g = group(k);
         trace(&bufs[k & 1][..g.len()], g);
     }
+}
+
+/// Asks for the cache line of `r` to be read into the caches (L2 and
+/// beyond), without waiting for it.
+#[inline(always)]
+fn prefetch(r: &Ray) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch only hints; the address is that of a live ray.
+    unsafe {
+        use std::arch::x86_64::{_MM_HINT_T1, _mm_prefetch};
+        _mm_prefetch::<_MM_HINT_T1>((r as *const Ray).cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = r;
 }
 
 /// Whether at least half of the packets of 16 consecutive rays of `rays`
@@ -669,7 +696,7 @@ pub fn mixed_octants(rays: &[Ray]) -> bool {
 /// ([`order_by_octant`], [`order_by_direction`]). Indices past `rays`
 /// panic.
 pub fn closest_in_order(tracer: &dyn ClosestHit, rays: &[Ray], order: &[u32], out: &mut [Hit]) {
-    in_packets(rays, order, |batch, group| {
+    in_packets(rays, order, &[], |batch, group| {
         let mut hits = [Hit::MISS; LANES];
         tracer.closest_hit_n(batch, &mut hits[..group.len()]);
         for (&i, h) in group.iter().zip(hits) {
@@ -679,15 +706,18 @@ pub fn closest_in_order(tracer: &dyn ClosestHit, rays: &[Ray], order: &[u32], ou
 }
 
 /// [`closest_in_order`] for any-hit queries, through the worker's
-/// occluder cache ([`ClosestHit::occluded_n_cached`]).
+/// occluder cache ([`ClosestHit::occluded_n_cached`]); `ahead`, the rays
+/// the caller traces next (may be empty), is read into the caches on
+/// the way.
 pub fn occluded_in_order(
     tracer: &dyn ClosestHit,
     rays: &[Ray],
     order: &[u32],
     out: &mut [bool],
     cache: &mut super::OccluderCache,
+    ahead: &[Ray],
 ) {
-    in_packets(rays, order, |batch, group| {
+    in_packets(rays, order, ahead, |batch, group| {
         let mut occ = [false; LANES];
         tracer.occluded_n_cached(batch, &mut occ[..group.len()], cache);
         for (&i, o) in group.iter().zip(occ) {
@@ -723,7 +753,7 @@ pub fn occluded_batch(
 ) {
     if mixed_octants(rays) {
         order_for_packets(rays, order);
-        occluded_in_order(tracer, rays, order, out, cache);
+        occluded_in_order(tracer, rays, order, out, cache, &[]);
     } else {
         for (rays, out) in rays.chunks(LANES).zip(out.chunks_mut(LANES)) {
             tracer.occluded_n_cached(rays, out, cache);
