@@ -448,10 +448,14 @@ fn direction_keys_on(rays: &[Ray], keys: &mut Vec<u16>, simd: bool) -> bool {
 ///
 /// # Safety
 /// The CPU has AVX2.
+///
+/// # Panics
+/// If `keys` is not as long as `rays`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn keys_avx2(rays: &[Ray], keys: &mut [u16], spread: &mut Spread) -> usize {
     use std::arch::x86_64::*;
+    assert_eq!(keys.len(), rays.len(), "a key a ray");
     // A ray is 8 `f32`: origin, direction, tmin, tmax (`repr(C)`).
     const _: () = assert!(
         std::mem::size_of::<Ray>() == 32

@@ -12,8 +12,9 @@
 //! a copy in triangle order); an any-hit packet of 16 rays decides every
 //! box in every lane, visits a child with the lanes that enter it (in
 //! the order of its first lane's entry distances), tests a leaf's
-//! triangles in those lanes with the packet kernel, and hands a child
-//! that few lanes enter to the single walk, lane by lane.
+//! triangles in those lanes with the packet kernel (a leaf that few
+//! lanes enter with the single walk's test, lane by lane), and hands a
+//! child that few lanes enter to the single walk, lane by lane.
 //!
 //! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
 //! where it starts and then crosses ~10 cells, 7 of them empty
@@ -105,14 +106,13 @@ const ALONE_LANES_HALVES: u32 = 7;
 /// alone, eight triangles at a time ([`leaf_in_lanes`]), rather than a
 /// triangle at a time in all 16 lanes: on ravenbridge's AO packets 35 %
 /// of those triangle tests have one lane, 19 % two. The renderer's AO
-/// rays run 1.02–1.08× as fast on four of the shared scenes (bunny_scan
-/// most, dieselpower least; AVX-512, two rounds); at 3 and 4 lanes
-/// within noise of 2.
+/// rays run 1.00–1.09× as fast on the six shared scenes (bunny_scan
+/// most; AVX-512, two rounds); at 1, 3 and 4 lanes within noise of 2.
 const LEAF_ALONE_LANES: u32 = 2;
 
 /// [`LEAF_ALONE_LANES`] for the AVX2 copy, whose triangle test in a
-/// packet takes two 8-lane halves: AO rays 1.12–1.27× as fast on
-/// dieselpower, ravenbridge and bunny_scan, against 1.07–1.24× at 2
+/// packet takes two 8-lane halves: AO rays 1.08–1.29× as fast on
+/// dieselpower, ravenbridge and bunny_scan, against 1.07–1.25× at 2
 /// lanes.
 const LEAF_ALONE_LANES_HALVES: u32 = 4;
 
