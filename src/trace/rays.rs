@@ -362,11 +362,16 @@ pub fn order_by_direction(rays: &[Ray], order: &mut Vec<u32>) {
     counting_order(&keys, DIRECTION_KEYS, 0, order);
 }
 
-/// Keys of [`order_by_direction`]: the octant, then the direction cell.
+/// Keys of [`order_by_direction`] ([`direction_key`]).
 const DIRECTION_KEYS: usize = 8 * DIRECTION_BINS * DIRECTION_BINS;
 
-/// `keys` := the key of [`order_by_direction`] (the octant, then the
-/// [`direction_cell`]) of every ray of `rays`, in one pass that also
+/// The key of [`order_by_direction`]: the octant, then the direction cell.
+#[inline]
+fn direction_key(dir: Vec3) -> u16 {
+    (octant(dir) * DIRECTION_BINS * DIRECTION_BINS + direction_cell(dir)) as u16
+}
+
+/// `keys` := the [`direction_key`] of every ray of `rays`, in one pass that also
 /// finds whether their origins lie close together ([`close_origins`],
 /// returned). The renderer orders each tile's AO rays this way: a ray at
 /// a time (its fields loaded one by one, a division and a square root
@@ -432,7 +437,7 @@ fn direction_keys_on(rays: &[Ray], keys: &mut Vec<u16>, simd: bool) -> bool {
         done = unsafe { keys_avx2(rays, keys, &mut spread) };
     }
     for (r, k) in rays[done..].iter().zip(&mut keys[done..]) {
-        *k = (octant(r.dir) * DIRECTION_BINS * DIRECTION_BINS + direction_cell(r.dir)) as u16;
+        *k = direction_key(r.dir);
         spread.add(r);
     }
     spread.close()
@@ -588,7 +593,9 @@ pub const CLOSE_ORIGINS: f32 = 0.2;
 /// an end (`tmax` ∞) from finite origins; a NaN coordinate or length is
 /// passed over (`f32::min`, `max`).
 pub fn close_origins(rays: &[Ray]) -> bool {
-    direction_keys(rays, &mut Vec::new())
+    let mut spread = Spread::EMPTY;
+    rays.iter().for_each(|r| spread.add(r));
+    spread.close()
 }
 
 /// `order` := the order in which `rays` make packets that share the most
@@ -644,12 +651,12 @@ fn in_packets(rays: &[Ray], order: &[u32], ahead: &[Ray], mut trace: impl FnMut(
     if n > 0 {
         gather_into(&mut bufs[0], rays, group(0));
     }
+    // The rays of `ahead` a packet reads, two to a cache line.
+    let share = ahead.len().div_ceil(n.max(1)).next_multiple_of(2);
     for k in 0..n {
         if k + 1 < n {
             gather_into(&mut bufs[(k + 1) & 1], rays, group(k + 1));
         }
-        // Its share of `ahead`, two rays to a cache line.
-        let share = ahead.len().div_ceil(n).next_multiple_of(2);
         if let Some(next) = ahead.get(k * share..ahead.len().min((k + 1) * share)) {
             for r in next.iter().step_by(2) {
                 prefetch(r);
@@ -1062,8 +1069,7 @@ mod tests {
             assert_eq!(direction_keys_on(&rays, &mut b, true), close, "{n} rays");
             assert_eq!(a, b, "{n} rays");
             for (r, &k) in rays.iter().zip(&a) {
-                let want = octant(r.dir) * DIRECTION_BINS * DIRECTION_BINS + direction_cell(r.dir);
-                assert_eq!(usize::from(k), want, "{r:?}");
+                assert_eq!(k, direction_key(r.dir), "{r:?}");
             }
         }
         // The spread alone: origins close together, then one far off.

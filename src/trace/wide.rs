@@ -1113,6 +1113,11 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
         }
     }
     let (nodes, tris, ids) = (&boxes.nodes[..], &boxes.tris[..], &boxes.ids[..]);
+    let leaf_alone = if M {
+        LEAF_ALONE_LANES
+    } else {
+        LEAF_ALONE_LANES_HALVES
+    };
     let mut stack = [const { MaybeUninit::<(u32, u16)>::uninit() }; STACK];
     let mut sp = 0usize;
     let (mut node, mut mask) = (0u32, act);
@@ -1201,12 +1206,7 @@ fn walk_packet_wide<'a, W: Walk<'a>, const COUNT: bool, const M: bool, const AVX
                 stats.leaves += 1;
             }
             let first = tris[start + 1] as usize;
-            let alone = if M {
-                LEAF_ALONE_LANES
-            } else {
-                LEAF_ALONE_LANES_HALVES
-            };
-            if AVX2 && lanes.count_ones() <= alone && !boxes.verts.is_empty() {
+            if AVX2 && lanes.count_ones() <= leaf_alone && !boxes.verts.is_empty() {
                 // So few lanes test the leaf each alone, eight triangles
                 // at a time.
                 let mut m = lanes;
