@@ -917,7 +917,7 @@ pub struct OccluderCache {
 /// Triangles a cache keeps: a renderer's AO packet of 16 rays from a
 /// tile's hit points has up to 16 occluders, and ravenbridge's AO rays
 /// (97 % occluded) ran 1.07–1.11× as fast with 8 as with 4 in the AO
-/// frame (1.09× in the AVX2 copy), the other shared scenes' within
+/// frame (1.10× in the AVX2 copy), the other shared scenes' within
 /// 2 %; shadow packets, whose lanes share fewer occluders, ran within
 /// 5 % either way. With 2, ravenbridge's shadow packets ran 8 % slower.
 const OCCLUDERS: usize = 8;
