@@ -315,6 +315,7 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     let start = Instant::now();
     let chunks: Vec<ChunkOut> = pixels
         .par_chunks(CHUNK)
+        .with_max_len((crate::trace::rays::JOB_RAYS / CHUNK).max(1))
         .map_init(
             || {
                 let n = if options.secondary == Secondary::FromHit {

@@ -448,6 +448,7 @@ pub fn trace_frame_with_progress(
     let start = Instant::now();
     let tiles: Vec<Vec<Hit>> = (0..tiles_x * tiles_y)
         .into_par_iter()
+        .with_max_len(crate::trace::rays::JOB_RAYS / (TILE * TILE) as usize)
         .map(|tile| {
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (tw, th) = ((x0 + TILE).min(w) - x0, (y0 + TILE).min(h) - y0);

@@ -29,6 +29,15 @@ pub const STREAM: usize = 256;
 /// Consecutive rays a thread takes at a time.
 pub const CHUNK: usize = 256;
 
+/// Rays one rayon job holds at most (`with_max_len`). Rayon cuts a batch
+/// into a few jobs a thread and cuts a job again only where another thread
+/// steals it before it starts, so the thread that finished first waited
+/// for the other's last long job: `trace -j 2` kept 1.6 of the 2 cores
+/// busy on dieselpower's AO rays. In jobs of at most 4,096 rays those run
+/// 1.2× as fast (33.4 → 40.2 Mrays/s); a worker's state (its occluder
+/// cache) starts anew with each job.
+pub const JOB_RAYS: usize = 4096;
+
 /// Consecutive rays a thread orders by octant at a time in
 /// [`trace_batch_sorted`]: 256 pixels' AO rays at 4 a pixel, so that each
 /// octant fills several packets (the renderer's AO rays ran 1.1–1.2× as
@@ -216,6 +225,7 @@ fn timed_chunks<S>(
     results
         .par_chunks_mut(chunk)
         .zip(rays.par_chunks(chunk))
+        .with_max_len((JOB_RAYS / chunk).max(1))
         .for_each_init(init, |state, (out, rays)| each(state, rays, out));
     Traced {
         results,
@@ -920,6 +930,7 @@ pub fn count_batch(
     results
         .par_chunks_mut(chunk)
         .zip(rays.par_chunks(chunk))
+        .with_max_len((JOB_RAYS / chunk).max(1))
         .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
             let mut stats = TraceStats::default();
             let mut order = Vec::new();
