@@ -35,7 +35,8 @@ pub const CHUNK: usize = 256;
 /// for the other's last long job: `trace -j 2` kept 1.6 of the 2 cores
 /// busy on dieselpower's AO rays. In jobs of at most 4,096 rays those run
 /// 1.2× as fast (33.4 → 40.2 Mrays/s); a worker's state (its occluder
-/// cache) starts anew with each job.
+/// cache) starts anew with each job. The renderer's frames cap their jobs
+/// at as many pixels.
 pub const JOB_RAYS: usize = 4096;
 
 /// Consecutive rays a thread orders by octant at a time in
