@@ -373,6 +373,10 @@ pub struct HitBuffer {
     pub hits: Vec<Hit>,
     /// Seconds spent generating and tracing the rays.
     pub seconds: f64,
+    /// Of `seconds`, the share spent generating the rays (the pass's wall
+    /// time split in proportion to its threads' time on each, as
+    /// [`ao::AoTimes`] splits the secondary pass).
+    pub making_s: f64,
 }
 
 impl HitBuffer {
@@ -446,21 +450,37 @@ pub fn trace_frame_with_progress(
     let tiles_y = h.div_ceil(TILE);
     let n_tiles = u64::from(tiles_x * tiles_y);
     let start = Instant::now();
-    let tiles: Vec<Vec<Hit>> = (0..tiles_x * tiles_y)
+    // Per tile: its hits, the seconds spent making its rays and tracing
+    // them (two clock reads a tile).
+    let tiles: Vec<(Vec<Hit>, f64, f64)> = (0..tiles_x * tiles_y)
         .into_par_iter()
         .with_max_len(crate::trace::rays::JOB_RAYS / (TILE * TILE) as usize)
         .map(|tile| {
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (tw, th) = ((x0 + TILE).min(w) - x0, (y0 + TILE).min(h) - y0);
+            let t0 = Instant::now();
+            // The tile's rays in 4×4 blocks, each block's row by row (as
+            // `primary_rays` orders them).
+            let mut rays = Vec::with_capacity((tw * th) as usize);
+            for by in (0..th).step_by(4) {
+                for bx in (0..tw).step_by(4) {
+                    for y in by..(by + 4).min(th) {
+                        for x in bx..(bx + 4).min(tw) {
+                            rays.push(camera.ray(x0 + x, y0 + y));
+                        }
+                    }
+                }
+            }
+            let t1 = Instant::now();
             let mut out = vec![Hit::MISS; (tw * th) as usize];
+            let mut k = 0;
             for by in (0..th).step_by(4) {
                 for bx in (0..tw).step_by(4) {
                     if bx + 4 <= tw && by + 4 <= th {
-                        let rays: [Ray; 16] = std::array::from_fn(|i| {
-                            camera.ray(x0 + bx + i as u32 % 4, y0 + by + i as u32 / 4)
-                        });
+                        let block: &[Ray; 16] = rays[k..k + 16].try_into().expect("a 4×4 block");
+                        k += 16;
                         let mut hits = [Hit::MISS; 16];
-                        tracer.closest_hit_4x4(&rays, &mut hits);
+                        tracer.closest_hit_4x4(block, &mut hits);
                         for (i, hit) in hits.into_iter().enumerate() {
                             let (x, y) = (bx + i as u32 % 4, by + i as u32 / 4);
                             out[(y * tw + x) as usize] = hit;
@@ -468,20 +488,29 @@ pub fn trace_frame_with_progress(
                     } else {
                         for y in by..(by + 4).min(th) {
                             for x in bx..(bx + 4).min(tw) {
-                                out[(y * tw + x) as usize] =
-                                    tracer.closest_hit(&camera.ray(x0 + x, y0 + y));
+                                out[(y * tw + x) as usize] = tracer.closest_hit(&rays[k]);
+                                k += 1;
                             }
                         }
                     }
                 }
             }
+            let t2 = Instant::now();
             Progress::advance(progress, u64::from(tile), u64::from(tile) + 1, n_tiles);
-            out
+            (out, (t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64())
         })
         .collect();
     let seconds = start.elapsed().as_secs_f64();
+    let (making, tracing) = tiles
+        .iter()
+        .fold((0.0, 0.0), |(m, t), &(_, a, b)| (m + a, t + b));
+    let making_s = if making + tracing > 0.0 {
+        seconds * making / (making + tracing)
+    } else {
+        0.0
+    };
     let mut hits = vec![Hit::MISS; (w as usize) * (h as usize)];
-    for (tile, pixels) in tiles.into_iter().enumerate() {
+    for (tile, (pixels, _, _)) in tiles.into_iter().enumerate() {
         let tile = tile as u32;
         let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
         let tw = (x0 + TILE).min(w) - x0;
@@ -495,6 +524,7 @@ pub fn trace_frame_with_progress(
         height: h,
         hits,
         seconds,
+        making_s,
     }
 }
 
