@@ -316,7 +316,7 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     let start = Instant::now();
     let chunks: Vec<ChunkOut> = pixels
         .par_chunks(CHUNK)
-        .with_max_len((crate::trace::rays::JOB_RAYS / CHUNK).max(1))
+        .with_max_len(crate::trace::rays::job_len(CHUNK))
         .map_init(
             || {
                 let n = if options.secondary == Secondary::FromHit {

@@ -26,6 +26,7 @@ use crate::format::KdFile;
 use crate::geom::{Aabb, Ray};
 use crate::progress::Progress;
 use crate::scene::TriangleColumns;
+use crate::trace::rays::job_len;
 use crate::trace::{ClosestHit, Hit};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
@@ -416,18 +417,25 @@ pub fn primary_rays(camera: &Camera) -> Vec<Ray> {
     for ty in (0..h).step_by(TILE as usize) {
         for tx in (0..w).step_by(TILE as usize) {
             let (tw, th) = ((tx + TILE).min(w) - tx, (ty + TILE).min(h) - ty);
-            for by in (0..th).step_by(4) {
-                for bx in (0..tw).step_by(4) {
-                    for y in by..(by + 4).min(th) {
-                        for x in bx..(bx + 4).min(tw) {
-                            rays.push(camera.ray(tx + x, ty + y));
-                        }
-                    }
+            tile_rays(camera, (tx, ty), (tw, th), &mut rays);
+        }
+    }
+    rays
+}
+
+/// Appends to `rays` the rays of the `tw × th` tile at `(x0, y0)`, in 4×4
+/// blocks (row by row within a block, blocks row by row), the order of
+/// [`primary_rays`] and of the frame's packets.
+fn tile_rays(camera: &Camera, (x0, y0): (u32, u32), (tw, th): (u32, u32), rays: &mut Vec<Ray>) {
+    for by in (0..th).step_by(4) {
+        for bx in (0..tw).step_by(4) {
+            for y in by..(by + 4).min(th) {
+                for x in bx..(bx + 4).min(tw) {
+                    rays.push(camera.ray(x0 + x, y0 + y));
                 }
             }
         }
     }
-    rays
 }
 
 /// Traces every pixel, tiles in parallel on the current rayon pool. Each
@@ -454,23 +462,13 @@ pub fn trace_frame_with_progress(
     // them (two clock reads a tile).
     let tiles: Vec<(Vec<Hit>, f64, f64)> = (0..tiles_x * tiles_y)
         .into_par_iter()
-        .with_max_len(crate::trace::rays::JOB_RAYS / (TILE * TILE) as usize)
-        .map(|tile| {
+        .with_max_len(job_len((TILE * TILE) as usize))
+        .map_init(Vec::new, |rays, tile| {
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (tw, th) = ((x0 + TILE).min(w) - x0, (y0 + TILE).min(h) - y0);
             let t0 = Instant::now();
-            // The tile's rays in 4×4 blocks, each block's row by row (as
-            // `primary_rays` orders them).
-            let mut rays = Vec::with_capacity((tw * th) as usize);
-            for by in (0..th).step_by(4) {
-                for bx in (0..tw).step_by(4) {
-                    for y in by..(by + 4).min(th) {
-                        for x in bx..(bx + 4).min(tw) {
-                            rays.push(camera.ray(x0 + x, y0 + y));
-                        }
-                    }
-                }
-            }
+            rays.clear();
+            tile_rays(camera, (x0, y0), (tw, th), rays);
             let t1 = Instant::now();
             let mut out = vec![Hit::MISS; (tw * th) as usize];
             let mut k = 0;

@@ -39,6 +39,12 @@ pub const CHUNK: usize = 256;
 /// at as many pixels.
 pub const JOB_RAYS: usize = 4096;
 
+/// Pieces of `per` rays (or pixels) in one rayon job: [`JOB_RAYS`]'
+/// worth, at least one.
+pub fn job_len(per: usize) -> usize {
+    (JOB_RAYS / per).max(1)
+}
+
 /// Consecutive rays a thread orders by octant at a time in
 /// [`trace_batch_sorted`]: 256 pixels' AO rays at 4 a pixel, so that each
 /// octant fills several packets (the renderer's AO rays ran 1.1–1.2× as
@@ -226,7 +232,7 @@ fn timed_chunks<S>(
     results
         .par_chunks_mut(chunk)
         .zip(rays.par_chunks(chunk))
-        .with_max_len((JOB_RAYS / chunk).max(1))
+        .with_max_len(job_len(chunk))
         .for_each_init(init, |state, (out, rays)| each(state, rays, out));
     Traced {
         results,
@@ -931,7 +937,7 @@ pub fn count_batch(
     results
         .par_chunks_mut(chunk)
         .zip(rays.par_chunks(chunk))
-        .with_max_len((JOB_RAYS / chunk).max(1))
+        .with_max_len(job_len(chunk))
         .for_each_init(super::OccluderCache::new, |cache, (out, rays)| {
             let mut stats = TraceStats::default();
             let mut order = Vec::new();
