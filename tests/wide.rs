@@ -52,15 +52,23 @@ fn check_wide(src: &impl KdSource, scene: &TriangleColumns, rays: &[Ray]) {
     }
 }
 
-/// Any-hit packets over the boxes (runs of up to 16 rays, with and
-/// without an occluder cache carried from run to run, fewer than
-/// `MIN_LANES` walked alone) against brute force's hits `want`, on every
-/// instruction set, and the counting walk against the fast one.
+/// Packets over the boxes (runs of up to 16 rays, any-hit queries with
+/// and without an occluder cache carried from run to run, and closest
+/// hits; fewer than `MIN_LANES` walked alone) against brute force's hits
+/// `want`, on every instruction set, and the counting walks against the
+/// fast ones.
 fn check_wide_packets(src: &impl KdSource, boxes: &WideBoxes, rays: &[Ray], want: &[Hit]) {
     for level in SimdLevel::available() {
-        let tracer = WideTracer::with_level(src, boxes, level);
+        let tracer = WideTracer::with_level(src, boxes, level).closest_packets();
         let mut cache = OccluderCache::new();
         for (c, chunk) in rays.chunks(16).enumerate() {
+            let mut hits = vec![Hit::MISS; chunk.len()];
+            tracer.closest_hit_n(chunk, &mut hits);
+            assert_eq!(
+                hits,
+                want[c * 16..c * 16 + chunk.len()],
+                "{level:?} closest packet {c}"
+            );
             let expect: Vec<bool> = chunk
                 .iter()
                 .zip(&want[c * 16..])
@@ -77,7 +85,25 @@ fn check_wide_packets(src: &impl KdSource, boxes: &WideBoxes, rays: &[Ray], want
     let mut cache = OccluderCache::new();
     for (c, chunk) in rays.chunks(16).enumerate() {
         let mut hits = vec![Hit::MISS; chunk.len()];
-        tracer.occluded_counted(chunk, &mut hits, &mut TraceStats::default(), &mut cache);
+        tracer.packet_counted(
+            chunk,
+            false,
+            &mut hits,
+            &mut TraceStats::default(),
+            &mut cache,
+        );
+        assert_eq!(
+            hits,
+            want[c * 16..c * 16 + chunk.len()],
+            "counted closest packet {c}"
+        );
+        tracer.packet_counted(
+            chunk,
+            true,
+            &mut hits,
+            &mut TraceStats::default(),
+            &mut cache,
+        );
         for (i, (h, r)) in hits.iter().zip(chunk).enumerate() {
             assert_eq!(
                 h.is_hit(),

@@ -203,6 +203,22 @@ impl Best {
         t: [f32::INFINITY; LANES],
         id: [u32::MAX; LANES],
     };
+
+    /// Lane `i`'s best hit ([`Hit::MISS`] where it has none).
+    #[inline(always)]
+    pub(super) fn lane(&self, i: usize) -> Hit {
+        Hit {
+            t: self.t[i],
+            tri: TriId(self.id[i]),
+        }
+    }
+
+    /// Makes `h` lane `i`'s best hit.
+    #[inline(always)]
+    pub(super) fn set_lane(&mut self, i: usize, h: Hit) {
+        self.t[i] = h.t;
+        self.id[i] = h.tri.0;
+    }
 }
 
 /// The lanes a triangle test found: hits to keep, and lanes that leave

@@ -723,8 +723,8 @@ pub struct TraceArgs {
     /// (both --occluded only), or single rays over `wide` boxes (the
     /// tree's leaves in a hierarchy of eight boxes a node, built after
     /// opening, untimed, and reported apart), or packets of 16
-    /// consecutive rays over those boxes (`wide-packet`, --occluded only,
-    /// the triangles that blocked the last packet first).
+    /// consecutive rays over those boxes (`wide-packet`; any-hit packets
+    /// test first the triangles that blocked the last packet).
     #[arg(long, value_enum, default_value = "packet")]
     pub mode: TraceMode,
     /// Worker threads (default: all cores).

@@ -84,15 +84,10 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         args.mode,
         TraceMode::Packet | TraceMode::Sorted | TraceMode::WidePacket
     );
-    if matches!(
-        args.mode,
-        TraceMode::Stream | TraceMode::Lanes | TraceMode::WidePacket
-    ) && !args.occluded
-    {
-        return Err(crate::Usage(
-            "--mode stream, lanes and wide-packet answer --occluded queries only".into(),
-        )
-        .into());
+    if matches!(args.mode, TraceMode::Stream | TraceMode::Lanes) && !args.occluded {
+        return Err(
+            crate::Usage("--mode stream and lanes answer --occluded queries only".into()).into(),
+        );
     }
     let scalar = Scalar::new(&file);
     let packet = PacketTracer::new(&file);
@@ -127,7 +122,10 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
         nodes: b.nodes(),
         leaves: b.leaves(),
     });
-    let wide_tracer = wide.as_ref().map(|b| WideTracer::new(&file, b));
+    let wide_tracer = wide.as_ref().map(|b| match args.mode {
+        TraceMode::WidePacket => WideTracer::new(&file, b).closest_packets(),
+        _ => WideTracer::new(&file, b),
+    });
     let tracer: &dyn ClosestHit = match (&rope_tracer, &wide_tracer, packets) {
         (Some(r), _, _) => r,
         (None, Some(w), _) => w,
@@ -159,7 +157,7 @@ pub fn cmd_trace(args: &TraceArgs, ui: OutputFlags, pool: rayon::ThreadPool) -> 
                      s: &mut TraceStats,
                      cache: &mut slimkd::trace::OccluderCache| {
             if let (Some(wt), true) = (&wide_tracer, packets) {
-                wt.occluded_counted(r, out, s, cache);
+                wt.packet_counted(r, any, out, s, cache);
             } else if packets {
                 packet.trace_counted_cached(r, any, out, s, cache);
             } else if let Some(wt) = &wide_tracer {
