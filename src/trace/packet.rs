@@ -980,8 +980,15 @@ impl OccluderCache {
     #[inline(never)]
     pub(super) fn update(&mut self, occ: &[u32; LANES]) {
         let mut n = 0usize;
-        for &t in occ {
-            if t != u32::MAX && !self.tris[..n].contains(&t) {
+        let mut blocked = bits::<false>(occ.map(|t| t != u32::MAX));
+        while blocked != 0 {
+            let t = occ[blocked.trailing_zeros() as usize];
+            blocked &= blocked - 1;
+            let mut known = false;
+            for (k, &c) in self.tris.iter().enumerate() {
+                known |= (k < n) & (c == t);
+            }
+            if !known {
                 self.tris[n] = t;
                 n += 1;
                 if n == OCCLUDERS {
@@ -1226,5 +1233,28 @@ mod tests {
         }
         assert_eq!(bits::<true>([true; LANES]), u16::MAX);
         assert_eq!(bits::<false>([false; LANES]), 0);
+    }
+
+    /// A packet's occluders become the cache: the first `OCCLUDERS`
+    /// distinct triangles in lane order, lanes without one skipped.
+    #[test]
+    fn cache_keeps_the_first_distinct_occluders_in_lane_order() {
+        let none = u32::MAX;
+        let mut cache = OccluderCache::new();
+        let mut occ = [none; LANES];
+        cache.update(&occ);
+        assert!(cache.is_empty());
+        occ[3] = 7;
+        occ[4] = 7;
+        occ[9] = 2;
+        occ[12] = 7;
+        cache.update(&occ);
+        assert_eq!(cache.tris[..cache.len()], [7, 2]);
+        let occ: [u32; LANES] = std::array::from_fn(|i| match i {
+            0 | 5 => none,
+            _ => (20 - i as u32) / 2,
+        });
+        cache.update(&occ);
+        assert_eq!(cache.tris[..cache.len()], [9, 8, 7, 6, 5, 4, 3, 2]);
     }
 }
