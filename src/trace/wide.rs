@@ -9,12 +9,16 @@
 //! visits the ones it enters, nearest first for a closest
 //! hit, in slot order for an any-hit query, and tests a leaf's triangles
 //! eight at a time in the lanes of another (their vertices read from
-//! a copy in triangle order); an any-hit packet of 16 rays decides every
-//! box in every lane, visits a child with the lanes that enter it (in
-//! the order of its first lane's entry distances), tests a leaf's
+//! a copy in triangle order); a packet of 16 rays (any-hit queries, or
+//! closest hits where asked) decides every box in every lane, each lane
+//! up to its best hit so far, visits a child with the lanes that enter it
+//! (in the order of its first lane's entry distances), tests a leaf's
 //! triangles in those lanes with the packet kernel (a leaf that few
 //! lanes enter with the single walk's test, lane by lane), and hands a
-//! child that few lanes enter to the single walk, lane by lane.
+//! child that few lanes enter to the single walk, lane by lane. The
+//! renderer's AO rays run as closest hits in these packets at 1.2–1.7×
+//! Embree's speed with AVX-512 and 0.93–1.16× with AVX2, where the kd
+//! packets' 16-lane loops, two halves in AVX2, ran them at 0.54–0.76×.
 //!
 //! **Why.** A short secondary ray descends the kd-tree's ~30 levels to
 //! where it starts and then crosses ~10 cells, 7 of them empty
