@@ -1104,6 +1104,10 @@ fn wide_packet<
         solo
     };
     mask &= !solo;
+    // The cache's protocol as the kd packets' `trace_rays_cached` has it,
+    // written out: a helper taking the walk as a closure ran these
+    // packets at 0.6–0.85× and the kd ones at 0.4× (the closure's body
+    // did not get the instruction set's copy of the walk).
     if ANY {
         let cached = cache.tris(&src);
         let mut occ = [u32::MAX; LANES];
