@@ -1069,10 +1069,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                 let i = m.trailing_zeros() as usize;
                 m &= m - 1;
                 let inv = Vec3::new(p.inv[0][i], p.inv[1][i], p.inv[2][i]);
-                let prev = Hit {
-                    t: best.t[i],
-                    tri: TriId(best.id[i]),
-                };
+                let prev = best.lane(i);
                 let start = (cur.node, cur.tmin[i], cur.tmax[i]);
                 let h = super::walk_cells::<W, ANY, COUNT>(
                     src,
@@ -1084,8 +1081,7 @@ fn walk_packet<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const M: boo
                     stats,
                     &mut steps_left,
                 );
-                best.t[i] = h.t;
-                best.id[i] = h.tri.0;
+                best.set_lane(i, h);
                 if ANY && h.is_hit() {
                     done |= 1 << i;
                 }
