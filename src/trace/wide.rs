@@ -134,8 +134,10 @@ pub enum WideError {
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 struct WideNode {
-    lo: [[f32; WIDTH]; 3],
-    hi: [[f32; WIDTH]; 3],
+    /// Rows 0–2 the boxes' lower x, y and z planes, rows 3–5 their
+    /// upper ones: a ray picks its entry and exit rows once
+    /// ([`Slabs::new`]) and a node visit loads them without a choice.
+    planes: [[f32; WIDTH]; 6],
     /// A child node's index, `LEAF | start` of a leaf's list in
     /// [`WideBoxes`]'s `tris`, or `NONE`.
     child: [u32; WIDTH],
@@ -147,8 +149,14 @@ struct WideNode {
 
 impl WideNode {
     const EMPTY: WideNode = WideNode {
-        lo: [[f32::INFINITY; WIDTH]; 3],
-        hi: [[f32::NEG_INFINITY; WIDTH]; 3],
+        planes: [
+            [f32::INFINITY; WIDTH],
+            [f32::INFINITY; WIDTH],
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+        ],
         child: [NONE; WIDTH],
         leaves: 0,
         used: 0,
@@ -288,8 +296,8 @@ impl WideBoxes {
             for (slot, (b, child)) in slots.into_iter().enumerate() {
                 let b = padded(&b);
                 for k in 0..3 {
-                    node.lo[k][slot] = b.min[k];
-                    node.hi[k][slot] = b.max[k];
+                    node.planes[k][slot] = b.min[k];
+                    node.planes[3 + k][slot] = b.max[k];
                 }
                 node.child[slot] = child;
                 if child & LEAF != 0 {
@@ -406,18 +414,16 @@ fn pull_up(old: &[WideNode]) -> Vec<WideNode> {
                 } else {
                     free.next().expect("the child fits")
                 };
-                for k in 0..3 {
-                    n.lo[k][dst] = cn.lo[k][s];
-                    n.hi[k][dst] = cn.hi[k][s];
+                for row in 0..6 {
+                    n.planes[row][dst] = cn.planes[row][s];
                 }
                 n.child[dst] = cn.child[s];
             }
             if first {
                 // A child without slots: its own slot goes empty.
                 n.child[j] = NONE;
-                for k in 0..3 {
-                    n.lo[k][j] = f32::INFINITY;
-                    n.hi[k][j] = f32::NEG_INFINITY;
+                for (row, plane) in n.planes.iter_mut().enumerate() {
+                    plane[j] = WideNode::EMPTY.planes[row][0];
                 }
             }
         }
@@ -629,12 +635,33 @@ unsafe fn block_hits_avx2(
         _mm256_shuffle_ps::<0x44>(_mm256_unpacklo_ps(a0, a1), _mm256_unpacklo_ps(a2, a3))
     };
     let comps = [c0, c1, c2, c3, c4, c5, c6, c7, c8];
-    let ld = |c: usize| comps[c];
-    // Vertex `i` relative to the origin, permuted: `[x, y, z]` of the
-    // test are components `kx, ky, kz`.
-    let rel = |i: usize, k: usize| _mm256_sub_ps(ld(3 * i + k), _mm256_set1_ps(o[k]));
-    let vert = |i: usize| [rel(i, rp.kx), rel(i, rp.ky), rel(i, rp.kz)];
-    let (a, bb, c) = (vert(0), vert(1), vert(2));
+    let org = [
+        _mm256_set1_ps(o[0]),
+        _mm256_set1_ps(o[1]),
+        _mm256_set1_ps(o[2]),
+    ];
+    // The three vertices relative to the origin, permuted: `[x, y, z]` of
+    // the test are components `kx, ky, kz`. One arm per permutation
+    // `RayPrecomp::new` makes, so that each picks registers by constant
+    // indices: picked by the ray's indices, the nine columns went through
+    // the stack (30 of a leaf's 220 instructions).
+    // (Written out: `array::map` is not inlined here, its closure
+    // compiled without AVX2.)
+    let rel = |i: usize, k: usize| _mm256_sub_ps(comps[3 * i + k], org[k]);
+    let verts = |kx: usize, ky: usize, kz: usize| {
+        let vert = |i: usize| [rel(i, kx), rel(i, ky), rel(i, kz)];
+        [vert(0), vert(1), vert(2)]
+    };
+    let [a, bb, c] = match (rp.kx, rp.ky, rp.kz) {
+        (1, 2, 0) => verts(1, 2, 0),
+        (2, 1, 0) => verts(2, 1, 0),
+        (2, 0, 1) => verts(2, 0, 1),
+        (0, 2, 1) => verts(0, 2, 1),
+        (0, 1, 2) => verts(0, 1, 2),
+        (1, 0, 2) => verts(1, 0, 2),
+        // No other `RayPrecomp::new` makes; every lane to the scalar test.
+        _ => return (0, (1 << WIDTH) - 1, [0.0; WIDTH]),
+    };
     let (sx, sy, sz) = (
         _mm256_set1_ps(rp.sx),
         _mm256_set1_ps(rp.sy),
@@ -709,9 +736,31 @@ fn mask8(b: [bool; WIDTH]) -> u32 {
 struct Slabs {
     o: [f32; 3],
     inv: [f32; 3],
-    /// Per axis: the direction is negative (the entry plane is `hi`).
-    neg: [bool; 3],
+    /// Per axis, the row of [`WideNode`]'s planes where the ray enters
+    /// (`k`, or `3 + k` where the direction is negative) and where it
+    /// leaves; each below 6.
+    rows: [(usize, usize); 3],
     tmin: f32,
+}
+
+impl Slabs {
+    /// A ray of origin `o`, direction inverse `inv`, from `tmin`, whose
+    /// direction is negative on the axes of `neg`.
+    #[inline(always)]
+    fn new(o: [f32; 3], inv: [f32; 3], neg: [bool; 3], tmin: f32) -> Slabs {
+        let rows = [0, 1, 2].map(|k| if neg[k] { (3 + k, k) } else { (k, 3 + k) });
+        Slabs { o, inv, rows, tmin }
+    }
+
+    /// The entry and exit planes of axis `k` of `wn`.
+    #[inline(always)]
+    fn planes<'n>(&self, wn: &'n WideNode, k: usize) -> (&'n [f32; WIDTH], &'n [f32; WIDTH]) {
+        let (n, f) = self.rows[k];
+        // SAFETY: `Slabs::new`, the only maker of `rows`, keeps them below
+        // 6, the rows of `planes`. Unchecked: the node visit's choice of
+        // planes took 18 of its ~65 instructions as branch-free selects.
+        unsafe { (wn.planes.get_unchecked(n), wn.planes.get_unchecked(f)) }
+    }
 }
 
 /// The boxes of `wn` the ray enters in `(tmin, limit]` (bit `j` for slot
@@ -722,14 +771,7 @@ struct Slabs {
 /// an entry at `+∞`.
 #[inline(always)]
 fn enter(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]) {
-    let planes = |k: usize| {
-        if r.neg[k] {
-            (&wn.hi[k], &wn.lo[k])
-        } else {
-            (&wn.lo[k], &wn.hi[k])
-        }
-    };
-    let p = [planes(0), planes(1), planes(2)];
+    let p = [r.planes(wn, 0), r.planes(wn, 1), r.planes(wn, 2)];
     let mut near = [0f32; WIDTH];
     let mut hit = [false; WIDTH];
     for j in 0..WIDTH {
@@ -764,11 +806,7 @@ unsafe fn enter_avx2(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]
     let mut tn = _mm256_set1_ps(r.tmin);
     let mut tf = _mm256_set1_ps(limit);
     for k in 0..3 {
-        let (np, fp) = if r.neg[k] {
-            (&wn.hi[k], &wn.lo[k])
-        } else {
-            (&wn.lo[k], &wn.hi[k])
-        };
+        let (np, fp) = r.planes(wn, k);
         let (o, inv) = (_mm256_set1_ps(r.o[k]), _mm256_set1_ps(r.inv[k]));
         let n = _mm256_mul_ps(_mm256_sub_ps(ld(np), o), inv);
         let f = _mm256_mul_ps(_mm256_sub_ps(ld(fp), o), inv);
@@ -854,12 +892,8 @@ pub(crate) fn walk_wide<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, con
     if COUNT {
         stats.rays += 1;
     }
-    let slabs = Slabs {
-        o,
-        inv: inv_a,
-        neg: [inv_a[0] < 0.0, inv_a[1] < 0.0, inv_a[2] < 0.0],
-        tmin: ray.tmin,
-    };
+    let neg = [inv_a[0] < 0.0, inv_a[1] < 0.0, inv_a[2] < 0.0];
+    let slabs = Slabs::new(o, inv_a, neg, ray.tmin);
     let rp = RayPrecomp::new(ray);
     descend::<_, ANY, COUNT, AVX2>(src, boxes, ray, &rp, &slabs, 0, Hit::MISS, stats).0
 }
@@ -907,7 +941,8 @@ fn descend<'a, W: Walk<'a>, const ANY: bool, const COUNT: bool, const AVX2: bool
         if COUNT {
             stats.nodes += 1;
         }
-        let limit = best.t.min(ray.tmax);
+        // An any-hit walk's best hit stays a miss until it stops.
+        let limit = if ANY { ray.tmax } else { best.t.min(ray.tmax) };
         let (entered, near) = if AVX2 {
             // SAFETY: `AVX2` is set only where this CPU has AVX2
             // (`WideTracer::walk`).
@@ -1236,8 +1271,8 @@ fn walk_packet_wide<
             let mut planes: SharedPlanes = [None; 3];
             for k in 0..3 {
                 planes[k] = match signs[k] {
-                    Some(true) => Some((&wn.hi[k], &wn.lo[k])),
-                    Some(false) => Some((&wn.lo[k], &wn.hi[k])),
+                    Some(true) => Some((&wn.planes[3 + k], &wn.planes[k])),
+                    Some(false) => Some((&wn.planes[k], &wn.planes[3 + k])),
                     None => None,
                 };
             }
@@ -1405,7 +1440,7 @@ fn slot_lanes(
                 }
             }
             None => {
-                let (lo, hi) = (wn.lo[k][j], wn.hi[k][j]);
+                let (lo, hi) = (wn.planes[k][j], wn.planes[3 + k][j]);
                 for i in 0..LANES {
                     let (np, fp) = if neg[k][i] { (hi, lo) } else { (lo, hi) };
                     let n = (np - o[i]) * inv[i];
@@ -1458,7 +1493,10 @@ unsafe fn half_lanes_avx2(
             let (np, fp) = match shared {
                 Some((np, fp)) => (_mm256_set1_ps(np[j]), _mm256_set1_ps(fp[j])),
                 None => {
-                    let (lo, hi) = (_mm256_set1_ps(wn.lo[k][j]), _mm256_set1_ps(wn.hi[k][j]));
+                    let (lo, hi) = (
+                        _mm256_set1_ps(wn.planes[k][j]),
+                        _mm256_set1_ps(wn.planes[3 + k][j]),
+                    );
                     let neg = _mm256_cmp_ps::<_CMP_LT_OQ>(inv, _mm256_setzero_ps());
                     (_mm256_blendv_ps(lo, hi, neg), _mm256_blendv_ps(hi, lo, neg))
                 }
@@ -1499,12 +1537,12 @@ fn pop(stack: &[MaybeUninit<(u32, u16)>], sp: &mut usize, act: u16) -> Option<(u
 /// Lane `i` of a packet as the single walk's box test reads it.
 #[inline(always)]
 fn lane_slabs(p: &Packet, neg: &[[bool; LANES]; 3], i: usize) -> Slabs {
-    Slabs {
-        o: [p.o[0][i], p.o[1][i], p.o[2][i]],
-        inv: [p.inv[0][i], p.inv[1][i], p.inv[2][i]],
-        neg: [neg[0][i], neg[1][i], neg[2][i]],
-        tmin: p.tmin[i],
-    }
+    Slabs::new(
+        [p.o[0][i], p.o[1][i], p.o[2][i]],
+        [p.inv[0][i], p.inv[1][i], p.inv[2][i]],
+        [neg[0][i], neg[1][i], neg[2][i]],
+        p.tmin[i],
+    )
 }
 
 /// The lanes of `mask` each walked alone through the subtree of `node`
