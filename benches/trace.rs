@@ -1,6 +1,9 @@
 //! Ray-tracing throughput: primary, shadow and ambient-occlusion rays,
 //! single rays and 16-ray packets, the tree in memory (`TreeIr`) and mapped
-//! from a `.kd` file, on one thread and on all.
+//! from a `.kd` file, down the kd-tree and over the file's wide boxes
+//! (`wide`, `wide-pk`: what `Accel::prepare_secondary` switches the facade
+//! to; closest-hit packets stay the kd packets there), on one thread and
+//! on all.
 //!
 //! For each scene it builds the std tree, writes it to a temporary `.kd`
 //! file and maps it back, and makes three ray sets from view 1 at 512×512:
@@ -28,7 +31,8 @@ use slimkd::render::{self, Camera, View};
 use slimkd::scene::TriangleColumns;
 use slimkd::trace::packet::{PacketTracer, SimdLevel};
 use slimkd::trace::rays::{self, Query};
-use slimkd::trace::{ClosestHit, Scalar, TreeTracer};
+use slimkd::trace::wide::{WideBoxes, WideTracer};
+use slimkd::trace::{ClosestHit, KdSource, Scalar, TreeTracer};
 
 const SIZE: u32 = 512;
 const REPS: usize = 5;
@@ -83,9 +87,13 @@ fn bench_scene(
     let file_packet = PacketTracer::new(&file);
     let mem_single = Scalar::new(&memory);
     let mem_packet = PacketTracer::new(&memory);
-    let tracers: [(&str, &str, &dyn ClosestHit, bool); 4] = [
+    let boxes = WideBoxes::new(file.walk()).expect("the file's nodes form a tree");
+    let file_wide = WideTracer::new(&file, &boxes);
+    let tracers: [(&str, &str, &dyn ClosestHit, bool); 6] = [
         ("file", "single", &file_single, false),
         ("file", "packet", &file_packet, true),
+        ("file", "wide", &file_wide, false),
+        ("file", "wide-pk", &file_wide, true),
         ("memory", "single", &mem_single, false),
         ("memory", "packet", &mem_packet, true),
     ];

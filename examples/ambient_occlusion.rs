@@ -1,8 +1,9 @@
 //! A small renderer on the `Accel` facade: primary rays from view 1 of the
 //! embedded scene, 8 cosine-distributed ambient-occlusion rays per hit
 //! pixel traced a row at a time with `occluded_batch` through one
-//! `AccelTracer` (`Accel::tracer`, the file view taken once), rows in
-//! parallel with rayon; writes a
+//! `AccelTracer` (`Accel::tracer`, the file view taken once) over the
+//! wide boxes (`Accel::prepare_secondary`), rows in parallel with rayon;
+//! writes a
 //! grey `ao.png` to the current directory.
 //!
 //! ```sh
@@ -51,6 +52,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let radius = 0.05 * diagonal;
     let eps = 1e-5 * diagonal;
 
+    // The wide boxes for secondary rays (memory beside the tree): single
+    // rays and any-hit batches go over them from here on.
+    accel.prepare_secondary()?;
     // One tracer for the frame: the file view is taken once, not per ray.
     // A row's AO rays go to the tracer as one batch, which traces them in
     // packets of one octant; each worker keeps one occluder cache.

@@ -1,7 +1,7 @@
 //! The `Accel` facade: built in memory, written, mapped back, it traces
 //! exactly as brute force does, in the input's numbering, for single rays
-//! and masked packets, per call or through its borrowing tracer; bad files
-//! are errors naming the file.
+//! and masked packets, per call or through its borrowing tracer, down the
+//! kd-tree and over the wide boxes; bad files are errors naming the file.
 
 mod common;
 
@@ -218,6 +218,12 @@ fn round_trip(preset: Preset, reorder: bool) {
     let rays = rays(&memory, 7 + reorder as u64);
     assert_traces_as_brute_force(&scene, &memory, &rays);
     assert_traces_as_brute_force(&scene, &mapped, &rays);
+    // Over the wide boxes: the same records and answers.
+    for accel in [&memory, &mapped] {
+        let boxes = accel.prepare_secondary().unwrap();
+        assert!(boxes.bytes() > 0 && accel.secondary_boxes().is_some());
+        assert_traces_as_brute_force(&scene, accel, &rays);
+    }
     // The header records what was built.
     let file = slimkd::format::KdFile::open(&path, slimkd::format::Check::Verify).unwrap();
     assert_eq!(file.is_reordered(), reorder);

@@ -331,6 +331,12 @@ impl WideBoxes {
         })
     }
 
+    /// Whether these are the boxes of the tree `walk` views (the walks
+    /// over boxes of another tree go from the root instead).
+    pub fn is_of<'a, W: Walk<'a>>(&self, walk: W) -> bool {
+        self.tag == walk.tag()
+    }
+
     /// Bytes held in memory (not part of the tree's bytes).
     pub fn bytes(&self) -> usize {
         self.nodes.len() * std::mem::size_of::<WideNode>()
