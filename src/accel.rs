@@ -404,19 +404,19 @@ impl Accel {
     /// 10–39; built in 42–811 ms for 35 K–1.1 M triangles on two threads,
     /// in the caller's rayon pool). From then on single rays
     /// ([`Accel::intersect`], [`Accel::occluded`] and the walks from a
-    /// context) and any-hit packets and batches go over the boxes;
-    /// closest-hit packets and batches stay the kd packets, where a
-    /// camera's coherent rays run up to 1.33× as fast (candela_city's
-    /// primary rays, AVX-512). The answers are the same, bit for bit.
+    /// context), any-hit packets and batches, and closest-hit batches of
+    /// incoherent rays go over the boxes; closest-hit packets and coherent
+    /// batches stay the kd packets, where a camera's rays run up to 1.33×
+    /// as fast (candela_city's primary rays, AVX-512). The answers are the
+    /// same, bit for bit.
     ///
-    /// Over the boxes, on the renderer's rays of three shared scenes
-    /// (`slimkd trace --mode single|wide` and `sorted|wide-packet`, 2
-    /// threads, the AVX-512 and AVX2 copies), single rays run 1.1–2.3× as
-    /// fast as down the kd-tree (primary, shadow and AO rays, closest and
-    /// any hit), any-hit batches 1.04–2.6×. `cargo bench --bench trace`
-    /// on dieselpower: AO rays 1.55× single and 1.36× in packets; shadow
-    /// rays toward a light by the eye 0.93× in packets, the one case
-    /// slower.
+    /// Through an [`AccelTracer`], on the renderer's view-1 rays of four
+    /// shared scenes in batches of 4,096 on two threads (the AVX-512 and
+    /// AVX2 copies): any-hit batches run 1.05–2.5× as fast over the boxes
+    /// (shadow rays 1.05–1.5×, AO rays 1.25–2.5×), AO closest-hit batches
+    /// 1.13–2.0×, the camera's and shadow closest-hit batches as before
+    /// (0.97–1.05×, on the kd packets). Single rays (`slimkd trace --mode
+    /// single|wide`): 1.1–2.3× on every ray kind and query.
     ///
     /// Returns the boxes; later calls return them at once. Threads that
     /// race here each build, and one's boxes are kept.
@@ -648,15 +648,25 @@ impl AccelTracer<'_> {
     /// tile's AO rays; [`crate::trace::rays::order_for_packets`]); a batch
     /// whose packets mostly keep one octant already (shadow rays toward
     /// one light) is traced in its own order
-    /// ([`crate::trace::rays::mixed_octants`]). The same records as ray by
-    /// ray.
+    /// ([`crate::trace::rays::mixed_octants`]). Where the wide boxes are
+    /// built ([`Accel::prepare_secondary`]), a batch of incoherent rays
+    /// (directions spread over a hemisphere, as a tile's AO or bounce rays
+    /// are) goes over them in packets; the others (a camera's rays, shadow
+    /// rays toward one light) stay the kd packets. The same records as
+    /// ray by ray.
     ///
     /// # Panics
     /// If `out` and `rays` differ in length.
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<HitRecord>]) {
         assert_eq!(rays.len(), out.len(), "one record per ray");
         let mut hits = vec![Hit::MISS; rays.len()];
-        self.with(|t| closest_batch(t, rays, &mut hits, &mut Vec::new()));
+        match self.boxes {
+            Some(b) if incoherent(rays) => {
+                let wide = WideTracer::with_level(&self.walk, b, self.level).closest_packets();
+                closest_batch(&wide, rays, &mut hits, &mut Vec::new());
+            }
+            _ => self.with(|t| closest_batch(t, rays, &mut hits, &mut Vec::new())),
+        }
         for ((o, r), h) in out.iter_mut().zip(rays).zip(hits) {
             *o = self.record(r, h);
         }
@@ -716,6 +726,25 @@ fn record(ray: &Ray, hit: Hit, tri: [Vec3; 3]) -> HitRecord {
     }
 }
 
+/// Whether a batch's directions spread too far for the kd packets to
+/// keep their lanes together: the mean of its unit directions is shorter
+/// than [`COHERENT`] (a camera's rays or shadow rays toward one light
+/// come close to 1; cosine-distributed AO rays over a flat patch to 2/3).
+/// Read from at most 256 rays spread over the batch: every ray's square
+/// root and division cost a camera's rays 10–20 % of their time.
+fn incoherent(rays: &[Ray]) -> bool {
+    let step = (rays.len() / 256).max(1);
+    let (sum, n) = rays
+        .iter()
+        .step_by(step)
+        .map(|r| r.dir.normalize_or_zero())
+        .fold((Vec3::ZERO, 0usize), |(a, n), d| (a + d, n + 1));
+    sum.length() < COHERENT * n as f32
+}
+
+/// [`incoherent`]'s bound.
+const COHERENT: f32 = 0.9;
+
 /// The masked lanes of a packet, packed: the rays, their lane numbers and
 /// how many.
 fn gather(packet: &RayPacket, mask: u16) -> ([Ray; 16], [usize; 16], usize) {
@@ -748,6 +777,28 @@ pub fn barycentrics(ray: &Ray, tri: &[Vec3; 3]) -> (f32, f32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A camera's rays are coherent, rays over a hemisphere are not, so
+    /// only the second batch goes over the boxes as closest hits.
+    #[test]
+    fn incoherent_batches_are_those_spread_over_a_hemisphere() {
+        let camera: Vec<Ray> = (0..4096)
+            .map(|i| {
+                let (x, y) = ((i % 64) as f32 / 64.0 - 0.5, (i / 64) as f32 / 64.0 - 0.5);
+                Ray::new(Vec3::ZERO, Vec3::new(x, y, -1.0))
+            })
+            .collect();
+        assert!(!incoherent(&camera));
+        let hemisphere: Vec<Ray> = (0..4096)
+            .map(|i| {
+                let (a, z) = (i as f32 * 2.399_963, (i % 97) as f32 / 97.0);
+                let r = (1.0 - z * z).sqrt();
+                Ray::new(Vec3::ZERO, Vec3::new(r * a.cos(), r * a.sin(), z))
+            })
+            .collect();
+        assert!(incoherent(&hemisphere));
+        assert!(!incoherent(&[]));
+    }
 
     /// The boxes a tracer takes are those of its own walk, so its walks
     /// over them do not fall back to the root walk; they are built once.
