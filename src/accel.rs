@@ -262,6 +262,14 @@ pub struct Accel {
     path: Option<PathBuf>,
 }
 
+// Checked here: the docs promise that threads share an `Accel` and its
+// tracers, the wide boxes included.
+const _: fn() = || {
+    fn shared<T: Send + Sync>() {}
+    shared::<Accel>();
+    shared::<AccelTracer<'static>>();
+};
+
 impl fmt::Debug for Accel {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("Accel")
