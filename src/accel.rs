@@ -615,11 +615,21 @@ impl AccelTracer<'_> {
         Scalar::new(&self.walk).occluded_from(ctx, ray)
     }
 
-    /// [`Accel::intersect_packet`].
+    /// [`Accel::intersect_packet`]. Where the wide boxes are built, a
+    /// packet whose rays start at different points (AO, bounce or shadow
+    /// rays from a tile's hits) goes over them; a packet from one point (a
+    /// camera's) stays the kd packets, which the boxes do not beat there.
     pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
         let (rays, lanes, n) = gather(packet, mask);
         let mut hits = [Hit::MISS; 16];
-        self.with(|t| t.closest_hit_n(&rays[..n], &mut hits[..n]));
+        match self.boxes {
+            Some(b) if !one_origin(&rays[..n]) => {
+                WideTracer::with_level(&self.walk, b, self.level)
+                    .closest_packets()
+                    .closest_hit_n(&rays[..n], &mut hits[..n]);
+            }
+            _ => self.with(|t| t.closest_hit_n(&rays[..n], &mut hits[..n])),
+        }
         let mut out = [None; 16];
         for i in 0..n {
             out[lanes[i]] = self.record(&rays[i], hits[i]);
@@ -754,6 +764,18 @@ fn incoherent(rays: &[Ray]) -> bool {
 /// [`incoherent`]'s bound.
 const COHERENT: f32 = 0.9;
 
+/// Whether the rays start at one point (a pinhole camera's packet), the
+/// closest-hit packets the wide boxes do not beat the kd-tree on (0.91–
+/// 1.04× in `trace`'s packets). A renderer's packets from a tile's hits,
+/// which a spread of directions cannot tell from a camera's where they
+/// share a direction cell, run over the boxes through
+/// [`AccelTracer::intersect_packet`] 1.13–1.56× as fast as the kd
+/// packets with AVX-512 and 1.45–2.04× with AVX2 (AO rays; shadow rays
+/// toward one light 0.97–1.17× and 1.11–1.39×).
+fn one_origin(rays: &[Ray]) -> bool {
+    rays.iter().all(|r| r.origin == rays[0].origin)
+}
+
 /// The masked lanes of a packet, packed: the rays, their lane numbers and
 /// how many.
 fn gather(packet: &RayPacket, mask: u16) -> ([Ray; 16], [usize; 16], usize) {
@@ -807,6 +829,22 @@ mod tests {
             .collect();
         assert!(incoherent(&hemisphere));
         assert!(!incoherent(&[]));
+    }
+
+    /// A camera's packet starts at one point; a packet of rays from a
+    /// tile's hits does not, whatever its directions.
+    #[test]
+    fn camera_packets_start_at_one_point() {
+        let eye = Vec3::new(1.0, 2.0, 3.0);
+        let camera: Vec<Ray> = (0..16)
+            .map(|i| Ray::new(eye, Vec3::new(i as f32 * 0.01, 0.0, -1.0)))
+            .collect();
+        assert!(one_origin(&camera) && one_origin(&camera[..1]) && one_origin(&[]));
+        let mut hits = camera.clone();
+        hits[15].origin.x += f32::EPSILON;
+        assert!(!one_origin(&hits));
+        hits[15].origin = Vec3::NAN;
+        assert!(!one_origin(&hits));
     }
 
     /// The boxes a tracer takes are those of its own walk, so its walks
