@@ -226,10 +226,34 @@ fn secondary_rays_of_a_scene_over_wide_boxes() {
         );
         // Packets as the renderer makes them (one octant, so the lanes
         // share their directions' signs) and in the rays' own order.
-        let mut order = Vec::new();
-        trace::rays::order_by_octant(&sec.ao, &mut order);
-        let by_octant: Vec<Ray> = order.iter().map(|&i| sec.ao[i as usize]).collect();
-        for batch in [&by_octant, &sec.ao, &sec.shadow] {
+        // Shadow rays by octant as well: lanes of one octant whose `tmax`
+        // differ (the AVX2 copy's test of a node's boxes for all lanes at
+        // once bounds their reach by the greatest).
+        let by_octant = |rays: &[Ray]| {
+            let mut order = Vec::new();
+            trace::rays::order_by_octant(rays, &mut order);
+            order
+                .iter()
+                .map(|&i| rays[i as usize])
+                .collect::<Vec<Ray>>()
+        };
+        let (ao_by_octant, shadow_by_octant) = (by_octant(&sec.ao), by_octant(&sec.shadow));
+        // And rays of one octant, every fourth of them ending at once.
+        let short: Vec<Ray> = by_octant(&primary)
+            .into_iter()
+            .enumerate()
+            .map(|(i, r)| Ray {
+                tmax: if i % 4 == 0 { r.tmin + 1e-3 } else { r.tmax },
+                ..r
+            })
+            .collect();
+        for batch in [
+            &ao_by_octant,
+            &sec.ao,
+            &sec.shadow,
+            &shadow_by_octant,
+            &short,
+        ] {
             let want: Vec<Hit> = batch.iter().map(|r| scalar.closest_hit(r)).collect();
             check_wide_packets(&file, &boxes, batch, &want);
         }

@@ -1230,6 +1230,13 @@ fn walk_packet_wide<
             signs[k] = Some(m != 0);
         }
     }
+    let frustum = if AVX2 && !M && signs.iter().all(Option::is_some) {
+        // SAFETY: `AVX2` is set only where this CPU has AVX2
+        // (`WideTracer::packet`).
+        Some(unsafe { Frustum::new_avx2(p, act, &signs) })
+    } else {
+        None
+    };
     let (nodes, tris, ids) = (&boxes.nodes[..], &boxes.tris[..], &boxes.ids[..]);
     let leaf_alone = if M {
         LEAF_ALONE_LANES
@@ -1283,6 +1290,11 @@ fn walk_packet_wide<
                 };
             }
             let mut used = wn.used;
+            if let Some(f) = &frustum {
+                // SAFETY: `AVX2` is set only where this CPU has AVX2
+                // (`WideTracer::packet`).
+                used &= unsafe { f.slots_avx2(wn) };
+            }
             while used != 0 {
                 let j = used.trailing_zeros() as usize;
                 used &= used - 1;
@@ -1411,6 +1423,166 @@ fn walk_packet_wide<
         match pop(&stack, &mut sp, act) {
             Some(next) => (node, mask) = next,
             None => return,
+        }
+    }
+}
+
+/// The bounds of a packet's lanes whose directions share their signs on
+/// every axis, for a test of a node's eight boxes on behalf of all of them
+/// at once before each box is decided lane by lane (the frustum test of
+/// Embree's packets): a box that no lane can enter is not tested in the
+/// lanes. Bounds, not a tighter frustum, so that the test is conservative
+/// by the monotony of rounding alone: a lane's `(plane - o) · inv` lies
+/// between the products of the corners of `[plane - o_hi, plane - o_lo] ×
+/// [inv_lo, inv_hi]`, each rounded, and its `tmin` and reach between the
+/// packet's least and greatest.
+struct Frustum {
+    o_lo: [f32; 3],
+    o_hi: [f32; 3],
+    inv_lo: [f32; 3],
+    inv_hi: [f32; 3],
+    tmin: f32,
+    reach: f32,
+    /// Per axis, the rows of the entry and exit planes, as [`Slabs`].
+    rows: [(usize, usize); 3],
+}
+
+impl Frustum {
+    /// The bounds of the lanes of `act`, whose signs `signs` are shared
+    /// (`Some(true)`: negative) on every axis. Their `tmax` bounds every
+    /// reach, a closest-hit lane's best hit only shortening it.
+    ///
+    /// # Safety
+    /// The CPU has AVX2.
+    #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
+    #[inline]
+    unsafe fn new_avx2(p: &Packet, act: u16, signs: &[Option<bool>; 3]) -> Frustum {
+        let mut rows = [(0, 3), (1, 4), (2, 5)];
+        for (k, row) in rows.iter_mut().enumerate() {
+            if signs[k] == Some(true) {
+                *row = (3 + k, k);
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::*;
+            // The lanes of `act` as two 8-lane masks.
+            let bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+            let half = |m: u16| {
+                let m = _mm256_and_si256(_mm256_set1_epi32(i32::from(m)), bits);
+                _mm256_castsi256_ps(_mm256_cmpeq_epi32(m, bits))
+            };
+            let (lo, hi) = (half(act & 0xff), half(act >> 8));
+            // SAFETY: `a` is 16 `f32`, two unaligned vector loads.
+            let ld = |a: &Lanes| unsafe {
+                (
+                    _mm256_loadu_ps(a.as_ptr()),
+                    _mm256_loadu_ps(a.as_ptr().add(8)),
+                )
+            };
+            let least = |a: &Lanes| {
+                let (x, y) = ld(a);
+                let inf = _mm256_set1_ps(f32::INFINITY);
+                let m = _mm256_min_ps(_mm256_blendv_ps(inf, x, lo), _mm256_blendv_ps(inf, y, hi));
+                let m = _mm256_min_ps(m, _mm256_permute2f128_ps::<1>(m, m));
+                let m = _mm256_min_ps(m, _mm256_shuffle_ps::<0b0100_1110>(m, m));
+                _mm256_cvtss_f32(_mm256_min_ps(m, _mm256_shuffle_ps::<0b1011_0001>(m, m)))
+            };
+            let greatest = |a: &Lanes| {
+                let (x, y) = ld(a);
+                let inf = _mm256_set1_ps(f32::NEG_INFINITY);
+                let m = _mm256_max_ps(_mm256_blendv_ps(inf, x, lo), _mm256_blendv_ps(inf, y, hi));
+                let m = _mm256_max_ps(m, _mm256_permute2f128_ps::<1>(m, m));
+                let m = _mm256_max_ps(m, _mm256_shuffle_ps::<0b0100_1110>(m, m));
+                _mm256_cvtss_f32(_mm256_max_ps(m, _mm256_shuffle_ps::<0b1011_0001>(m, m)))
+            };
+            Frustum {
+                o_lo: [least(&p.o[0]), least(&p.o[1]), least(&p.o[2])],
+                o_hi: [greatest(&p.o[0]), greatest(&p.o[1]), greatest(&p.o[2])],
+                inv_lo: [least(&p.inv[0]), least(&p.inv[1]), least(&p.inv[2])],
+                inv_hi: [
+                    greatest(&p.inv[0]),
+                    greatest(&p.inv[1]),
+                    greatest(&p.inv[2]),
+                ],
+                tmin: least(&p.tmin),
+                reach: greatest(&p.tmax),
+                rows,
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let on = |i: usize| act & (1 << i) != 0;
+            let least = |a: &Lanes| {
+                (0..LANES)
+                    .filter(|&i| on(i))
+                    .fold(f32::INFINITY, |m, i| m.min(a[i]))
+            };
+            let greatest = |a: &Lanes| {
+                (0..LANES)
+                    .filter(|&i| on(i))
+                    .fold(f32::NEG_INFINITY, |m, i| m.max(a[i]))
+            };
+            Frustum {
+                o_lo: [least(&p.o[0]), least(&p.o[1]), least(&p.o[2])],
+                o_hi: [greatest(&p.o[0]), greatest(&p.o[1]), greatest(&p.o[2])],
+                inv_lo: [least(&p.inv[0]), least(&p.inv[1]), least(&p.inv[2])],
+                inv_hi: [
+                    greatest(&p.inv[0]),
+                    greatest(&p.inv[1]),
+                    greatest(&p.inv[2]),
+                ],
+                tmin: least(&p.tmin),
+                reach: greatest(&p.tmax),
+                rows,
+            }
+        }
+    }
+
+    /// The slots of `wn` that some lane may enter (bit `j` for slot `j`;
+    /// a bound that is NaN keeps its slot).
+    ///
+    /// # Safety
+    /// The CPU has AVX2.
+    #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
+    #[inline]
+    unsafe fn slots_avx2(&self, wn: &WideNode) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::*;
+            // SAFETY: a plane array is 8 `f32`, one unaligned vector load.
+            let ld = |a: &[f32; WIDTH]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
+            let mut tn = _mm256_set1_ps(self.tmin);
+            let mut tf = _mm256_set1_ps(self.reach);
+            for k in 0..3 {
+                let (nr, fr) = self.rows[k];
+                let (np, fp) = (ld(&wn.planes[nr]), ld(&wn.planes[fr]));
+                let (olo, ohi) = (_mm256_set1_ps(self.o_lo[k]), _mm256_set1_ps(self.o_hi[k]));
+                let (ilo, ihi) = (
+                    _mm256_set1_ps(self.inv_lo[k]),
+                    _mm256_set1_ps(self.inv_hi[k]),
+                );
+                let (a, b) = (_mm256_sub_ps(np, ohi), _mm256_sub_ps(np, olo));
+                let n = _mm256_min_ps(
+                    _mm256_min_ps(_mm256_mul_ps(a, ilo), _mm256_mul_ps(a, ihi)),
+                    _mm256_min_ps(_mm256_mul_ps(b, ilo), _mm256_mul_ps(b, ihi)),
+                );
+                let (c, d) = (_mm256_sub_ps(fp, ohi), _mm256_sub_ps(fp, olo));
+                let f = _mm256_max_ps(
+                    _mm256_max_ps(_mm256_mul_ps(c, ilo), _mm256_mul_ps(c, ihi)),
+                    _mm256_max_ps(_mm256_mul_ps(d, ilo), _mm256_mul_ps(d, ihi)),
+                );
+                tn = _mm256_max_ps(n, tn);
+                tf = _mm256_min_ps(f, tf);
+            }
+            let abs = _mm256_andnot_ps(_mm256_set1_ps(-0.0), tf);
+            let reach = _mm256_add_ps(tf, _mm256_mul_ps(abs, _mm256_set1_ps(MARGIN)));
+            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_NGT_UQ>(tn, reach)) as u32
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = wn;
+            u32::MAX
         }
     }
 }
