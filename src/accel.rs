@@ -552,8 +552,9 @@ impl fmt::Debug for AccelTracer<'_> {
 
 impl AccelTracer<'_> {
     /// Calls `f` with the tracer of every query: over the wide boxes where
-    /// they are built (its closest-hit packets are the kd packets), else
-    /// the kd walks and packets.
+    /// they are built (its closest-hit packets are the kd packets, but in
+    /// the AVX2 copy: [`WideTracer::closest_packets`]), else the kd walks
+    /// and packets.
     fn with<R>(&self, f: impl FnOnce(&dyn ClosestHit) -> R) -> R {
         match self.boxes {
             Some(b) => f(&WideTracer::with_level(&self.walk, b, self.level)),
@@ -618,7 +619,8 @@ impl AccelTracer<'_> {
     /// [`Accel::intersect_packet`]. Where the wide boxes are built, a
     /// packet whose rays start at different points (AO, bounce or shadow
     /// rays from a tile's hits) goes over them; a packet from one point (a
-    /// camera's) stays the kd packets, which the boxes do not beat there.
+    /// camera's) stays the kd packets with AVX-512, which the boxes do not
+    /// beat there, and goes over the boxes with AVX2.
     pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
         let (rays, lanes, n) = gather(packet, mask);
         let mut hits = [Hit::MISS; 16];
@@ -765,8 +767,8 @@ fn incoherent(rays: &[Ray]) -> bool {
 const COHERENT: f32 = 0.9;
 
 /// Whether the rays start at one point (a pinhole camera's packet), the
-/// closest-hit packets the wide boxes do not beat the kd-tree on (0.91–
-/// 1.04× in `trace`'s packets). A renderer's packets from a tile's hits,
+/// closest-hit packets the wide boxes do not beat the kd-tree on with
+/// AVX-512 (0.91–1.04× in `trace`'s packets). A renderer's packets from a tile's hits,
 /// which a spread of directions cannot tell from a camera's where they
 /// share a direction cell, run over the boxes through
 /// [`AccelTracer::intersect_packet`] 1.13–1.56× as fast as the kd

@@ -79,6 +79,13 @@ fn check_wide_packets(src: &impl KdSource, boxes: &WideBoxes, rays: &[Ray], want
             assert_eq!(got, expect, "{level:?} packet {c}");
             tracer.occluded_n_cached(chunk, &mut got, &mut cache);
             assert_eq!(got, expect, "{level:?} cached packet {c}");
+            // A camera's 4×4 block through the tracer as made: the kd
+            // packets, or the boxes' packets in the AVX2 copy.
+            if let Ok(block) = <&[Ray; 16]>::try_from(chunk) {
+                let mut hits = [Hit::MISS; 16];
+                WideTracer::with_level(src, boxes, level).closest_hit_4x4(block, &mut hits);
+                assert_eq!(hits[..], want[c * 16..c * 16 + 16], "{level:?} 4x4 {c}");
+            }
         }
     }
     let tracer = WideTracer::new(src, boxes);
