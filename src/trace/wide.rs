@@ -1510,30 +1510,18 @@ impl Frustum {
                 rows,
             }
         }
+        // Elsewhere no copy sets `AVX2`, and `slots_avx2` keeps every
+        // slot: bounds that hold every ray.
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let on = |i: usize| act & (1 << i) != 0;
-            let least = |a: &Lanes| {
-                (0..LANES)
-                    .filter(|&i| on(i))
-                    .fold(f32::INFINITY, |m, i| m.min(a[i]))
-            };
-            let greatest = |a: &Lanes| {
-                (0..LANES)
-                    .filter(|&i| on(i))
-                    .fold(f32::NEG_INFINITY, |m, i| m.max(a[i]))
-            };
+            let _ = (p, act);
             Frustum {
-                o_lo: [least(&p.o[0]), least(&p.o[1]), least(&p.o[2])],
-                o_hi: [greatest(&p.o[0]), greatest(&p.o[1]), greatest(&p.o[2])],
-                inv_lo: [least(&p.inv[0]), least(&p.inv[1]), least(&p.inv[2])],
-                inv_hi: [
-                    greatest(&p.inv[0]),
-                    greatest(&p.inv[1]),
-                    greatest(&p.inv[2]),
-                ],
-                tmin: least(&p.tmin),
-                reach: greatest(&p.tmax),
+                o_lo: [f32::NEG_INFINITY; 3],
+                o_hi: [f32::INFINITY; 3],
+                inv_lo: [f32::NEG_INFINITY; 3],
+                inv_hi: [f32::INFINITY; 3],
+                tmin: f32::NEG_INFINITY,
+                reach: f32::INFINITY,
                 rows,
             }
         }
