@@ -412,18 +412,20 @@ impl Accel {
     /// 10–39; built in 42–811 ms for 35 K–1.1 M triangles on two threads,
     /// in the caller's rayon pool). From then on single rays
     /// ([`Accel::intersect`], [`Accel::occluded`] and the walks from a
-    /// context), any-hit packets and batches, and closest-hit batches of
-    /// incoherent rays go over the boxes; closest-hit packets and coherent
-    /// batches stay the kd packets, where a camera's rays run up to 1.33×
-    /// as fast (candela_city's primary rays, AVX-512). The answers are the
-    /// same, bit for bit.
+    /// context), any-hit packets and batches, closest-hit packets whose
+    /// rays start apart and closest-hit batches of incoherent rays go over
+    /// the boxes; with AVX-512 a camera's packets and coherent batches stay
+    /// the kd packets, where a camera's rays run up to 1.33× as fast
+    /// (candela_city's primary rays), and with AVX2 they go over the boxes
+    /// too ([`WideTracer::closest_packets`]). The answers are the same, bit
+    /// for bit.
     ///
     /// Through an [`AccelTracer`], on the renderer's view-1 rays of four
     /// shared scenes in batches of 4,096 on two threads (the AVX-512 and
     /// AVX2 copies): any-hit batches run 1.05–2.5× as fast over the boxes
     /// (shadow rays 1.05–1.5×, AO rays 1.25–2.5×), AO closest-hit batches
-    /// 1.13–2.0×, the camera's and shadow closest-hit batches as before
-    /// (0.97–1.05×, on the kd packets). Single rays (`slimkd trace --mode
+    /// 1.13–2.0×, the camera's and shadow closest-hit batches with AVX-512
+    /// as before (0.97–1.05×, on the kd packets). Single rays (`slimkd trace --mode
     /// single|wide`): 1.1–2.3× on every ray kind and query.
     ///
     /// Returns the boxes; later calls return them at once. Threads that
@@ -562,6 +564,22 @@ impl AccelTracer<'_> {
         }
     }
 
+    /// [`AccelTracer::with`] for closest-hit packets: over the boxes'
+    /// packets where they are built and `boxes_pay` (asked only then) says
+    /// the rays run faster there.
+    fn with_closest<R>(
+        &self,
+        boxes_pay: impl FnOnce() -> bool,
+        f: impl FnOnce(&dyn ClosestHit) -> R,
+    ) -> R {
+        match self.boxes {
+            Some(b) if boxes_pay() => {
+                f(&WideTracer::with_level(&self.walk, b, self.level).closest_packets())
+            }
+            _ => self.with(f),
+        }
+    }
+
     /// [`Accel::intersect`].
     pub fn intersect(&self, ray: &Ray) -> Option<HitRecord> {
         let hit = self.with(|t| t.closest_hit(ray));
@@ -624,14 +642,10 @@ impl AccelTracer<'_> {
     pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
         let (rays, lanes, n) = gather(packet, mask);
         let mut hits = [Hit::MISS; 16];
-        match self.boxes {
-            Some(b) if !one_origin(&rays[..n]) => {
-                WideTracer::with_level(&self.walk, b, self.level)
-                    .closest_packets()
-                    .closest_hit_n(&rays[..n], &mut hits[..n]);
-            }
-            _ => self.with(|t| t.closest_hit_n(&rays[..n], &mut hits[..n])),
-        }
+        self.with_closest(
+            || !one_origin(&rays[..n]),
+            |t| t.closest_hit_n(&rays[..n], &mut hits[..n]),
+        );
         let mut out = [None; 16];
         for i in 0..n {
             out[lanes[i]] = self.record(&rays[i], hits[i]);
@@ -681,13 +695,10 @@ impl AccelTracer<'_> {
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<HitRecord>]) {
         assert_eq!(rays.len(), out.len(), "one record per ray");
         let mut hits = vec![Hit::MISS; rays.len()];
-        match self.boxes {
-            Some(b) if incoherent(rays) => {
-                let wide = WideTracer::with_level(&self.walk, b, self.level).closest_packets();
-                closest_batch(&wide, rays, &mut hits, &mut Vec::new());
-            }
-            _ => self.with(|t| closest_batch(t, rays, &mut hits, &mut Vec::new())),
-        }
+        self.with_closest(
+            || incoherent(rays),
+            |t| closest_batch(t, rays, &mut hits, &mut Vec::new()),
+        );
         for ((o, r), h) in out.iter_mut().zip(rays).zip(hits) {
             *o = self.record(r, h);
         }
