@@ -28,7 +28,7 @@
 //! node visits a ray against the kd packets' 15.4 steps. The renderer's
 //! AO frame runs 1.05–1.4× faster on four of the shared scenes
 //! (`render --secondary wide`; perf-notes "Secondary rays over wide
-//! boxes"). It costs memory besides the tree (110 and 129 bytes a
+//! boxes"). It costs memory besides the tree (96 and 113 bytes a
 //! triangle on dieselpower and ravenbridge, whose std trees take 21 and
 //! 31; 36 of them the vertex copy), so it is built on request.
 //!
@@ -193,15 +193,17 @@ fn padded(b: &Aabb) -> Aabb {
 impl WideBoxes {
     /// The hierarchy of the tree `walk` views: one pass computes every
     /// node's tight box (each reference clipped to its leaf's cell, the
-    /// leaves in parallel), a second collapses the tree top-down, opening
-    /// the child with the largest box until a node holds eight, and a
-    /// third pulls child nodes into their parent's free slots. Errors
-    /// when the nodes do not form a tree (a file not validated).
+    /// leaves in parallel), a second plans where the kd subtrees are cut
+    /// into wide nodes ([`Plan`]), a third lays the nodes out top-down as
+    /// planned, and a fourth pulls child nodes into their parent's free
+    /// slots. Errors when the nodes do not form a tree (a file not
+    /// validated).
     pub fn new<'a, W: Walk<'a>>(walk: W) -> Result<WideBoxes, WideError> {
         let n_ids = walk.tag().1;
         let limit = walk.step_limit() as usize;
-        let (tight, hoist_boxes) = tight_boxes(walk, n_ids, limit, leaf_box)?;
+        let (tight, hoist_boxes, post) = tight_boxes(walk, n_ids, limit, leaf_box)?;
         let is_node = |c: u32| (c as usize) < n_ids;
+        let plan = Plan::new(walk, &tight, &hoist_boxes, &post);
         let mut nodes = vec![WideNode::EMPTY];
         let mut leaves = 0usize;
         let mut tris: Vec<u32> = Vec::new();
@@ -235,35 +237,11 @@ impl WideBoxes {
                     }
                 }
             }
-            // Open the largest inner child without a hoisted triangle
-            // until the node is full.
-            loop {
-                let mut pick: Option<(usize, f64)> = None;
-                for (k, &c) in front.iter().enumerate() {
-                    if let SourceNode::Inner(i) = walk.node(c)
-                        && i.t_ref.is_none()
-                    {
-                        let area = tight[c as usize].surface_area();
-                        if pick.is_none_or(|(_, a)| area > a) {
-                            pick = Some((k, area));
-                        }
-                    }
-                }
-                let Some((k, _)) = pick else { break };
-                let SourceNode::Inner(i) = walk.node(front[k]) else {
-                    unreachable!("picked an inner node")
-                };
-                let kids: Vec<u32> = [i.left, i.right]
-                    .into_iter()
-                    .filter(|&c| is_node(c) && !tight[c as usize].is_empty())
-                    .collect();
-                // A slot stays free for the hoisted triangle (a node's
-                // first front holds at most two).
-                if front.len() - 1 + kids.len() + usize::from(hoist.is_some()) > WIDTH {
-                    break;
-                }
-                front.swap_remove(k);
-                front.extend(kids);
+            // The node's slots as the plan spreads its children over
+            // them, a slot kept free for the hoisted triangle.
+            if let SourceNode::Inner(_) = walk.node(kd) {
+                front.clear();
+                plan.place_children(kd, WIDTH - usize::from(hoist.is_some()), &mut front);
             }
             let mut slots: Vec<(Aabb, u32)> = Vec::with_capacity(WIDTH);
             for &c in &front {
@@ -379,8 +357,9 @@ fn push_run(
 
 /// The same hierarchy with every child node that fits into its
 /// parent's free slots taken into it (its boxes replace its own), and the
-/// nodes renumbered from the root: the top-down collapse leaves nodes of
-/// few slots at the bottom (ravenbridge: 3.8 slots a node).
+/// nodes renumbered from the root: the [`Plan`] spreads every node that
+/// fits, but keeps a node with a hoisted triangle whole, and such a node
+/// (its triangle's slot with its children's) can still fit.
 fn pull_up(old: &[WideNode]) -> Vec<WideNode> {
     let slots = |n: &WideNode| n.child.iter().filter(|&&c| c != NONE).count();
     let mut out: Vec<WideNode> = Vec::with_capacity(old.len());
@@ -465,12 +444,12 @@ fn tight_boxes<'a, W: Walk<'a>>(
     n_ids: usize,
     limit: usize,
     leaf: impl Fn(W, u32, &Aabb) -> Aabb + Sync,
-) -> Result<(Vec<Aabb>, HoistBoxes), WideError> {
+) -> Result<(Vec<Aabb>, HoistBoxes, Vec<u32>), WideError> {
     use rayon::prelude::*;
     let mut tight = vec![Aabb::EMPTY; n_ids];
     let mut hoists = HoistBoxes::new();
     if n_ids == 0 {
-        return Ok((tight, hoists));
+        return Ok((tight, hoists, Vec::new()));
     }
     // Depth-first, every node with its cell: the leaves listed for the
     // clipping, which runs in parallel (ravenbridge's 1.3 M references),
@@ -511,7 +490,9 @@ fn tight_boxes<'a, W: Walk<'a>>(
     for (&(n, _), b) in leaves.iter().zip(clipped) {
         tight[n as usize] = b;
     }
+    let mut post = Vec::with_capacity(inner.len());
     for (n, cell) in inner {
+        post.push(n);
         let SourceNode::Inner(i) = walk.node(n) else {
             unreachable!("listed as an inner node")
         };
@@ -529,7 +510,127 @@ fn tight_boxes<'a, W: Walk<'a>>(
         }
         tight[n as usize] = b;
     }
-    Ok((tight, hoists))
+    Ok((tight, hoists, post))
+}
+
+/// How the kd subtrees are cut into wide nodes: per kd node and number
+/// of slots `j` (1 to [`WIDTH`]), the least summed surface area of the
+/// wide nodes that cover its subtree in at most `j` slots of a parent,
+/// and whether the node takes one slot itself ([`Plan::TAKE`]) or spreads
+/// its children over them (the dynamic programme of Ylitie, Karras &
+/// Laine 2017 for wide BVHs, with the leaves fixed: a leaf is tested
+/// where it lies in any cut, so only the nodes' areas differ). A node
+/// with a hoisted triangle is never spread, as its triangle's slot
+/// belongs to it.
+///
+/// Against a greedy top-down collapse (open the child with the largest
+/// box until the node holds eight), which leaves the nodes at the bottom
+/// with few slots, the hierarchy has a quarter fewer nodes (bunny_scan
+/// 25,373 → 19,035; 146 → 125 bytes a triangle in all) and the
+/// renderer's AO packets run 1.02–1.07× as fast.
+struct Plan<'w, W> {
+    walk: W,
+    tight: &'w [Aabb],
+    /// Per kd node, `cost[j - 1]` for `j` slots.
+    cost: Vec<[f32; WIDTH]>,
+    /// Per kd node, `choice[j - 1]`: [`Plan::TAKE`], [`Plan::PASS`] (its
+    /// one child with boxes takes the `j` slots) or the left child's
+    /// share of them.
+    choice: Vec<[u8; WIDTH]>,
+}
+
+impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
+    const TAKE: u8 = 0;
+    const PASS: u8 = u8::MAX;
+
+    /// The plan of a tree whose tight boxes are `tight`, hoisted parts
+    /// `hoists`, and inner nodes `post` (each after its children).
+    fn new(walk: W, tight: &'w [Aabb], hoists: &HoistBoxes, post: &[u32]) -> Self {
+        let mut plan = Plan {
+            walk,
+            tight,
+            cost: vec![[0.0; WIDTH]; tight.len()],
+            choice: vec![[Self::TAKE; WIDTH]; tight.len()],
+        };
+        for &n in post {
+            if tight[n as usize].is_empty() {
+                continue;
+            }
+            let SourceNode::Inner(i) = walk.node(n) else {
+                unreachable!("listed as an inner node")
+            };
+            let hoisted = i.t_ref.is_some();
+            let own_slots = WIDTH - usize::from(hoists.get(&n).is_some_and(|b| !b.is_empty()));
+            let own = tight[n as usize].surface_area() as f32 + plan.spread(n, own_slots).0;
+            let mut cost = [own; WIDTH];
+            let mut choice = [Self::TAKE; WIDTH];
+            if !hoisted {
+                for j in 2..=WIDTH {
+                    let (c, how) = plan.spread(n, j);
+                    if c < own {
+                        cost[j - 1] = c;
+                        choice[j - 1] = how;
+                    }
+                }
+            }
+            plan.cost[n as usize] = cost;
+            plan.choice[n as usize] = choice;
+        }
+        plan
+    }
+
+    /// The children of inner node `n` that hold triangles.
+    fn kids(&self, n: u32) -> ([u32; 2], usize) {
+        let mut kids = [0; 2];
+        let mut k = 0;
+        if let SourceNode::Inner(i) = self.walk.node(n) {
+            for c in [i.left, i.right] {
+                if (c as usize) < self.tight.len() && !self.tight[c as usize].is_empty() {
+                    kids[k] = c;
+                    k += 1;
+                }
+            }
+        }
+        (kids, k)
+    }
+
+    /// The least cost of `n`'s children in at most `s` slots, and how.
+    fn spread(&self, n: u32, s: usize) -> (f32, u8) {
+        match self.kids(n) {
+            (_, 0) => (0.0, Self::PASS),
+            ([c, _], 1) => (self.cost[c as usize][s - 1], Self::PASS),
+            ([l, r], _) => {
+                let mut best = (f32::INFINITY, 1);
+                for k in 1..s {
+                    let c = self.cost[l as usize][k - 1] + self.cost[r as usize][s - k - 1];
+                    if c < best.0 {
+                        best = (c, k as u8);
+                    }
+                }
+                best
+            }
+        }
+    }
+
+    /// Appends the slots of `n`'s children spread over `s` slots.
+    fn place_children(&self, n: u32, s: usize, front: &mut Vec<u32>) {
+        match (self.kids(n), self.spread(n, s).1) {
+            ((_, 0), _) => {}
+            (([c, _], 1), _) => self.place(c, s, front),
+            (([l, r], _), k) => {
+                self.place(l, usize::from(k), front);
+                self.place(r, s - usize::from(k), front);
+            }
+        }
+    }
+
+    /// Appends the slots of `n` given `j` slots.
+    fn place(&self, n: u32, j: usize, front: &mut Vec<u32>) {
+        match self.choice[n as usize][j - 1] {
+            Self::TAKE => front.push(n),
+            _ => self.place_children(n, j, front),
+        }
+    }
 }
 
 /// Per kd node with a hoisted triangle, the triangle's part of its cell
