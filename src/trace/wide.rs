@@ -527,7 +527,10 @@ fn tight_boxes<'a, W: Walk<'a>>(
 /// box until the node holds eight), which leaves the nodes at the bottom
 /// with few slots, the hierarchy has a quarter fewer nodes (bunny_scan
 /// 25,373 → 19,035; 146 → 125 bytes a triangle in all) and the
-/// renderer's AO packets run 1.02–1.07× as fast.
+/// renderer's AO packets run 1.02–1.07× as fast. The plan holds 40
+/// bytes a kd node while the boxes are built (black_forest's peak 360
+/// MB against 321) and takes a seventh of their time (1.07 s against
+/// 0.93).
 struct Plan<'w, W> {
     walk: W,
     tight: &'w [Aabb],
@@ -561,12 +564,13 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
             };
             let hoisted = i.t_ref.is_some();
             let own_slots = WIDTH - usize::from(hoists.get(&n).is_some_and(|b| !b.is_empty()));
-            let own = tight[n as usize].surface_area() as f32 + plan.spread(n, own_slots).0;
+            let kids = plan.kids(n);
+            let own = tight[n as usize].surface_area() as f32 + plan.spread(kids, own_slots).0;
             let mut cost = [own; WIDTH];
             let mut choice = [Self::TAKE; WIDTH];
             if !hoisted {
                 for j in 2..=WIDTH {
-                    let (c, how) = plan.spread(n, j);
+                    let (c, how) = plan.spread(kids, j);
                     if c < own {
                         cost[j - 1] = c;
                         choice[j - 1] = how;
@@ -594,9 +598,10 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
         (kids, k)
     }
 
-    /// The least cost of `n`'s children in at most `s` slots, and how.
-    fn spread(&self, n: u32, s: usize) -> (f32, u8) {
-        match self.kids(n) {
+    /// The least cost of a node's children `kids` (as [`Plan::kids`]) in
+    /// at most `s` slots, and how.
+    fn spread(&self, kids: ([u32; 2], usize), s: usize) -> (f32, u8) {
+        match kids {
             (_, 0) => (0.0, Self::PASS),
             ([c, _], 1) => (self.cost[c as usize][s - 1], Self::PASS),
             ([l, r], _) => {
@@ -614,7 +619,8 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
 
     /// Appends the slots of `n`'s children spread over `s` slots.
     fn place_children(&self, n: u32, s: usize, front: &mut Vec<u32>) {
-        match (self.kids(n), self.spread(n, s).1) {
+        let kids = self.kids(n);
+        match (kids, self.spread(kids, s).1) {
             ((_, 0), _) => {}
             (([c, _], 1), _) => self.place(c, s, front),
             (([l, r], _), k) => {
