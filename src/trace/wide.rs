@@ -194,7 +194,7 @@ impl WideBoxes {
     /// The hierarchy of the tree `walk` views: one pass computes every
     /// node's tight box (each reference clipped to its leaf's cell, the
     /// leaves in parallel), a second plans where the kd subtrees are cut
-    /// into wide nodes ([`Plan`]), a third lays the nodes out top-down as
+    /// into wide nodes (`Plan`), a third lays the nodes out top-down as
     /// planned, and a fourth pulls child nodes into their parent's free
     /// slots. Errors when the nodes do not form a tree (a file not
     /// validated).
@@ -230,18 +230,11 @@ impl WideBoxes {
                         .t_ref
                         .map(|t| (t, hoist_boxes[&kd]))
                         .filter(|(_, part)| !part.is_empty());
-                    for c in [i.left, i.right] {
-                        if is_node(c) && !tight[c as usize].is_empty() {
-                            front.push(c);
-                        }
-                    }
+                    // Its children as the plan spreads them over its
+                    // slots, one kept free for the hoisted triangle.
+                    let slots = WIDTH - usize::from(hoist.is_some());
+                    plan.place_children(kd, slots, &mut front);
                 }
-            }
-            // The node's slots as the plan spreads its children over
-            // them, a slot kept free for the hoisted triangle.
-            if let SourceNode::Inner(_) = walk.node(kd) {
-                front.clear();
-                plan.place_children(kd, WIDTH - usize::from(hoist.is_some()), &mut front);
             }
             let mut slots: Vec<(Aabb, u32)> = Vec::with_capacity(WIDTH);
             for &c in &front {
