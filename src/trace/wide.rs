@@ -232,8 +232,7 @@ impl WideBoxes {
                         .filter(|(_, part)| !part.is_empty());
                     // Its children as the plan spreads them over its
                     // slots, one kept free for the hoisted triangle.
-                    let slots = WIDTH - usize::from(hoist.is_some());
-                    plan.place_children(kd, slots, &mut front);
+                    plan.place_children(kd, plan.own_slots(kd), &mut front);
                 }
             }
             let mut slots: Vec<(Aabb, u32)> = Vec::with_capacity(WIDTH);
@@ -527,6 +526,7 @@ fn tight_boxes<'a, W: Walk<'a>>(
 struct Plan<'w, W> {
     walk: W,
     tight: &'w [Aabb],
+    hoists: &'w HoistBoxes,
     /// Per kd node, `cost[j - 1]` for `j` slots.
     cost: Vec<[f32; WIDTH]>,
     /// Per kd node, `choice[j - 1]`: [`Plan::TAKE`], [`Plan::PASS`] (its
@@ -541,10 +541,11 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
 
     /// The plan of a tree whose tight boxes are `tight`, hoisted parts
     /// `hoists`, and inner nodes `post` (each after its children).
-    fn new(walk: W, tight: &'w [Aabb], hoists: &HoistBoxes, post: &[u32]) -> Self {
+    fn new(walk: W, tight: &'w [Aabb], hoists: &'w HoistBoxes, post: &[u32]) -> Self {
         let mut plan = Plan {
             walk,
             tight,
+            hoists,
             cost: vec![[0.0; WIDTH]; tight.len()],
             choice: vec![[Self::TAKE; WIDTH]; tight.len()],
         };
@@ -556,9 +557,9 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
                 unreachable!("listed as an inner node")
             };
             let hoisted = i.t_ref.is_some();
-            let own_slots = WIDTH - usize::from(hoists.get(&n).is_some_and(|b| !b.is_empty()));
             let kids = plan.kids(n);
-            let own = tight[n as usize].surface_area() as f32 + plan.spread(kids, own_slots).0;
+            let own =
+                tight[n as usize].surface_area() as f32 + plan.spread(kids, plan.own_slots(n)).0;
             let mut cost = [own; WIDTH];
             let mut choice = [Self::TAKE; WIDTH];
             if !hoisted {
@@ -574,6 +575,13 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
             plan.choice[n as usize] = choice;
         }
         plan
+    }
+
+    /// The slots inner node `n` has for its children as a wide node: all
+    /// but the one its hoisted triangle takes where that has a part of
+    /// its cell.
+    fn own_slots(&self, n: u32) -> usize {
+        WIDTH - usize::from(self.hoists.get(&n).is_some_and(|b| !b.is_empty()))
     }
 
     /// The children of inner node `n` that hold triangles.
