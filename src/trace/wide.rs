@@ -2146,18 +2146,25 @@ mod tests {
         b
     }
 
+    /// The embedded scene's std tree, built once for the tests.
+    fn dieselpower() -> TreeTracer<'static> {
+        static TREE: std::sync::OnceLock<(crate::scene::TriangleColumns, crate::tree::TreeIr)> =
+            std::sync::OnceLock::new();
+        let (scene, tree) = TREE.get_or_init(|| {
+            let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("scenes/nexuiz_dieselpower.obj");
+            let scene = crate::scene::load_obj(&path).unwrap().0;
+            let tree = build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
+            (scene, tree)
+        });
+        TreeTracer { tree, scene }
+    }
+
     /// The kd leaves with boxes and their references, and the wide
     /// hierarchy's leaves and references, of dieselpower's std tree.
     #[test]
     fn small_subtrees_become_one_leaf_each_triangle_once() {
-        let path =
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
-        let scene = crate::scene::load_obj(&path).unwrap().0;
-        let tree = build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
-        let source = TreeTracer {
-            tree: &tree,
-            scene: &scene,
-        };
+        let source = dieselpower();
         let walk = source.walk();
         let (n_ids, limit) = (walk.tag().1, walk.step_limit() as usize);
         let tight = tight_boxes(walk, n_ids, limit, leaf_box).unwrap().0;
@@ -2198,14 +2205,7 @@ mod tests {
 
     #[test]
     fn leaf_boxes_skip_only_clips_that_cannot_grow_them() {
-        let path =
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/nexuiz_dieselpower.obj");
-        let scene = crate::scene::load_obj(&path).unwrap().0;
-        let tree = build(&scene, &BuildConfig::default(), Algorithm::WaldHavran, None).unwrap();
-        let source = TreeTracer {
-            tree: &tree,
-            scene: &scene,
-        };
+        let source = dieselpower();
         let walk = source.walk();
         let (n_ids, limit) = (walk.tag().1, walk.step_limit() as usize);
         let fast = tight_boxes(walk, n_ids, limit, leaf_box).unwrap().0;
