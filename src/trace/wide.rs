@@ -642,7 +642,10 @@ impl<'w, 'a, W: Walk<'a>> Plan<'w, W> {
         (whole && all.len() <= max).then_some(all)
     }
 
-    /// The distinct triangles of the leaves with boxes under `n`.
+    /// The distinct triangles of the leaves with boxes under `n`, found
+    /// again for a merged node as the layout reaches it: the plan keeps a
+    /// subtree's set only until its parent is planned, so that it never
+    /// holds the sets of the whole tree at once.
     fn subtree_tris(&self, n: u32) -> Vec<u32> {
         let mut all = Vec::new();
         let mut todo = vec![n];
