@@ -139,15 +139,49 @@ impl Camera {
 
     /// The primary ray through the centre of pixel `(x, y)`.
     pub fn ray(&self, x: u32, y: u32) -> Ray {
+        self.lens().ray(x, y)
+    }
+
+    /// The camera's frame, for many rays: [`Lens::ray`] is [`Camera::ray`]
+    /// without its normalisations and tangent (made for every pixel, they
+    /// took 7 % of a 1024² AO render's time).
+    pub fn lens(&self) -> Lens {
         let f = normalize(self.at - self.eye);
         let r = normalize(cross(f, self.up));
-        let u = cross(r, f);
-        let t = (self.fov_deg * std::f64::consts::PI / 180.0 / 2.0).tan();
-        let (w, h) = (f64::from(self.width), f64::from(self.height));
+        Lens {
+            eye: self.eye.as_vec3(),
+            f,
+            r,
+            u: cross(r, f),
+            t: (self.fov_deg * std::f64::consts::PI / 180.0 / 2.0).tan(),
+            w: f64::from(self.width),
+            h: f64::from(self.height),
+        }
+    }
+}
+
+/// A camera's eye, unit view, right and up vectors, the tangent of half
+/// its field of view and its image size ([`Camera::lens`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Lens {
+    eye: Vec3,
+    f: DVec3,
+    r: DVec3,
+    u: DVec3,
+    t: f64,
+    w: f64,
+    h: f64,
+}
+
+impl Lens {
+    /// The primary ray through the centre of pixel `(x, y)`, bit for bit
+    /// [`Camera::ray`]'s.
+    pub fn ray(&self, x: u32, y: u32) -> Ray {
+        let (t, w, h) = (self.t, self.w, self.h);
         let sx = ((f64::from(x) + 0.5) / w * 2.0 - 1.0) * t * w / h;
         let sy = (1.0 - (f64::from(y) + 0.5) / h * 2.0) * t;
-        let d = normalize(f + sx * r + sy * u);
-        Ray::new(self.eye.as_vec3(), d.as_vec3())
+        let d = normalize(self.f + sx * self.r + sy * self.u);
+        Ray::new(self.eye, d.as_vec3())
     }
 }
 
@@ -427,11 +461,12 @@ pub fn primary_rays(camera: &Camera) -> Vec<Ray> {
 /// blocks (row by row within a block, blocks row by row), the order of
 /// [`primary_rays`] and of the frame's packets.
 fn tile_rays(camera: &Camera, (x0, y0): (u32, u32), (tw, th): (u32, u32), rays: &mut Vec<Ray>) {
+    let lens = camera.lens();
     for by in (0..th).step_by(4) {
         for bx in (0..tw).step_by(4) {
             for y in by..(by + 4).min(th) {
                 for x in bx..(bx + 4).min(tw) {
-                    rays.push(camera.ray(x0 + x, y0 + y));
+                    rays.push(lens.ray(x0 + x, y0 + y));
                 }
             }
         }
@@ -625,6 +660,7 @@ pub fn shade(
     shading: Shading,
 ) -> Frame {
     let background = [0.05f32, 0.05, 0.08];
+    let lens = camera.lens();
     let rgb = (0..buffer.hits.len())
         .into_par_iter()
         .map(|i| {
@@ -633,7 +669,7 @@ pub fn shade(
                 return background;
             }
             let (x, y) = (i as u32 % buffer.width, i as u32 / buffer.width);
-            let dir = camera.ray(x, y).dir;
+            let dir = lens.ray(x, y).dir;
             let n = scene.normal(hit.tri.0).normalize_or_zero();
             let n = if n.dot(dir) > 0.0 { -n } else { n };
             match shading {

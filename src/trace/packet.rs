@@ -984,11 +984,11 @@ impl OccluderCache {
         while blocked != 0 {
             let t = occ[blocked.trailing_zeros() as usize];
             blocked &= blocked - 1;
-            let mut known = false;
-            for (k, &c) in self.tris.iter().enumerate() {
-                known |= (k < n) & (c == t);
-            }
-            if !known {
+            // The eight slots compared at once, one byte a slot, those
+            // past `n` masked off (compared one by one with `k < n`, the
+            // update took 5 % of ravenbridge's AO packet instructions).
+            let same = u64::from_le_bytes(self.tris.map(|c| u8::from(c == t)));
+            if same & ((1u64 << (8 * n)) - 1) == 0 {
                 self.tris[n] = t;
                 n += 1;
                 if n == OCCLUDERS {
