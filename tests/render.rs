@@ -415,6 +415,8 @@ fn cli_ao_frame_reports_each_ray_kind() {
     for key in ["frame_ms", "primary_ms", "context_ms", "shadow_ms", "ao_ms"] {
         assert!(ao[key].as_f64().unwrap() >= 0.0, "{key}");
     }
+    // Making the rays takes time, and it is not the frame's.
+    assert!(ao["making_ms"].as_f64().unwrap() > 0.0);
     assert!(out.exists());
     // By ropes and over wide boxes: the same picture, the mode named.
     for mode in ["ropes", "wide"] {

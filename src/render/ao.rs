@@ -82,6 +82,10 @@ pub struct AoTimes {
     pub shadowed: u64,
     /// AO rays that found something within their length.
     pub ao_occluded: u64,
+    /// Making the rays of every kind, not part of the frame (the peer's
+    /// rays come from files): wall time, the primary rays' share of their
+    /// pass (see [`HitBuffer::making_s`]) and the secondary rays' pass.
+    pub making_s: f64,
 }
 
 impl AoTimes {
@@ -327,7 +331,9 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     let primary = trace_frame(tracer, camera);
     let spp = options.spp as usize;
     let normals = normals(&primary);
+    let start = Instant::now();
     let rays = secondary_rays(&primary, camera, bounds, &normals, options.spp);
+    let making_s = primary.making_s + start.elapsed().as_secs_f64();
     let start = Instant::now();
     let chunks: Vec<ChunkOut> = rays
         .par_iter()
@@ -394,6 +400,7 @@ pub fn trace_ao_frame<N: TriangleNormals>(
         ao_rays: rays.iter().map(|c| c.ao.len() as u64).sum(),
         shadowed,
         ao_occluded,
+        making_s,
     };
     AoFrame {
         primary,

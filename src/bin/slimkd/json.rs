@@ -274,6 +274,8 @@ pub(crate) struct AoJson {
     pub(crate) ao_rays: u64,
     pub(crate) shadowed: u64,
     pub(crate) ao_occluded: u64,
+    /// Making the rays, not in `frame_ms`.
+    pub(crate) making_ms: f64,
 }
 
 impl AoJson {
@@ -301,6 +303,7 @@ impl AoJson {
             ao_rays: t.ao_rays,
             shadowed: t.shadowed,
             ao_occluded: t.ao_occluded,
+            making_ms: med(|t| t.making_s),
         }
     }
 }

@@ -423,7 +423,7 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
             if let Some(a) = &ao {
                 let rate = |n: u64, ms: f64| n as f64 / ms / 1e3;
                 println!(
-                    "ao frame   {:.1} ms (median of {}): primary {:.1} ms ({} rays, {:.2} Mrays/s), contexts {:.1} ms, shadow {:.1} ms ({} rays, {:.2} Mrays/s, {} shadowed), AO {:.1} ms ({} rays, {:.2} Mrays/s, {} occluded); secondary rays {}",
+                    "ao frame   {:.1} ms (median of {}): primary {:.1} ms ({} rays, {:.2} Mrays/s), contexts {:.1} ms, shadow {:.1} ms ({} rays, {:.2} Mrays/s, {} shadowed), AO {:.1} ms ({} rays, {:.2} Mrays/s, {} occluded); secondary rays {}; rays made in {:.1} ms (not in the frame)",
                     a.frame_ms,
                     args.reps,
                     a.primary_ms,
@@ -438,7 +438,8 @@ pub(crate) fn cmd_render(args: &RenderArgs, ui: OutputFlags) -> CmdResult<()> {
                     a.ao_rays,
                     rate(a.ao_rays, a.ao_ms),
                     a.ao_occluded,
-                    a.secondary
+                    a.secondary,
+                    a.making_ms
                 );
             }
             if ui.verbose {
