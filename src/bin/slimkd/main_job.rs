@@ -315,7 +315,7 @@ pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
         .expect("the std row renders the AO frame");
     let t = &ao.times;
     say!(
-        "ao frame   std, {} AO rays a hit, secondary rays {secondary}: {:.0} ms = primary {:.0} ({} rays) + shadow {:.0} ({} rays) + AO {:.0} ({} rays, {:.1} Mrays/s)",
+        "ao frame   std, {} AO rays a hit, secondary rays {secondary}: {:.0} ms = primary {:.0} ({} rays) + shadow {:.0} ({} rays) + AO {:.0} ({} rays, {:.1} Mrays/s); rays made in {:.0} ms (not in the frame)",
         AO.spp,
         t.frame_s() * 1e3,
         t.primary_s * 1e3,
@@ -324,7 +324,8 @@ pub(crate) fn main_job(ui: OutputFlags) -> CmdResult<()> {
         t.shadow_rays,
         t.ao_s * 1e3,
         t.ao_rays,
-        t.ao_rays as f64 / t.ao_s / 1e6
+        t.ao_rays as f64 / t.ao_s / 1e6,
+        t.making_s * 1e3
     );
     render::write_image(Path::new(IMAGE), &render::shade_ao(ao))?;
     say!("wrote      {IMAGE}");
