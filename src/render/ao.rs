@@ -119,7 +119,7 @@ struct PixelRays {
     /// ms of its frame, 19.2 so (16 from a ray file).
     has_shadow: bool,
     shadow_at: usize,
-    /// `spp` AO rays, from `ao[first..first + spp]`.
+    /// `spp` AO rays, from `ao[first..first + spp]` of its [`ChunkRays`].
     first: usize,
     /// `n · l` toward the light (0 when facing away).
     cos_light: f32,
@@ -419,10 +419,11 @@ pub struct FrameRays {
     /// The hit pixels' shadow rays, tile by tile (32×32 pixels), Morton
     /// order within a tile.
     pub shadow: Vec<Ray>,
-    /// The AO rays, tile by tile, each tile's in the order its packets
-    /// take them (`order_for_packets`: 16 consecutive rays of a tile are
-    /// a packet; a tile's last packet may hold fewer, which a tracer of
-    /// the whole file fills from the next tile).
+    /// The AO rays, chunk by chunk (1,024 hit pixels, a tile's worth),
+    /// each chunk's in the order its packets take them
+    /// (`order_for_packets`: 16 consecutive rays of a chunk are a packet;
+    /// a chunk's last packet may hold fewer, which a tracer of the whole
+    /// file fills from the next chunk).
     pub ao: Vec<Ray>,
 }
 
