@@ -568,7 +568,7 @@ fn check_sorted_batches(
             rays::occluded_batch(tracer, rays, &mut occ, &mut cache, &mut Vec::new());
             assert_eq!(answers(&occ), o, "{level:?}");
             occ = o.iter().map(|&v| v == 0.0).collect();
-            rays::occluded_in_order(tracer, rays, &octants, &mut occ, &mut cache, &[]);
+            rays::occluded_in_order(tracer, rays, &octants, &mut occ, &mut cache);
             assert_eq!(answers(&occ), o, "{level:?}");
             // By direction cell, as the renderer traces a tile's AO rays.
             let mut order = Vec::new();
@@ -577,7 +577,15 @@ fn check_sorted_batches(
             rays::closest_in_order(tracer, rays, &order, &mut hits);
             assert!(hits.iter().map(|h| h.t).eq(t.iter().copied()), "{level:?}");
             occ = o.iter().map(|&v| v == 0.0).collect();
-            rays::occluded_in_order(tracer, rays, &order, &mut occ, &mut cache, &[]);
+            rays::occluded_in_order(tracer, rays, &order, &mut occ, &mut cache);
+            assert_eq!(answers(&occ), o, "{level:?}");
+            // In their own order, as the renderer traces its AO rays made
+            // in their packets' order, the next rays read on the way.
+            occ = o.iter().map(|&v| v == 0.0).collect();
+            let (now, next) = rays.split_at(rays.len() / 2);
+            let (occ_now, occ_next) = occ.split_at_mut(now.len());
+            rays::occluded_ahead(tracer, now, occ_now, &mut cache, next);
+            rays::occluded_ahead(tracer, next, occ_next, &mut cache, &[]);
             assert_eq!(answers(&occ), o, "{level:?}");
         }
     }

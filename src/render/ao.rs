@@ -12,12 +12,13 @@
 //! length short of it; AO rays of length `0.05·diag` about `n` (Duff et
 //! al. 2017's basis), their random numbers from splitmix64 seeded by
 //! `spp·pixel + k` (with `spp = 4`, the peer's rays exactly). Like the
-//! peer's files, the rays are made before the clock starts.
+//! peer's files, the rays are made before the clock starts, the AO rays
+//! already in the order their packets take them.
 
 use super::{Camera, Frame, HitBuffer, TriangleNormals, trace_frame};
 use crate::geom::{Aabb, Ray};
 use crate::trace::packet::LANES;
-use crate::trace::rays::{occluded_in_order, order_for_packets};
+use crate::trace::rays::{occluded_ahead, order_for_packets};
 use crate::trace::{ClosestHit, HitContext, OccluderCache};
 use glam::{DVec3, Vec3};
 use rayon::prelude::*;
@@ -84,7 +85,9 @@ pub struct AoTimes {
     pub ao_occluded: u64,
     /// Making the rays of every kind, not part of the frame (the peer's
     /// rays come from files): wall time, the primary rays' share of their
-    /// pass (see [`HitBuffer::making_s`]) and the secondary rays' pass.
+    /// pass (see [`HitBuffer::making_s`]) and the secondary rays' pass,
+    /// which also puts each chunk's AO rays in the order of their packets
+    /// (the order the peer's files hold them in).
     pub making_s: f64,
 }
 
@@ -119,7 +122,8 @@ struct PixelRays {
     /// ms of its frame, 19.2 so (16 from a ray file).
     has_shadow: bool,
     shadow_at: usize,
-    /// `spp` AO rays, from `ao[first..first + spp]` of its [`ChunkRays`].
+    /// `spp` AO rays, from `ao[first..first + spp]` of its [`ChunkRays`]
+    /// where those are in the pixels' order.
     first: usize,
     /// `n · l` toward the light (0 when facing away).
     cos_light: f32,
@@ -144,8 +148,13 @@ struct ChunkRays {
     pixels: Vec<PixelRays>,
     /// The shadow rays, pixel after pixel.
     shadow: Vec<Ray>,
-    /// The AO rays, pixel after pixel, `spp` a pixel.
+    /// The AO rays, `spp` a pixel: pixel after pixel, or in the order
+    /// their packets take them (`order_for_packets`), as `ao_of` says.
     ao: Vec<Ray>,
+    /// Where the AO rays are in their packets' order, `ao[q]` is the ray
+    /// `ao_of[q]` of the pixels' order (`spp · pixel + k`, the pixel's
+    /// place in the chunk); empty where they are in the pixels' order.
+    ao_of: Vec<u32>,
 }
 
 /// The secondary rays of every hit pixel (see the module docs), the hit
@@ -154,6 +163,15 @@ struct ChunkRays {
 /// neighbours and the 16 rays of an octant or direction cell that make a
 /// packet start close together; [`CHUNK`] hit pixels a chunk (fewer
 /// where a hit triangle has no normal).
+///
+/// With `packets`, each chunk's AO rays are put in the order their packets
+/// take them ([`order_for_packets`]) while they are in the caches, so that
+/// the packets are traced straight from the array as from a ray file:
+/// ordered (the first pass over rays fresh from memory) and gathered 16 at
+/// a time while timed, dieselpower's AO rays took 242 ms of its frame at
+/// view 1 against 217 so, for a making of 291 ms against 335 (medians of 8
+/// alternated pairs). The order is the making's work, not the frame's, as
+/// the peer's files hold the rays in it.
 ///
 /// Each chunk's rays in vectors of its own, as they are traced: made a
 /// pixel at a time (a vector of AO rays each), sorted into tiles and
@@ -166,6 +184,7 @@ fn secondary_rays(
     bounds: &Aabb,
     normals: &(impl TriangleNormals + ?Sized),
     spp: u32,
+    packets: bool,
 ) -> Vec<ChunkRays> {
     let (lo, hi) = (bounds.min.as_dvec3(), bounds.max.as_dvec3());
     let diag = (hi - lo).length();
@@ -233,20 +252,30 @@ fn secondary_rays(
     };
     tile_order(primary)
         .par_chunks(CHUNK)
-        .map(|chunk| {
+        // With `packets`, a worker's AO rays are made in the pixels' order
+        // into `made`, then copied in their packets' order into the
+        // chunk's array: one vector allocated a chunk, as without.
+        .map_init(Vec::new, |made: &mut Vec<Ray>, chunk| {
             let mut part = ChunkRays {
                 pixels: Vec::with_capacity(chunk.len()),
                 shadow: Vec::with_capacity(chunk.len()),
                 ao: Vec::with_capacity(chunk.len() * spp as usize),
+                ao_of: Vec::new(),
             };
+            let ao = if packets { &mut *made } else { &mut part.ao };
+            ao.clear();
             for &i in chunk {
-                let first = part.ao.len();
-                if let Some((mut px, shadow)) = pixel(i, &mut part.ao) {
+                let first = ao.len();
+                if let Some((mut px, shadow)) = pixel(i, ao) {
                     px.first = first;
                     px.shadow_at = part.shadow.len();
                     part.shadow.extend(shadow);
                     part.pixels.push(px);
                 }
+            }
+            if packets {
+                order_for_packets(made, &mut part.ao_of);
+                part.ao.extend(part.ao_of.iter().map(|&i| made[i as usize]));
             }
             part
         })
@@ -332,7 +361,8 @@ pub fn trace_ao_frame<N: TriangleNormals>(
     let spp = options.spp as usize;
     let normals = normals(&primary);
     let start = Instant::now();
-    let rays = secondary_rays(&primary, camera, bounds, &normals, options.spp);
+    let packets = options.secondary == Secondary::Packet;
+    let rays = secondary_rays(&primary, camera, bounds, &normals, options.spp, packets);
     let making_s = primary.making_s + start.elapsed().as_secs_f64();
     let start = Instant::now();
     let chunks: Vec<ChunkOut> = rays
@@ -350,7 +380,6 @@ pub fn trace_ao_frame<N: TriangleNormals>(
                     contexts: vec![HitContext::default(); n],
                     shadow: OccluderCache::new(),
                     ao: OccluderCache::new(),
-                    order: Vec::new(),
                 }
             },
             |scratch, (k, chunk)| {
@@ -437,13 +466,11 @@ pub fn frame_rays<N: TriangleNormals>(
     normals: &N,
     spp: u32,
 ) -> FrameRays {
-    let chunks = secondary_rays(primary, camera, bounds, normals, spp);
+    let chunks = secondary_rays(primary, camera, bounds, normals, spp, true);
     let (mut shadow, mut ao) = (Vec::new(), Vec::new());
-    let mut order = Vec::new();
     for chunk in &chunks {
         shadow.extend_from_slice(&chunk.shadow);
-        order_for_packets(&chunk.ao, &mut order);
-        ao.extend(order.iter().map(|&i| chunk.ao[i as usize]));
+        ao.extend_from_slice(&chunk.ao);
     }
     FrameRays {
         primary: super::primary_rays(camera),
@@ -460,8 +487,6 @@ struct Scratch {
     contexts: Vec<HitContext>,
     shadow: OccluderCache,
     ao: OccluderCache,
-    /// Scratch of the AO rays' order.
-    order: Vec<u32>,
 }
 
 /// One chunk of pixels: contexts, shadow rays, AO rays, each kind timed;
@@ -535,31 +560,23 @@ fn trace_chunk(
             }
         }
         Secondary::Packet => {
-            let rays = ao;
-            // Packets of one direction cell where the tile's origins lie
-            // close together against the rays' length, else of one octant,
-            // neighbouring pixels together (`order_for_packets`; the sort
-            // is timed).
-            let mut occ = vec![false; rays.len()];
-            order_for_packets(rays, &mut scratch.order);
-            // The next chunk's AO rays (a worker mostly takes the chunks
-            // of one range in turn) are read on the way, so that they are
-            // ordered in the caches: on one thread dieselpower's AO rays
-            // take 228 ms instead of 247. (Its next shadow rays read
-            // likewise took 0.8 ms off the shadow rays on two threads and
-            // added 4 to the AO rays.)
-            occluded_in_order(
-                tracer,
-                rays,
-                &scratch.order,
-                &mut occ,
-                &mut scratch.ao,
-                ahead,
-            );
-            // A pixel's `spp` answers are consecutive (a division a ray
-            // to find its pixel took 2.6 ms of dieselpower's frame on one
-            // thread).
-            for (res, occ) in out.results.iter_mut().zip(occ.chunks(spp.max(1))) {
+            // In their packets' order, made so (`secondary_rays`). The
+            // next chunk's AO rays (a worker mostly takes the chunks of
+            // one range in turn) are read on the way, so that they are in
+            // the caches when their turn comes: on one thread
+            // dieselpower's AO rays take 228 ms instead of 247. (Its next
+            // shadow rays read likewise took 0.8 ms off the shadow rays on
+            // two threads and added 4 to the AO rays.)
+            let mut occ = vec![false; ao.len()];
+            occluded_ahead(tracer, ao, &mut occ, &mut scratch.ao, ahead);
+            // Back to the pixels' order, where a pixel's `spp` answers are
+            // consecutive (a division a ray to find its pixel took 2.6 ms
+            // of dieselpower's frame on one thread).
+            let mut by_pixel = vec![false; ao.len()];
+            for (&i, &o) in rays.ao_of.iter().zip(&occ) {
+                by_pixel[i as usize] = o;
+            }
+            for (res, occ) in out.results.iter_mut().zip(by_pixel.chunks(spp.max(1))) {
                 res.1 = occ.iter().filter(|&&o| !o).count() as u32;
             }
         }

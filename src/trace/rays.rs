@@ -655,32 +655,51 @@ fn gather_into(batch: &mut [Ray; LANES], rays: &[Ray], group: &[u32]) {
 /// several smaller stores is not forwarded). Gathered right before its
 /// trace, the AVX2 copy ran the renderer's AO rays of dieselpower and
 /// bunny_scan 3–8 % slower (the AVX-512 copy within the noise).
-///
-/// With each packet a share of `ahead` (the rays to be traced next) is
-/// read into the caches, so that those rays come from memory while these
-/// are traced rather than when they are ordered: the renderer's first
-/// pass over a tile's AO rays, fresh from memory, took 22 ms of
-/// dieselpower's 240 ms of AO rays on one thread, 6 ms in the caches.
-fn in_packets(rays: &[Ray], order: &[u32], ahead: &[Ray], mut trace: impl FnMut(&[Ray], &[u32])) {
+fn in_packets(rays: &[Ray], order: &[u32], mut trace: impl FnMut(&[Ray], &[u32])) {
     let mut bufs = [[Ray::new(Vec3::ZERO, Vec3::X); LANES]; 2];
     let group = |k: usize| &order[k * LANES..order.len().min((k + 1) * LANES)];
     let n = order.len().div_ceil(LANES);
     if n > 0 {
         gather_into(&mut bufs[0], rays, group(0));
     }
-    // The rays of `ahead` a packet reads, two to a cache line.
-    let share = ahead.len().div_ceil(n.max(1)).next_multiple_of(2);
     for k in 0..n {
         if k + 1 < n {
             gather_into(&mut bufs[(k + 1) & 1], rays, group(k + 1));
         }
+        let g = group(k);
+        trace(&bufs[k & 1][..g.len()], g);
+    }
+}
+
+/// Any-hit queries of `rays` into `out`, in packets of 16 consecutive
+/// rays through the worker's occluder cache
+/// ([`ClosestHit::occluded_n_cached`]), with each packet a share of
+/// `ahead` (the rays the caller traces next, may be empty) read into the
+/// caches, so that those rays come from memory while these are traced:
+/// the renderer's first pass over a tile's AO rays, fresh from memory,
+/// took 22 ms of dieselpower's 240 ms of AO rays on one thread, 6 ms in
+/// the caches.
+///
+/// # Panics
+/// If `out` and `rays` differ in length.
+pub fn occluded_ahead(
+    tracer: &dyn ClosestHit,
+    rays: &[Ray],
+    out: &mut [bool],
+    cache: &mut super::OccluderCache,
+    ahead: &[Ray],
+) {
+    assert_eq!(rays.len(), out.len(), "one answer per ray");
+    // The rays of `ahead` a packet reads, two to a cache line.
+    let share = ahead.len().div_ceil(rays.len().div_ceil(LANES).max(1));
+    let share = share.next_multiple_of(2);
+    for (k, (rays, out)) in rays.chunks(LANES).zip(out.chunks_mut(LANES)).enumerate() {
         if let Some(next) = ahead.get(k * share..ahead.len().min((k + 1) * share)) {
             for r in next.iter().step_by(2) {
                 prefetch(r);
             }
         }
-        let g = group(k);
-        trace(&bufs[k & 1][..g.len()], g);
+        tracer.occluded_n_cached(rays, out, cache);
     }
 }
 
@@ -724,7 +743,7 @@ pub fn mixed_octants(rays: &[Ray]) -> bool {
 /// ([`order_by_octant`], [`order_by_direction`]). Indices past `rays`
 /// panic.
 pub fn closest_in_order(tracer: &dyn ClosestHit, rays: &[Ray], order: &[u32], out: &mut [Hit]) {
-    in_packets(rays, order, &[], |batch, group| {
+    in_packets(rays, order, |batch, group| {
         let mut hits = [Hit::MISS; LANES];
         tracer.closest_hit_n(batch, &mut hits[..group.len()]);
         for (&i, h) in group.iter().zip(hits) {
@@ -734,18 +753,15 @@ pub fn closest_in_order(tracer: &dyn ClosestHit, rays: &[Ray], order: &[u32], ou
 }
 
 /// [`closest_in_order`] for any-hit queries, through the worker's
-/// occluder cache ([`ClosestHit::occluded_n_cached`]); `ahead`, the rays
-/// the caller traces next (may be empty), is read into the caches on
-/// the way.
+/// occluder cache ([`ClosestHit::occluded_n_cached`]).
 pub fn occluded_in_order(
     tracer: &dyn ClosestHit,
     rays: &[Ray],
     order: &[u32],
     out: &mut [bool],
     cache: &mut super::OccluderCache,
-    ahead: &[Ray],
 ) {
-    in_packets(rays, order, ahead, |batch, group| {
+    in_packets(rays, order, |batch, group| {
         let mut occ = [false; LANES];
         tracer.occluded_n_cached(batch, &mut occ[..group.len()], cache);
         for (&i, o) in group.iter().zip(occ) {
@@ -781,7 +797,7 @@ pub fn occluded_batch(
 ) {
     if mixed_octants(rays) {
         order_for_packets(rays, order);
-        occluded_in_order(tracer, rays, order, out, cache, &[]);
+        occluded_in_order(tracer, rays, order, out, cache);
     } else {
         for (rays, out) in rays.chunks(LANES).zip(out.chunks_mut(LANES)) {
             tracer.occluded_n_cached(rays, out, cache);
