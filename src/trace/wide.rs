@@ -949,6 +949,8 @@ fn mask8(b: [bool; WIDTH]) -> u32 {
 struct Slabs {
     o: [f32; 3],
     inv: [f32; 3],
+    /// `inv` times [`REACH`], for the exit distances ([`enter`]).
+    far_inv: [f32; 3],
     /// Per axis, the row of [`WideNode`]'s planes where the ray enters
     /// (`k`, or `3 + k` where the direction is negative) and where it
     /// leaves; each below 6.
@@ -967,7 +969,14 @@ impl Slabs {
             (k + s, k + 3 - s)
         };
         let rows = [row(0), row(1), row(2)];
-        Slabs { o, inv, rows, tmin }
+        let far_inv = inv.map(|x| x * REACH);
+        Slabs {
+            o,
+            inv,
+            far_inv,
+            rows,
+            tmin,
+        }
     }
 
     /// The entry and exit planes of axis `k` of `wn`.
@@ -981,12 +990,26 @@ impl Slabs {
     }
 }
 
+/// `1 + MARGIN`: the exit distances of the box tests are taken this much
+/// further ([`enter`]).
+const REACH: f32 = 1.0 + MARGIN;
+
 /// The boxes of `wn` the ray enters in `(tmin, limit]` (bit `j` for slot
 /// `j`), and their entry distances. Each axis's entry and exit planes are
 /// chosen once by the direction's sign. A NaN (a zero component with the
 /// origin in the face plane) compares false and leaves the bound as it
 /// was: the ray runs in the closed slab. An empty slot's `∞` planes give
 /// an entry at `+∞`.
+///
+/// A box is entered when its entry distance is at most its exit distance
+/// [`MARGIN`] further (and `limit` so much further): the exit distances
+/// are found with the inverses times [`REACH`] (`Slabs::far_inv`), so the
+/// margin costs no operation after them (as `tf + |tf| · MARGIN` it was
+/// three on the chain from a node's load to its mask). For an exit at
+/// `tf ≥ 0` that is `tf` plus its margin within a few units in the last
+/// place (the margin is 2¹¹ of them); at `tf < 0` it is further back, and
+/// such a box is missed either way, as every entry distance is at least
+/// `tmin`, which is at least 0 ([`Ray::tmin`], as for every walk).
 #[inline(always)]
 fn enter(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]) {
     let p = [r.planes(wn, 0), r.planes(wn, 1), r.planes(wn, 2)];
@@ -994,15 +1017,15 @@ fn enter(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]) {
     let mut hit = [false; WIDTH];
     for j in 0..WIDTH {
         let mut tn = r.tmin;
-        let mut tf = limit;
+        let mut tf = limit * REACH;
         for (k, (np, fp)) in p.iter().enumerate() {
             let n = (np[j] - r.o[k]) * r.inv[k];
-            let f = (fp[j] - r.o[k]) * r.inv[k];
+            let f = (fp[j] - r.o[k]) * r.far_inv[k];
             tn = if n > tn { n } else { tn };
             tf = if f < tf { f } else { tf };
         }
         near[j] = tn;
-        hit[j] = tn <= tf + tf.abs() * MARGIN;
+        hit[j] = tn <= tf;
     }
     (mask8(hit), near)
 }
@@ -1022,18 +1045,17 @@ unsafe fn enter_avx2(wn: &WideNode, r: &Slabs, limit: f32) -> (u32, [f32; WIDTH]
     // SAFETY: a plane array is 8 `f32`, one unaligned vector load.
     let ld = |a: &[f32; WIDTH]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
     let mut tn = _mm256_set1_ps(r.tmin);
-    let mut tf = _mm256_set1_ps(limit);
+    let mut tf = _mm256_set1_ps(limit * REACH);
     for k in 0..3 {
         let (np, fp) = r.planes(wn, k);
-        let (o, inv) = (_mm256_set1_ps(r.o[k]), _mm256_set1_ps(r.inv[k]));
+        let o = _mm256_set1_ps(r.o[k]);
+        let (inv, far_inv) = (_mm256_set1_ps(r.inv[k]), _mm256_set1_ps(r.far_inv[k]));
         let n = _mm256_mul_ps(_mm256_sub_ps(ld(np), o), inv);
-        let f = _mm256_mul_ps(_mm256_sub_ps(ld(fp), o), inv);
+        let f = _mm256_mul_ps(_mm256_sub_ps(ld(fp), o), far_inv);
         tn = _mm256_max_ps(n, tn);
         tf = _mm256_min_ps(f, tf);
     }
-    let abs = _mm256_andnot_ps(_mm256_set1_ps(-0.0), tf);
-    let reach = _mm256_add_ps(tf, _mm256_mul_ps(abs, _mm256_set1_ps(MARGIN)));
-    let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(tn, reach);
+    let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(tn, tf);
     let mut near = [0f32; WIDTH];
     // SAFETY: `near` is 8 `f32`, one unaligned vector store.
     unsafe { _mm256_storeu_ps(near.as_mut_ptr(), tn) };
