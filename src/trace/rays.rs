@@ -799,9 +799,7 @@ pub fn occluded_batch(
         order_for_packets(rays, order);
         occluded_in_order(tracer, rays, order, out, cache);
     } else {
-        for (rays, out) in rays.chunks(LANES).zip(out.chunks_mut(LANES)) {
-            tracer.occluded_n_cached(rays, out, cache);
-        }
+        occluded_ahead(tracer, rays, out, cache, &[]);
     }
 }
 
