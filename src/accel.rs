@@ -132,8 +132,9 @@ impl RayPacket {
         }
     }
 
-    /// A packet of up to 16 rays (lanes past `rays.len()` are rays with
-    /// zero direction and an empty interval).
+    /// A packet of up to 16 rays (lanes past `rays.len()` are rays along
+    /// `+z` from the origin with the empty interval `(0, 0]`: in a mask,
+    /// they find nothing).
     ///
     /// # Panics
     ///
@@ -150,6 +151,7 @@ impl RayPacket {
             tmin: [0.0; 16],
             tmax: [0.0; 16],
         };
+        p.dir_z = [1.0; 16];
         for (i, r) in rays.iter().enumerate() {
             p.org_x[i] = r.origin.x;
             p.org_y[i] = r.origin.y;
@@ -491,17 +493,26 @@ impl Accel {
 
     /// The closest hit with `t` in `(ray.tmin, ray.tmax]`, if any (ties go
     /// to the smaller `prim`).
+    ///
+    /// # Panics
+    ///
+    /// If `ray` breaks the contract of [`Ray::check`] (every query of the
+    /// facade does, for each ray it is given): a ray that starts behind
+    /// its origin, say, would get a wrong answer, not an error.
+    #[track_caller]
     pub fn intersect(&self, ray: &Ray) -> Option<HitRecord> {
         self.tracer().intersect(ray)
     }
 
     /// Whether anything is hit with `t` in `(ray.tmin, ray.tmax)`.
+    #[track_caller]
     pub fn occluded(&self, ray: &Ray) -> bool {
         self.tracer().occluded(ray)
     }
 
     /// [`Accel::intersect`] for the lanes of `packet` whose bit is set in
     /// `mask` (traced as one packet); the other lanes are `None`.
+    #[track_caller]
     pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
         self.tracer().intersect_packet(packet, mask)
     }
@@ -509,6 +520,7 @@ impl Accel {
     /// [`Accel::occluded`] for the lanes of `packet` whose bit is set in
     /// `mask`: bit `i` of the result is set iff lane `i` is in the mask and
     /// occluded.
+    #[track_caller]
     pub fn occluded_packet(&self, packet: &RayPacket, mask: u16) -> u16 {
         self.tracer().occluded_packet(packet, mask)
     }
@@ -581,13 +593,17 @@ impl AccelTracer<'_> {
     }
 
     /// [`Accel::intersect`].
+    #[track_caller]
     pub fn intersect(&self, ray: &Ray) -> Option<HitRecord> {
+        expect_valid(ray);
         let hit = self.with(|t| t.closest_hit(ray));
         self.record(ray, hit)
     }
 
     /// [`Accel::occluded`].
+    #[track_caller]
     pub fn occluded(&self, ray: &Ray) -> bool {
+        expect_valid(ray);
         self.with(|t| t.occluded(ray))
     }
 
@@ -595,7 +611,9 @@ impl AccelTracer<'_> {
     /// (`origin + t · dir`), from which the rays that leave it (shadow, AO,
     /// reflection) can start: [`AccelTracer::occluded_from`],
     /// [`AccelTracer::intersect_from`].
+    #[track_caller]
     pub fn intersect_with_context(&self, ray: &Ray) -> Option<(HitRecord, HitContext)> {
+        expect_valid(ray);
         let hit = self.with(|t| t.closest_hit(ray));
         let record = self.record(ray, hit)?;
         let mut ctx = HitContext::default();
@@ -616,7 +634,9 @@ impl AccelTracer<'_> {
     /// where they are built, which need no context: there AO rays run
     /// 1.5–2.6× as fast as from their hit's context (`slimkd trace --mode
     /// from-hit|wide`, three shared scenes, closest and any hit).
+    #[track_caller]
     pub fn intersect_from(&self, ctx: &HitContext, ray: &Ray) -> Option<HitRecord> {
+        expect_valid(ray);
         if self.boxes.is_some() {
             return self.intersect(ray);
         }
@@ -627,7 +647,9 @@ impl AccelTracer<'_> {
     /// [`AccelTracer::occluded`] walked from `ctx`: the same answer for any
     /// ray (over the wide boxes where they are built, as
     /// [`AccelTracer::intersect_from`]).
+    #[track_caller]
     pub fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
+        expect_valid(ray);
         if self.boxes.is_some() {
             return self.occluded(ray);
         }
@@ -639,6 +661,7 @@ impl AccelTracer<'_> {
     /// rays from a tile's hits) goes over them; a packet from one point (a
     /// camera's) stays the kd packets with AVX-512, which the boxes do not
     /// beat there, and goes over the boxes with AVX2.
+    #[track_caller]
     pub fn intersect_packet(&self, packet: &RayPacket, mask: u16) -> [Option<HitRecord>; 16] {
         let (rays, lanes, n) = gather(packet, mask);
         let mut hits = [Hit::MISS; 16];
@@ -654,6 +677,7 @@ impl AccelTracer<'_> {
     }
 
     /// [`Accel::occluded_packet`].
+    #[track_caller]
     pub fn occluded_packet(&self, packet: &RayPacket, mask: u16) -> u16 {
         self.occluded_lanes(packet, mask, |t, rays, occ| t.occluded_n(rays, occ))
     }
@@ -663,6 +687,7 @@ impl AccelTracer<'_> {
     /// the same answers, less work for consecutive packets blocked by the
     /// same triangles, as a renderer's shadow rays toward one light are
     /// ([`OccluderCache`]; keep one cache per thread and kind of ray).
+    #[track_caller]
     pub fn occluded_packet_cached(
         &self,
         packet: &RayPacket,
@@ -691,9 +716,12 @@ impl AccelTracer<'_> {
     /// ray by ray.
     ///
     /// # Panics
-    /// If `out` and `rays` differ in length.
+    /// If `out` and `rays` differ in length, or a ray breaks
+    /// [`Ray::check`].
+    #[track_caller]
     pub fn intersect_batch(&self, rays: &[Ray], out: &mut [Option<HitRecord>]) {
         assert_eq!(rays.len(), out.len(), "one record per ray");
+        rays.iter().for_each(expect_valid);
         let mut hits = vec![Hit::MISS; rays.len()];
         self.with_closest(
             || incoherent(rays),
@@ -711,14 +739,18 @@ impl AccelTracer<'_> {
     /// consecutive rays, and faster still when the pixels come in tiles.
     ///
     /// # Panics
-    /// If `out` and `rays` differ in length.
+    /// If `out` and `rays` differ in length, or a ray breaks
+    /// [`Ray::check`].
+    #[track_caller]
     pub fn occluded_batch(&self, rays: &[Ray], out: &mut [bool], cache: &mut OccluderCache) {
         assert_eq!(rays.len(), out.len(), "one answer per ray");
+        rays.iter().for_each(expect_valid);
         self.with(|t| occluded_batch(t, rays, out, cache, &mut Vec::new()));
     }
 
     /// The lanes of `mask` that `trace` finds occluded, traced as one
     /// packet of the active lanes.
+    #[track_caller]
     fn occluded_lanes(
         &self,
         packet: &RayPacket,
@@ -791,6 +823,20 @@ fn one_origin(rays: &[Ray]) -> bool {
 
 /// The masked lanes of a packet, packed: the rays, their lane numbers and
 /// how many.
+/// Panics where `ray` breaks [`Ray::check`]'s contract, naming the ray.
+#[track_caller]
+fn expect_valid(ray: &Ray) {
+    if let Err(why) = ray.check() {
+        panic!("invalid ray {ray:?}: {why}");
+    }
+}
+
+/// The lanes of `mask` as rays, in lane order, with their lane numbers.
+///
+/// # Panics
+///
+/// If a lane of `mask` breaks [`Ray::check`].
+#[track_caller]
 fn gather(packet: &RayPacket, mask: u16) -> ([Ray; 16], [usize; 16], usize) {
     let mut rays = [Ray::new(Vec3::ZERO, Vec3::Z); 16];
     let mut lanes = [0usize; 16];
@@ -798,6 +844,7 @@ fn gather(packet: &RayPacket, mask: u16) -> ([Ray; 16], [usize; 16], usize) {
     for lane in 0..16 {
         if mask & (1 << lane) != 0 {
             rays[n] = packet.ray(lane);
+            expect_valid(&rays[n]);
             lanes[n] = lane;
             n += 1;
         }

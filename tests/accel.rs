@@ -311,6 +311,72 @@ fn buffers_keep_their_numbering() {
     assert!(matches!(bad, Err(AccelError::Scene(_))));
 }
 
+/// A ray whose interval starts behind its origin breaks the queries'
+/// contract (the walks would answer `t = 2` where brute force finds the
+/// face behind the origin at `t = -2`): every query of the facade panics
+/// on it, naming what it breaks, rather than answer wrongly; a bad lane
+/// outside a packet's mask is not traced and not checked.
+#[test]
+fn rays_behind_their_origin_panic() {
+    let tris = box_mesh(v(0.0, 0.0, 0.0), v(2.0, 3.0, 4.0));
+    let scene = TriangleColumns::from_triangles(&tris).unwrap();
+    let accel = Accel::build(&scene, &BuildOptions::default()).unwrap();
+    let good = Ray::new(v(1.0, 1.5, 2.0), Vec3::Z);
+    let bad = Ray {
+        tmin: -10.0,
+        ..good
+    };
+    assert_eq!(trace::brute_force(&scene, &bad).t, -2.0);
+    assert_eq!(
+        bad.check().unwrap_err(),
+        Ray { tmin: -0.5, ..good }.check().unwrap_err()
+    );
+    assert!(Ray { tmin: -0.0, ..good }.check().is_ok());
+    assert!(
+        Ray {
+            tmin: 3.0,
+            tmax: 1.0,
+            ..good
+        }
+        .check()
+        .is_ok()
+    );
+    let packet = RayPacket::from_rays(&[good, bad, good]);
+    let tracer = accel.tracer();
+    let ctx = tracer.locate(good.origin);
+    let panics = |name: &str, query: &dyn Fn()| {
+        let e = std::panic::catch_unwind(std::panic::AssertUnwindSafe(query)).expect_err(name);
+        let msg = e.downcast_ref::<String>().expect("a formatted message");
+        assert!(msg.contains("tmin is negative"), "{name}: {msg}");
+    };
+    panics("intersect", &|| assert!(accel.intersect(&bad).is_some()));
+    panics("occluded", &|| assert!(accel.occluded(&bad)));
+    panics("packet", &|| {
+        assert!(accel.intersect_packet(&packet, 0b111)[0].is_some())
+    });
+    panics("occluded packet", &|| {
+        assert_eq!(accel.occluded_packet(&packet, 0b010), 0)
+    });
+    panics("context", &|| {
+        assert!(tracer.intersect_with_context(&bad).is_some())
+    });
+    panics("from", &|| {
+        assert!(tracer.intersect_from(&ctx, &bad).is_some())
+    });
+    panics("occluded from", &|| {
+        assert!(tracer.occluded_from(&ctx, &bad))
+    });
+    panics("batch", &|| {
+        tracer.intersect_batch(&[good, bad], &mut [None; 2])
+    });
+    let cache = std::cell::RefCell::new(OccluderCache::new());
+    panics("occluded batch", &|| {
+        tracer.occluded_batch(&[bad], &mut [false], &mut cache.borrow_mut())
+    });
+    assert_eq!(accel.intersect(&good).map(|h| h.t), Some(2.0));
+    assert_eq!(accel.occluded_packet(&packet, 0b101), 0b101);
+}
+
 #[test]
 fn bad_files_are_errors_naming_the_file() {
     let scene =

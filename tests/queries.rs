@@ -367,6 +367,16 @@ fn ray_files_round_trip_and_bad_records_are_named() {
         (1, "tmin > tmax")
     );
     assert_eq!(bad(&|r| r.tmax = f32::NAN), (1, "tmin or tmax is NaN"));
+    assert_eq!(
+        bad(&|r| r.tmin = -0.5),
+        (
+            1,
+            "tmin is negative (the interval must start at or ahead of the origin)"
+        )
+    );
+    let mut zero = rays.clone();
+    zero[1].tmin = -0.0;
+    assert_eq!(rays::parse_rays(&rays::ray_bytes(&zero)).unwrap().len(), 2);
 
     let dir = std::env::temp_dir().join(format!("slimkd-rays-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

@@ -114,6 +114,12 @@ impl Aabb {
 
 /// A ray `origin + t·dir`, valid for `t` in `(tmin, tmax]`. Laid out as
 /// eight `f32` in field order, which the ray orders' vector code loads.
+///
+/// Every query assumes the contract [`Ray::check`] tests (as Embree's
+/// does: the interval lies ahead of the origin). The kd walks decide a
+/// split crossed at `t ≤ 0` to lie behind the ray, so a ray that starts
+/// behind its origin would miss what lies there; the facade
+/// ([`crate::accel`]) panics on such a ray and the ray files refuse it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[repr(C)]
 pub struct Ray {
@@ -137,6 +143,26 @@ impl Ray {
             dir,
             tmin: 0.0,
             tmax: f32::INFINITY,
+        }
+    }
+
+    /// `Ok` when the ray keeps the contract every query assumes: a finite
+    /// origin, a finite direction other than zero, `tmin ≥ 0` and no NaN
+    /// bound (`tmax` may be infinite; an empty interval, `tmin ≥ tmax`,
+    /// is a query that finds nothing); else what it breaks.
+    pub fn check(&self) -> Result<(), &'static str> {
+        if !self.origin.is_finite() {
+            Err("origin is not finite")
+        } else if !self.dir.is_finite() {
+            Err("direction is not finite")
+        } else if self.dir == Vec3::ZERO {
+            Err("direction is zero")
+        } else if self.tmin.is_nan() || self.tmax.is_nan() {
+            Err("tmin or tmax is NaN")
+        } else if self.tmin < 0.0 {
+            Err("tmin is negative (the interval must start at or ahead of the origin)")
+        } else {
+            Ok(())
         }
     }
 }
