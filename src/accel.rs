@@ -701,7 +701,8 @@ impl AccelTracer<'_> {
 
     /// [`AccelTracer::intersect`] for each of a batch of rays (hundreds
     /// to thousands, any directions), into `out`: traced in packets of 16
-    /// rays of one octant, in the batch's order within an octant (so a
+    /// rays of one octant and longest axis (one vertex permutation of the
+    /// triangle test), in the batch's order within such a group (so a
     /// batch whose neighbouring rays start close together, as neighbouring
     /// pixels' do, makes coherent packets), or of one direction cell where
     /// the batch's origins lie close together against its rays' length (a

@@ -642,7 +642,9 @@ fn packet_orders_equal_a_stable_sort_by_their_keys() {
         rays::order_by_octant(&rays, &mut order);
         assert_eq!(order, stable(&rays::octant), "{n} rays by octant");
         rays::order_by_direction(&rays, &mut order);
-        let by_cell = |d: Vec3| rays::octant(d) * 64 + rays::direction_cell(d);
+        let by_cell = |d: Vec3| {
+            (rays::octant(d) * 3 + slimkd::geom::dominant_axis(d)) * 64 + rays::direction_cell(d)
+        };
         assert_eq!(order, stable(&by_cell), "{n} rays by direction cell");
     }
 }
@@ -701,17 +703,20 @@ fn packets_by_direction_cell_only_from_close_origins() {
     endless.iter_mut().for_each(|r| r.tmax = f32::INFINITY);
     assert!(rays::close_origins(&endless), "rays without an end");
     // Octant 0 holds rays 0, 2, 3 and 5, in cells 20 (u = 6, v = 0), 40
-    // (0, 6), 17 (5, 0) and 41 (1, 6); octant 1 rays 1 and 4, both in
-    // cell 12 (2, 2).
+    // (0, 6), 17 (5, 0) and 41 (1, 6), x their longest axis in rays 0
+    // and 3, y in 2 and 5; octant 1 rays 1 and 4, both in cell 12 (2, 2),
+    // x the longest in ray 1 (a tie goes to the lower axis), y in 4.
     let mut got = Vec::new();
     rays::order_for_packets(&close, &mut got);
     assert_eq!(got, [3, 0, 2, 5, 1, 4]);
+    // From origins far apart: by octant and longest axis, each group in
+    // the rays' own order.
     rays::order_for_packets(&far, &mut got);
-    assert_eq!(got, [0, 2, 3, 5, 1, 4]);
+    assert_eq!(got, [0, 3, 2, 5, 1, 4]);
 }
 
 #[test]
-fn direction_order_groups_octants_then_cells_stably() {
+fn direction_order_groups_octants_axes_then_cells_stably() {
     let mut seed = 3u64;
     let mut unit = move || {
         seed = seed
@@ -729,11 +734,34 @@ fn direction_order_groups_octants_then_cells_stably() {
     assert!(seen.iter().copied().eq(0..rays.len() as u32));
     let key = |i: u32| {
         let d = rays[i as usize].dir;
-        (rays::octant(d), rays::direction_cell(d), i)
+        (
+            rays::octant(d),
+            slimkd::geom::dominant_axis(d),
+            rays::direction_cell(d),
+            i,
+        )
     };
     assert!(order.windows(2).all(|w| key(w[0]) < key(w[1])));
-    // Most cells of every octant are used (u + v ≤ 1 is half the square).
+    // Most cells of every octant are used (u + v ≤ 1 is half the square;
+    // a cell the planes of equal components cross is used once per axis).
     let cells: std::collections::HashSet<(usize, usize)> =
-        order.iter().map(|&i| (key(i).0, key(i).1)).collect();
+        order.iter().map(|&i| (key(i).0, key(i).2)).collect();
     assert!(cells.len() > 8 * 30, "{}", cells.len());
+    // Neighbours of one octant and longest axis share the triangle test's
+    // vertex permutation, which the packets' test then picks once; at
+    // most 23 places in the order change group.
+    let perm = |i: u32| {
+        let p = slimkd::geom::RayPrecomp::new(&rays[i as usize]);
+        (p.kx, p.ky, p.kz)
+    };
+    let changes = order
+        .windows(2)
+        .filter(|w| perm(w[0]) != perm(w[1]))
+        .count();
+    let groups = order
+        .windows(2)
+        .filter(|w| key(w[0]).0 != key(w[1]).0 || key(w[0]).1 != key(w[1]).1)
+        .count();
+    assert_eq!(changes, groups);
+    assert!(groups <= 23, "{groups}");
 }

@@ -46,6 +46,21 @@ pub struct RayPrecomp {
     pub sz: f32,
 }
 
+/// The axis along which `dir` is longest, the test's `kz` (ties to the
+/// lower axis): the packets' lanes share their vertex permutation where
+/// their rays share it and the sign of that component.
+#[inline]
+pub fn dominant_axis(dir: Vec3) -> usize {
+    let a = dir.abs();
+    if a.x >= a.y && a.x >= a.z {
+        0
+    } else if a.y >= a.z {
+        1
+    } else {
+        2
+    }
+}
+
 impl RayPrecomp {
     /// The constants of `ray`.
     ///
@@ -58,14 +73,7 @@ impl RayPrecomp {
         const AXES: [[(usize, usize); 2]; 3] =
             [[(1, 2), (2, 1)], [(2, 0), (0, 2)], [(0, 1), (1, 0)]];
         let d = ray.dir.to_array();
-        let a = ray.dir.abs();
-        let kz = if a.x >= a.y && a.x >= a.z {
-            0
-        } else if a.y >= a.z {
-            1
-        } else {
-            2
-        };
+        let kz = dominant_axis(ray.dir);
         let dz = d[kz];
         let (kx, ky) = AXES[kz][usize::from(dz < 0.0)];
         RayPrecomp {

@@ -13,7 +13,9 @@ mod intersect;
 
 pub(crate) use clip::clip_split;
 pub use clip::clip_triangle;
-pub use intersect::{RayPrecomp, edge_functions, intersect_ray_triangle, intersect_triangle};
+pub use intersect::{
+    RayPrecomp, dominant_axis, edge_functions, intersect_ray_triangle, intersect_triangle,
+};
 pub(crate) use intersect::{edges_need_f64, scaled_distance, sheared_edges, t_needs_f64};
 
 use glam::Vec3;
