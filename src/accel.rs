@@ -822,8 +822,6 @@ fn one_origin(rays: &[Ray]) -> bool {
     rays.iter().all(|r| r.origin == rays[0].origin)
 }
 
-/// The masked lanes of a packet, packed: the rays, their lane numbers and
-/// how many.
 /// Panics where `ray` breaks [`Ray::check`]'s contract, naming the ray.
 #[track_caller]
 fn expect_valid(ray: &Ray) {
@@ -832,7 +830,8 @@ fn expect_valid(ray: &Ray) {
     }
 }
 
-/// The lanes of `mask` as rays, in lane order, with their lane numbers.
+/// The masked lanes of a packet, packed: the rays, their lane numbers and
+/// how many.
 ///
 /// # Panics
 ///
