@@ -231,7 +231,8 @@ fn timed_chunks<S>(
 
 /// Traces `rays` in chunks of [`SORT_CHUNK`] on the current rayon pool,
 /// each chunk as one batch ([`closest_batch`], [`occluded_batch`]: in
-/// packets of one octant where it mixes octants, else of its own order);
+/// packets of one octant and longest axis, or direction cell, where it
+/// mixes octants, else of its own order);
 /// the ordering is timed with the rays.
 pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
     let init = || {
@@ -788,7 +789,8 @@ pub fn occluded_in_order(
 
 /// Closest hits of a batch of `rays` into `out`, 16 at a time: in the
 /// order of [`order_for_packets`] (by direction cell where the origins
-/// lie close together, else by octant) where the batch mixes octants
+/// lie close together, else by octant and longest axis) where the batch
+/// mixes octants
 /// ([`mixed_octants`]), else in packets of its own order. `order` is
 /// scratch.
 pub fn closest_batch(tracer: &dyn ClosestHit, rays: &[Ray], out: &mut [Hit], order: &mut Vec<u32>) {
