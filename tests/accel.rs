@@ -315,7 +315,8 @@ fn buffers_keep_their_numbering() {
 /// contract (the walks would answer `t = 2` where brute force finds the
 /// face behind the origin at `t = -2`): every query of the facade panics
 /// on it, naming what it breaks, rather than answer wrongly; a bad lane
-/// outside a packet's mask is not traced and not checked.
+/// outside a packet's mask is not traced and not checked, and an empty
+/// interval is no error.
 #[test]
 fn rays_behind_their_origin_panic() {
     let tris = box_mesh(v(0.0, 0.0, 0.0), v(2.0, 3.0, 4.0));
@@ -374,6 +375,17 @@ fn rays_behind_their_origin_panic() {
         tracer.occluded_batch(&[bad], &mut [false], &mut cache.borrow_mut())
     });
     assert_eq!(accel.intersect(&good).map(|h| h.t), Some(2.0));
+    // An empty interval around the hit at t = 2 is a valid query that
+    // finds nothing, as brute force finds nothing.
+    let empty = Ray {
+        tmin: 3.0,
+        tmax: 1.0,
+        ..good
+    };
+    assert!(!trace::brute_force(&scene, &empty).is_hit());
+    assert_eq!(accel.intersect(&empty), None);
+    assert!(!accel.occluded(&empty));
+    assert_eq!(accel.occluded_packet(&RayPacket::from_rays(&[empty]), 1), 0);
     assert_eq!(accel.occluded_packet(&packet, 0b101), 0b101);
 }
 
