@@ -636,10 +636,10 @@ impl AccelTracer<'_> {
     /// from-hit|wide`, three shared scenes, closest and any hit).
     #[track_caller]
     pub fn intersect_from(&self, ctx: &HitContext, ray: &Ray) -> Option<HitRecord> {
-        expect_valid(ray);
         if self.boxes.is_some() {
             return self.intersect(ray);
         }
+        expect_valid(ray);
         let hit = Scalar::new(&self.walk).closest_hit_from(ctx, ray);
         self.record(ray, hit)
     }
@@ -649,10 +649,10 @@ impl AccelTracer<'_> {
     /// [`AccelTracer::intersect_from`]).
     #[track_caller]
     pub fn occluded_from(&self, ctx: &HitContext, ray: &Ray) -> bool {
-        expect_valid(ray);
         if self.boxes.is_some() {
             return self.occluded(ray);
         }
+        expect_valid(ray);
         Scalar::new(&self.walk).occluded_from(ctx, ray)
     }
 

@@ -507,7 +507,6 @@ unsafe fn keys_avx2(rays: &[Ray], keys: &mut [u16], spread: &mut Spread) -> usiz
         let four = _mm256_slli_epi32::<2>(_mm256_and_si256(b, _mm256_set1_epi32(4)));
         _mm256_or_si256(_mm256_or_si256(one, two), four)
     };
-    let ones = _mm256_set1_epi32(-1);
     let sign = |x: __m256, bit: i32| {
         let neg = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LT_OQ>(x, zero));
         _mm256_and_si256(neg, _mm256_set1_epi32(bit))
@@ -553,16 +552,19 @@ unsafe fn keys_avx2(rays: &[Ray], keys: &mut [u16], spread: &mut Spread) -> usiz
         let scale = _mm256_div_ps(bins, _mm256_add_ps(_mm256_add_ps(ax, ay), az));
         let (u, v) = (bin(_mm256_mul_ps(ax, scale)), bin(_mm256_mul_ps(ay, scale)));
         let cell = _mm256_or_si256(spread_bits(u), _mm256_slli_epi32::<1>(spread_bits(v)));
-        // `dominant_axis`: 0 where x is longest, else 1 where y is, else 2.
-        let x_max = _mm256_and_ps(
+        // `dominant_axis`: 0 where x is longest, else 1 where y is, else
+        // 2; as `2 + 2·x_max + y_max` with the masks' -1 for true.
+        let x_max = _mm256_castps_si256(_mm256_and_ps(
             _mm256_cmp_ps::<_CMP_GE_OQ>(ax, ay),
             _mm256_cmp_ps::<_CMP_GE_OQ>(ax, az),
+        ));
+        let y_max = _mm256_andnot_si256(
+            x_max,
+            _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GE_OQ>(ay, az)),
         );
-        let y_max = _mm256_andnot_ps(x_max, _mm256_cmp_ps::<_CMP_GE_OQ>(ay, az));
-        let z_max = _mm256_andnot_ps(_mm256_or_ps(x_max, y_max), _mm256_castsi256_ps(ones));
-        let axis = _mm256_or_si256(
-            _mm256_and_si256(_mm256_castps_si256(y_max), _mm256_set1_epi32(1)),
-            _mm256_and_si256(_mm256_castps_si256(z_max), _mm256_set1_epi32(2)),
+        let axis = _mm256_add_epi32(
+            _mm256_set1_epi32(2),
+            _mm256_add_epi32(_mm256_slli_epi32::<1>(x_max), y_max),
         );
         let group = _mm256_add_epi32(
             _mm256_add_epi32(octant, _mm256_slli_epi32::<1>(octant)),
@@ -635,11 +637,12 @@ pub fn close_origins(rays: &[Ray]) -> bool {
 /// else by octant and longest axis (as [`order_by_octant`], each of its
 /// groups cut in three), which keeps neighbouring origins together. Both
 /// keep a packet's lanes to one vertex permutation of the triangle test
-/// ([`order_by_direction`]): bunny_scan's AO pass in the frame ran 1.14×
-/// as fast, dieselpower's 1.06× (ravenbridge 0.99×). Rays of one direction from close origins cross the same
-/// cells; rays from origins far apart against the cells around them
-/// (bunny_scan's scanned surface, whose AO rays mostly escape) share more
-/// of their paths when their origins are neighbours.
+/// ([`order_by_direction`]): bunny_scan's AO pass in the frame ran 1.14× as
+/// fast, dieselpower's 1.06× (ravenbridge 0.99×). Rays of one direction
+/// from close origins cross the same cells; rays from origins far apart
+/// against the cells around them (bunny_scan's scanned surface, whose AO
+/// rays mostly escape) share more of their paths when their origins are
+/// neighbours.
 pub fn order_for_packets(rays: &[Ray], order: &mut Vec<u32>) {
     let mut keys = Vec::new();
     if direction_keys(rays, &mut keys) {
@@ -647,7 +650,7 @@ pub fn order_for_packets(rays: &[Ray], order: &mut Vec<u32>) {
     } else {
         // The octant and the dominant axis are the key's high bits.
         let cells = (DIRECTION_BINS * DIRECTION_BINS).trailing_zeros();
-        counting_order(&keys, 8 * 3, cells, order);
+        counting_order(&keys, DIRECTION_KEYS >> cells, cells, order);
     }
 }
 
