@@ -232,8 +232,8 @@ fn timed_chunks<S>(
 /// Traces `rays` in chunks of [`SORT_CHUNK`] on the current rayon pool,
 /// each chunk as one batch ([`closest_batch`], [`occluded_batch`]: in
 /// packets of one octant and longest axis, or direction cell, where it
-/// mixes octants, else of its own order);
-/// the ordering is timed with the rays.
+/// mixes octants, else of its own order); the ordering is timed with the
+/// rays.
 pub fn trace_batch_sorted(tracer: &dyn ClosestHit, rays: &[Ray], query: Query) -> Traced {
     let init = || {
         (
@@ -793,9 +793,8 @@ pub fn occluded_in_order(
 /// Closest hits of a batch of `rays` into `out`, 16 at a time: in the
 /// order of [`order_for_packets`] (by direction cell where the origins
 /// lie close together, else by octant and longest axis) where the batch
-/// mixes octants
-/// ([`mixed_octants`]), else in packets of its own order. `order` is
-/// scratch.
+/// mixes octants ([`mixed_octants`]), else in packets of its own order.
+/// `order` is scratch.
 pub fn closest_batch(tracer: &dyn ClosestHit, rays: &[Ray], out: &mut [Hit], order: &mut Vec<u32>) {
     if mixed_octants(rays) {
         order_for_packets(rays, order);
@@ -947,8 +946,8 @@ pub enum Pieces {
     Single,
     /// 16 consecutive rays ([`trace_batch`] with packets).
     Packets,
-    /// 16 rays of one octant where a chunk mixes octants, as
-    /// [`trace_batch_sorted`] cuts them.
+    /// 16 rays of one octant and longest axis (or one direction cell)
+    /// where a chunk mixes octants, as [`trace_batch_sorted`] cuts them.
     Sorted,
 }
 

@@ -708,8 +708,9 @@ pub struct TraceArgs {
     /// Traversal: `single` ray at a time, `packet`s of 16 consecutive
     /// rays (any-hit packets test first the triangles that blocked the
     /// last packet their thread traced), packets of 16 rays of one octant
-    /// (`sorted`: each run of 1,024 consecutive rays ordered by the signs
-    /// of its directions, or by direction cell where the run's origins lie
+    /// and longest axis (`sorted`: each run of 1,024 consecutive rays
+    /// ordered by the signs and longest axis of its directions, or by
+    /// direction cell where the run's origins lie
     /// close together against its rays' length, stably and timed, as
     /// `render` orders its AO rays; a run whose packets mostly keep one
     /// octant, as shadow rays toward one light do, stays in its order), or single rays walked
